@@ -1,0 +1,162 @@
+"""Model configurations as plain, typed, immutable values.
+
+A :class:`DITConfig` fully determines the network's shapes and the inference procedure. It is hashable, so it
+can be passed to ``jax.jit`` as a static argument. Presets:
+
+* :func:`paper` -- the configuration of the paper and the authors' released model.
+* :func:`cpu` -- a narrower, shallower network that trains in reasonable time on a laptop CPU.
+* :func:`tiny` -- the smallest sensible network, for tests.
+
+GMCCE thresholds per data setting (SPEC.md section 9) are in :data:`GMCCE_THRESHOLDS`.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+from typing import Any, Mapping
+
+#: The authors' evaluation thresholds tau of GMCCE for each data setting.
+GMCCE_THRESHOLDS: Mapping[str, float] = {
+    "clean": 0.99,
+    "low_noise_partial": 0.9,
+    "high_noise_partial": 0.6,
+}
+
+#: Number of token-transformer layers in PSE; the embedding width is this many tokens wide.
+PSE_LAYERS = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class DITConfig:
+    """Everything that shapes DIT and its iterative inference.
+
+    Attributes:
+      emb_dims: E, the feature width. Must equal ``PSE_LAYERS * token_dim`` (8 T).
+      token_dim: T, the width of each PSE token.
+      n_blocks: encoder layers and decoder layers of PFT (each).
+      ff_dims: hidden width of PFT's feed-forward layers.
+      n_heads: attention heads in PFT (PSE always uses 4).
+      k: neighbours of the LFI graph in PSE.
+      n_iters: registration iterations at inference; GMCCE from the second on.
+      gmcce_k: k_s, neighbours forming GMCCE's triangles.
+      gmcce_sharpness: lambda of GMCCE's confidence 2 sigmoid(-lambda E).
+      gmcce_threshold: tau; a correspondence is an inlier iff its confidence exceeds it.
+      gmcce_min_dist2: squared distance below which a point is no GMCCE triangle vertex of another.
+      temp_factor: the temperature is clamped to [1 / temp_factor, temp_factor].
+      pse_heads: attention heads of the PSE token transformers.
+      se_reduction: channel reduction of the squeeze-and-excitation block.
+      temp_hidden: hidden width of the temperature net.
+      pe_expansion: the positional encoding's hidden width is ``pe_expansion * emb_dims``.
+      dropout: dropout after PFT's feed-forward activation in training (the authors use 0.2).
+    """
+
+    emb_dims: int = 512
+    token_dim: int = 64
+    n_blocks: int = 12
+    ff_dims: int = 1024
+    n_heads: int = 4
+    k: int = 20
+    n_iters: int = 3
+    gmcce_k: int = 10
+    gmcce_sharpness: float = 30.0
+    gmcce_threshold: float = 0.99
+    gmcce_min_dist2: float = 0.1
+    temp_factor: float = 100.0
+    pse_heads: int = 4
+    se_reduction: int = 16
+    temp_hidden: int = 128
+    pe_expansion: int = 8
+    dropout: float = 0.2
+
+    def __post_init__(self):
+        problems = []
+        if self.emb_dims != PSE_LAYERS * self.token_dim:
+            problems.append(f"emb_dims ({self.emb_dims}) must be {PSE_LAYERS} * token_dim ({self.token_dim})")
+        if self.emb_dims % self.n_heads:
+            problems.append(f"emb_dims ({self.emb_dims}) must be divisible by n_heads ({self.n_heads})")
+        if self.token_dim % self.pse_heads:
+            problems.append(f"token_dim ({self.token_dim}) must be divisible by pse_heads ({self.pse_heads})")
+        if self.emb_dims < self.se_reduction:
+            problems.append(f"emb_dims ({self.emb_dims}) must be at least se_reduction ({self.se_reduction})")
+        for name in ("n_blocks", "ff_dims", "k", "n_iters", "gmcce_k", "temp_hidden"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be positive, got {getattr(self, name)}")
+        if self.gmcce_k < 2:
+            problems.append("gmcce_k must be at least 2 (a triangle needs two neighbours)")
+        if not self.temp_factor >= 1.0:
+            problems.append(f"temp_factor must be >= 1, got {self.temp_factor}")
+        if problems:
+            raise ValueError("invalid DITConfig: " + "; ".join(problems))
+
+    def replace(self, **changes: Any) -> "DITConfig":
+        """Returns a copy with ``changes`` applied (and validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "DITConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown DITConfig fields: {', '.join(unknown)}")
+        return cls(**values)
+
+
+def paper(setting: str = "clean") -> DITConfig:
+    """The paper's network: E 512, T 64, 12 blocks, FF 1024, 4 heads, k 20, 3 iterations."""
+    return DITConfig(gmcce_threshold=GMCCE_THRESHOLDS[setting])
+
+
+def cpu(setting: str = "clean") -> DITConfig:
+    """A network small enough to train on a CPU in hours: E 128, 2 blocks."""
+    return DITConfig(emb_dims=128, token_dim=16, n_blocks=2, ff_dims=256,
+                     gmcce_threshold=GMCCE_THRESHOLDS[setting])
+
+
+def tiny(setting: str = "clean") -> DITConfig:
+    """The smallest useful network, for tests: E 32, 1 block, k 8."""
+    return DITConfig(emb_dims=32, token_dim=4, n_blocks=1, ff_dims=32, k=8, temp_hidden=16,
+                     gmcce_threshold=GMCCE_THRESHOLDS[setting])
+
+
+PRESETS = {"paper": paper, "cpu": cpu, "tiny": tiny}
+
+
+def get(name: str, setting: str = "clean") -> DITConfig:
+    """Returns the preset ``name`` for a data ``setting`` (see :data:`GMCCE_THRESHOLDS`)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown config {name!r}; choose one of {', '.join(PRESETS)}")
+    if setting not in GMCCE_THRESHOLDS:
+        raise ValueError(f"unknown setting {setting!r}; choose one of {', '.join(GMCCE_THRESHOLDS)}")
+    return PRESETS[name](setting)
+
+
+# The authors' argument names (as in the check file's `config`) and ours.
+_AUTHORS_NAMES = {
+    "n_emb_dims": "emb_dims",
+    "token_dim": "token_dim",
+    "n_blocks": "n_blocks",
+    "n_ff_dims": "ff_dims",
+    "n_heads": "n_heads",
+    "k": "k",
+    "gmcce_k": "gmcce_k",
+    "gmcce_sharpness": "gmcce_sharpness",
+    "gmcce_threshold": "gmcce_threshold",
+    "temp_factor": "temp_factor",
+    "n_iters": "n_iters",
+}
+
+
+def from_authors(values: Mapping[str, Any] | str, **overrides: Any) -> DITConfig:
+    """Builds a config from the authors' argument names (a mapping or its Python literal).
+
+    Keys that describe data rather than the network (such as ``n_points``) are ignored.
+    """
+    if isinstance(values, str):
+        values = ast.literal_eval(values)
+    mapped = {ours: values[theirs] for theirs, ours in _AUTHORS_NAMES.items() if theirs in values}
+    mapped.update(overrides)
+    return DITConfig(**mapped)

@@ -1,0 +1,204 @@
+"""Weights from the authors' PyTorch state dict to dit-jax params, and back.
+
+:func:`from_torch_state_dict` takes a ``{name: ndarray}`` mapping under the authors' names (as in the
+``param/*`` entries of the reference check file) and returns the params tree of :class:`dit_jax.model.DIT`.
+PyTorch ``Linear`` weights (out, in) become Flax kernels (in, out). Tensors the authors' model holds but never
+uses (``emb_nn.project``, ``attn.norm1`` inside the token transformers, ``head.temperature``, ``head.reflect``)
+are dropped.
+
+Command line (needs the ``torch`` extra to read ``.pth``)::
+
+    python -m dit_jax.convert model.best.t7 OUT_DIR [--config paper] [--n-heads 4]
+
+writes an orbax checkpoint of the converted params and the config, restorable with
+:func:`dit_jax.checkpoint.restore`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from typing import Any, Callable, Mapping
+
+import jax
+import numpy as np
+from flax import traverse_util
+
+from dit_jax import configs, model
+from dit_jax.configs import DITConfig
+
+UNUSED = (
+    re.compile(r"emb_nn\.project\..*"),
+    re.compile(r"emb_nn\.attention\d+\.attn\.norm1\..*"),
+    re.compile(r"head\.(temperature|reflect)"),
+)
+
+_LINEAR_LEAF = {"weight": "kernel", "bias": "bias"}
+_NORM_LEAF = {"weight": "scale", "bias": "bias"}
+_LNSTAR_LEAF = {"a_2": "a_2", "b_2": "b_2"}
+_QKVO = "qkvo"
+
+# (pattern over the authors' name, function of the match to (our path, leaf kind))
+_RULES: list[tuple[re.Pattern, Callable[[re.Match], tuple[tuple[str, ...], str]]]] = [
+    (re.compile(r"emb_nn\.attention(\d+)\.(norm1|norm2)\.(weight|bias)"),
+     lambda m: (("pse", f"attention{m[1]}", m[2], _NORM_LEAF[m[3]]), "norm")),
+    (re.compile(r"emb_nn\.attention(\d+)\.attn\.(qkv|proj)\.(weight|bias)"),
+     lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3])),
+    (re.compile(r"emb_nn\.attention(\d+)\.mlp\.(fc1|fc2)\.(weight|bias)"),
+     lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3])),
+    (re.compile(r"emb_nn\.norm\.(weight|bias)"),
+     lambda m: (("pse", "norm", _NORM_LEAF[m[1]]), "norm")),
+    (re.compile(r"Position_encoding\.PE\.(0|2)\.(weight|bias)"),
+     lambda m: (("positional_encoding", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2])),
+    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.(self_attn|src_attn)\.linears\.([0-3])\."
+                r"(weight|bias)"),
+     lambda m: (("pft", m[1], f"layers_{m[2]}", m[3], _QKVO[int(m[4])], _LINEAR_LEAF[m[5]]), m[5])),
+    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.feed_forward\.(w_1|w_2)\.(weight|bias)"),
+     lambda m: (("pft", m[1], f"layers_{m[2]}", "feed_forward", m[3], _LINEAR_LEAF[m[4]]), m[4])),
+    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.sublayer\.(\d)\.norm\.(a_2|b_2)"),
+     lambda m: (("pft", m[1], f"layers_{m[2]}", f"norm{m[3]}", m[4]), "norm")),
+    (re.compile(r"attention\.model\.(encoder|decoder)\.norm\.(a_2|b_2)"),
+     lambda m: (("pft", m[1], "norm", m[2]), "norm")),
+    (re.compile(r"SE_Block\.fc\.(0|2)\.weight"),
+     lambda m: (("se", f"fc{m[1]}", "kernel"), "weight")),
+    (re.compile(r"temp_net\.nn\.([0369])\.(weight|bias)"),
+     lambda m: (("temp_net", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2])),
+    (re.compile(r"temp_net\.nn\.([147])\.(weight|bias)"),
+     lambda m: (("temp_net", f"norm{m[1]}", _NORM_LEAF[m[2]]), "norm")),
+]
+
+
+class ConversionError(ValueError):
+    """The state dict does not fit the config: missing, unexpected or misshapen tensors."""
+
+
+def _strip_prefix(name: str) -> str:
+    # Checkpoints saved from nn.DataParallel prefix every name with "module.".
+    return name[len("module."):] if name.startswith("module.") else name
+
+
+def _map_name(name: str) -> tuple[tuple[str, ...], str] | None:
+    for pattern, target in _RULES:
+        match = pattern.fullmatch(name)
+        if match:
+            return target(match)
+    return None
+
+
+def infer_config(state_dict: Mapping[str, Any], **overrides: Any) -> DITConfig:
+    """Reads the network's widths and depth off a state dict; heads cannot be read and come from
+    ``overrides`` (default 4, as in the paper), as do the inference settings."""
+    sd = {_strip_prefix(k): v for k, v in state_dict.items()}
+    try:
+        emb_dims = np.shape(sd["emb_nn.norm.weight"])[0]
+        token_dim = np.shape(sd["emb_nn.attention1.attn.qkv.weight"])[0] // 3
+        k = np.shape(sd["emb_nn.attention1.norm1.weight"])[0] // 3
+        ff_dims = np.shape(sd["attention.model.encoder.layers.0.feed_forward.w_1.weight"])[0]
+        temp_hidden = np.shape(sd["temp_net.nn.0.weight"])[0]
+        pe_hidden = np.shape(sd["Position_encoding.PE.0.weight"])[0]
+        se_hidden = np.shape(sd["SE_Block.fc.0.weight"])[0]
+    except KeyError as err:
+        raise ConversionError(f"not a DIT state dict: no tensor {err.args[0]!r}") from None
+    layer = re.compile(r"attention\.model\.encoder\.layers\.(\d+)\.")
+    n_blocks = 1 + max(int(m[1]) for m in map(layer.match, sd) if m)
+    values = dict(emb_dims=emb_dims, token_dim=token_dim, k=k, ff_dims=ff_dims, n_blocks=n_blocks,
+                  temp_hidden=temp_hidden, pe_expansion=pe_hidden // emb_dims,
+                  se_reduction=emb_dims // se_hidden)
+    values.update(overrides)
+    return DITConfig(**values)
+
+
+def from_torch_state_dict(state_dict: Mapping[str, Any], config: DITConfig) -> dict:
+    """Converts the authors' state dict into params for ``config``.
+
+    Args:
+      state_dict: ``{name: array}`` under the authors' names (a ``module.`` prefix is accepted); values may be
+        numpy arrays or anything ``np.asarray`` takes (CPU torch tensors included).
+      config: the config the weights were trained with.
+
+    Returns:
+      The params tree (float32 numpy leaves), with exactly the structure and shapes of
+      :func:`dit_jax.model.init` for ``config``.
+
+    Raises:
+      ConversionError: naming every unknown, missing or misshapen tensor.
+    """
+    flat: dict[tuple[str, ...], np.ndarray] = {}
+    unknown = []
+    for raw_name, value in state_dict.items():
+        name = _strip_prefix(raw_name)
+        if any(p.fullmatch(name) for p in UNUSED):
+            continue
+        mapped = _map_name(name)
+        if mapped is None:
+            unknown.append(name)
+            continue
+        path, kind = mapped
+        array = np.asarray(value, dtype=np.float32)
+        flat[path] = array.T if kind == "weight" else array
+
+    expected = traverse_util.flatten_dict(jax.eval_shape(lambda: model.init(jax.random.key(0), config)))
+    problems = []
+    if unknown:
+        problems.append("unknown tensors: " + ", ".join(sorted(unknown)))
+    missing = sorted("/".join(p) for p in expected if p not in flat)
+    if missing:
+        problems.append("missing for this config: " + ", ".join(missing))
+    extra = sorted("/".join(p) for p in flat if p not in expected)
+    if extra:
+        problems.append("not in this config (more blocks or layers than it has?): " + ", ".join(extra))
+    for path, spec in expected.items():
+        if path in flat and flat[path].shape != spec.shape:
+            problems.append(f"{'/'.join(path)}: shape {flat[path].shape}, config needs {spec.shape}")
+    if problems:
+        raise ConversionError("state dict does not fit the config: " + "; ".join(problems))
+    return traverse_util.unflatten_dict(flat)
+
+
+def load_pth(path: str) -> dict[str, np.ndarray]:
+    """Reads a PyTorch checkpoint (a state dict, or a dict holding one) into numpy arrays on the CPU."""
+    try:
+        import torch
+    except ImportError:
+        raise SystemExit("reading .pth needs PyTorch: pip install 'dit-jax[torch]'") from None
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    for key in ("state_dict", "model", "model_state_dict"):
+        if isinstance(obj, dict) and key in obj and isinstance(obj[key], dict):
+            obj = obj[key]
+    if not isinstance(obj, dict):
+        raise ConversionError(f"{path}: expected a state dict, found {type(obj).__name__}")
+    return {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m dit_jax.convert", description=__doc__.split("\n\n")[0])
+    parser.add_argument("pth", help="the authors' checkpoint (.pth / .t7 state dict)")
+    parser.add_argument("out", help="directory for the orbax checkpoint (must not exist)")
+    parser.add_argument("--config", default=None, choices=sorted(configs.PRESETS),
+                        help="preset to check the weights against (default: read widths off the weights)")
+    parser.add_argument("--n-heads", type=int, default=4, help="PFT attention heads (not stored in weights)")
+    parser.add_argument("--setting", default="clean", choices=sorted(configs.GMCCE_THRESHOLDS),
+                        help="data setting whose GMCCE threshold the config gets")
+    args = parser.parse_args(argv)
+
+    from dit_jax import checkpoint  # orbax is slow to import; only the command needs it
+
+    try:
+        state_dict = load_pth(args.pth)
+        threshold = configs.GMCCE_THRESHOLDS[args.setting]
+        if args.config:
+            config = configs.get(args.config, args.setting).replace(n_heads=args.n_heads)
+        else:
+            config = infer_config(state_dict, n_heads=args.n_heads, gmcce_threshold=threshold)
+        params = from_torch_state_dict(state_dict, config)
+        checkpoint.save(args.out, params, config)
+    except (ConversionError, checkpoint.CheckpointError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out} ({config})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,189 @@
+"""DIT: PSE, PFT and the head composed, and the iterative registration (SPEC.md sections 4-10).
+
+The network is a Flax Linen module, :class:`DIT`, acting on one pair of clouds; everything a user calls is a
+pure function over explicit ``params``:
+
+* :func:`init` -- fresh parameters for a config;
+* :func:`features` -- the network's features of one pair;
+* :func:`forward` -- one registration step of one pair (features, then the head);
+* :func:`register` -- the whole iterative registration of a batch, one jittable call.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+from flax import linen as nn
+
+from dit_jax import geometry
+from dit_jax.configs import DITConfig
+from dit_jax.head import HeadOutput, TemperatureNet, head, similarity
+from dit_jax.pft import PFT, PositionalEncoding, SqueezeExcitation
+from dit_jax.pse import PSE
+
+Params = Any
+
+
+class Embedding(NamedTuple):
+    """What DIT computes from one cloud alone: independent of the other cloud and of the pose estimate
+    of the other, so the target's is computed once per registration."""
+
+    knn_idx: jax.Array  # (N, k)
+    pse: jax.Array  # (N, E), PSE(X)
+    positional: jax.Array  # (N, E), P(X)
+
+
+class Features(NamedTuple):
+    """The network's outputs for one pair (N source and M target points)."""
+
+    src_p: jax.Array  # (N, E) PFT output for the source, phi(F_Y, F_X)
+    tgt_p: jax.Array  # (M, E) phi(F_X, F_Y)
+    phi_src: jax.Array  # (N, E) Phi_X = SE(PSE(X) + src_p)
+    phi_tgt: jax.Array  # (M, E)
+    temperature: jax.Array  # ()
+    scores: jax.Array  # (N, M) S
+
+
+class DIT(nn.Module):
+    """The Deep Interaction Transformer's network, on one pair of clouds."""
+
+    config: DITConfig
+
+    def setup(self):
+        c = self.config
+        self.pse = PSE(c)
+        self.positional_encoding = PositionalEncoding(c.emb_dims, c.pe_expansion)
+        self.pft = PFT(c)
+        self.se = SqueezeExcitation(c.emb_dims, c.se_reduction)
+        self.temp_net = TemperatureNet(c.temp_hidden, c.temp_factor)
+
+    def embed(self, points: jax.Array) -> Embedding:
+        """points: (N, 3) -> the cloud's :class:`Embedding`."""
+        knn_idx = geometry.knn(points, self.config.k)
+        return Embedding(knn_idx, self.pse(points, knn_idx), self.positional_encoding(points))
+
+    def interact(self, src: Embedding, tgt: Embedding, deterministic: bool = True) -> Features:
+        """PFT across the two clouds, squeeze-and-excitation, temperature and similarity."""
+        src_p, tgt_p = self.pft(src.pse + src.positional, tgt.pse + tgt.positional, deterministic)
+        phi_src = self.se(src.pse + src_p)
+        phi_tgt = self.se(tgt.pse + tgt_p)
+        temperature = self.temp_net(phi_src, phi_tgt)
+        return Features(src_p, tgt_p, phi_src, phi_tgt, temperature, similarity(phi_src, phi_tgt))
+
+    def __call__(self, src: jax.Array, tgt: jax.Array, deterministic: bool = True) -> Features:
+        return self.interact(self.embed(src), self.embed(tgt), deterministic)
+
+
+def init(key: jax.Array, config: DITConfig, n_points: int | None = None) -> Params:
+    """Fresh parameters for ``config`` (PyTorch-like initialisation). The tree does not depend on N."""
+    n_points = n_points or max(config.k, config.gmcce_k + 1, 32)
+    points = jax.random.normal(key, (n_points, 3))
+    return DIT(config).init(key, points, points)["params"]
+
+
+def embed(params: Params, points: jax.Array, config: DITConfig) -> Embedding:
+    """The :class:`Embedding` of one cloud, points (N, 3)."""
+    return DIT(config).apply({"params": params}, points, method=DIT.embed)
+
+
+def features(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, *,
+             tgt_embedding: Embedding | None = None, deterministic: bool = True,
+             dropout_key: jax.Array | None = None) -> tuple[Embedding, Features]:
+    """The network's features for one pair: src (N, 3), tgt (M, 3).
+
+    ``tgt_embedding`` reuses a target embedding computed earlier (the target does not move across
+    iterations). With ``deterministic=False`` PFT's dropout is active and needs ``dropout_key``.
+    """
+
+    def run(module: DIT):
+        src_emb = module.embed(src)
+        tgt_emb = tgt_embedding if tgt_embedding is not None else module.embed(tgt)
+        return src_emb, module.interact(src_emb, tgt_emb, deterministic)
+
+    rngs = None if dropout_key is None else {"dropout": dropout_key}
+    return nn.apply(run, DIT(config))({"params": params}, rngs=rngs)
+
+
+def forward(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, use_gmcce: bool = False, *,
+            tgt_embedding: Embedding | None = None) -> tuple[Features, HeadOutput]:
+    """One registration step of one pair (the authors' ``forward``): features, then the head.
+
+    src: (N, 3), tgt: (M, 3). Returns the :class:`Features` and the X-to-Y :class:`HeadOutput`.
+    """
+    _, feats = features(params, src, tgt, config, tgt_embedding=tgt_embedding)
+    return feats, head(src, tgt, feats.scores, feats.temperature, config, use_gmcce)
+
+
+def min_points(config: DITConfig) -> int:
+    """The fewest points per cloud DIT accepts: the kNN graph needs k of them, GMCCE k_s + 1."""
+    return max(config.k, config.gmcce_k + 1, 3)
+
+
+def _check_inputs(src: jax.Array, tgt: jax.Array, config: DITConfig) -> None:
+    for name, cloud in (("src", src), ("tgt", tgt)):
+        if cloud.ndim != 3 or cloud.shape[-1] != 3:
+            raise ValueError(f"{name} must have shape (B, N, 3), got {tuple(cloud.shape)}")
+        if not jnp.issubdtype(cloud.dtype, jnp.floating):
+            raise ValueError(f"{name} must be floating point, got {cloud.dtype}")
+        if cloud.shape[1] < min_points(config):
+            raise ValueError(f"{name} has {cloud.shape[1]} points; this config needs at least "
+                             f"{min_points(config)} (k={config.k}, gmcce_k={config.gmcce_k})")
+    if src.shape[0] != tgt.shape[0]:
+        raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
+
+
+def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
+    """The iterative registration of one pair (SPEC.md section 10)."""
+    tgt_embedding = embed(params, tgt, config)
+    rotation = jnp.eye(3, dtype=src.dtype)
+    translation = jnp.zeros(3, dtype=src.dtype)
+    moved = src
+    steps = []
+    for i in range(config.n_iters):
+        feats, out = forward(params, moved, tgt, config, use_gmcce=i >= 1, tgt_embedding=tgt_embedding)
+        rotation, translation = geometry.compose(out.rotation, out.translation, rotation, translation)
+        moved = geometry.apply_transform(out.rotation, out.translation, moved)
+        steps.append((out, feats.temperature))
+    outs = [s[0] for s in steps]
+    stack = lambda field: jnp.stack([getattr(o, field) for o in outs])
+    last = outs[-1]
+    extras = {
+        "step_rotation": stack("rotation"),  # (n_iters, 3, 3), each iteration's own increment
+        "step_translation": stack("translation"),  # (n_iters, 3)
+        "temperature": jnp.stack([s[1] for s in steps]),  # (n_iters,)
+        "gmcce_fallback": stack("gmcce_fallback"),  # (n_iters,) bool
+        "correspondences": last.correspondences,  # (N,) final iteration's matches into tgt
+        "weights": last.weights,  # (N,) final iteration's Procrustes weights
+        "inlier_ratio": jnp.mean((last.weights > 0.5).astype(src.dtype)) if config.n_iters > 1
+        else jnp.mean(last.soft_weights),
+    }
+    return rotation, translation, extras
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
+    """Estimates the rigid motion mapping each source cloud onto its target.
+
+    ``n_iters`` iterations: the first in soft mode, the rest in GMCCE mode; each re-runs the network on the
+    moved source and composes its increment (SPEC.md section 10). Jitted with ``config`` static; it also
+    nests inside a caller's ``jax.jit`` or ``jax.vmap``.
+
+    Args:
+      params: the model's parameters (from :func:`init`, a checkpoint or the weight converter).
+      src: (B, N, 3) source clouds.
+      tgt: (B, M, 3) target clouds; M may differ from N.
+      config: the :class:`DITConfig` the params were made for.
+
+    Returns:
+      ``(R, t, extras)`` with R (B, 3, 3), t (B, 3) such that ``tgt ~ src @ R^T + t``, and ``extras``: a dict of
+      per-pair arrays ``step_rotation`` (B, n_iters, 3, 3), ``step_translation`` (B, n_iters, 3),
+      ``temperature`` (B, n_iters), ``gmcce_fallback`` (B, n_iters) bool, ``correspondences`` (B, N) int32,
+      ``weights`` (B, N) and ``inlier_ratio`` (B,) (the fraction of GMCCE inliers in the last iteration).
+    """
+    _check_inputs(src, tgt, config)
+    chex.assert_rank([src, tgt], 3)
+    return jax.vmap(_register_one, in_axes=(None, 0, 0, None))(params, src, tgt, config)

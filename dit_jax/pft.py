@@ -1,0 +1,148 @@
+"""PFT, the Point Feature Transformer (paper section 3.3; SPEC.md sections 3-5).
+
+Positional encoding of the coordinates, a deep encoder/decoder Transformer that lets each cloud attend to the
+other, and squeeze-and-excitation. Everything acts on one pair of clouds, ``(N, E)`` and ``(M, E)`` features.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import linen as nn
+
+from dit_jax.configs import DITConfig
+from dit_jax.layers import AnnotatedLayerNorm, torch_dense
+
+
+class PositionalEncoding(nn.Module):
+    """P(X) = ReLU(Linear(Sigmoid(Linear(xyz)))), widths 3 -> expansion E -> E."""
+
+    emb_dims: int
+    expansion: int = 8
+
+    @nn.compact
+    def __call__(self, points: jax.Array) -> jax.Array:
+        """points: (N, 3) -> (N, E)."""
+        hidden = jax.nn.sigmoid(torch_dense(self.expansion * self.emb_dims, "fc0")(points))
+        return jax.nn.relu(torch_dense(self.emb_dims, "fc2")(hidden))
+
+
+class MultiHeadAttention(nn.Module):
+    """softmax(Q K^T / sqrt(d)) V over ``n_heads`` heads of d = E / h consecutive channels, then W_o."""
+
+    emb_dims: int
+    n_heads: int
+
+    @nn.compact
+    def __call__(self, query: jax.Array, key: jax.Array, value: jax.Array) -> jax.Array:
+        """query: (N, E); key, value: (M, E). Returns (N, E)."""
+        head_dims = self.emb_dims // self.n_heads
+        split = lambda a: a.reshape(a.shape[0], self.n_heads, head_dims)
+        q = split(torch_dense(self.emb_dims, "q")(query))
+        k = split(torch_dense(self.emb_dims, "k")(key))
+        v = split(torch_dense(self.emb_dims, "v")(value))
+        logits = jnp.einsum("nhd,mhd->hnm", q, k) / jnp.sqrt(jnp.asarray(head_dims, q.dtype))
+        attn = jax.nn.softmax(logits, axis=-1)
+        mixed = jnp.einsum("hnm,mhd->nhd", attn, v).reshape(query.shape[0], self.emb_dims)
+        return torch_dense(self.emb_dims, "o")(mixed)
+
+
+class FeedForward(nn.Module):
+    """w_2(dropout(leaky_relu(w_1 x, 0.2))), widths E -> ff_dims -> E."""
+
+    emb_dims: int
+    ff_dims: int
+    dropout: float
+
+    @nn.compact
+    def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
+        hidden = jax.nn.leaky_relu(torch_dense(self.ff_dims, "w_1")(x), negative_slope=0.2)
+        hidden = nn.Dropout(self.dropout)(hidden, deterministic=deterministic)
+        return torch_dense(self.emb_dims, "w_2")(hidden)
+
+
+class EncoderLayer(nn.Module):
+    """x += SelfAttn(LN*(x)); x += FF(LN*(x)) (pre-norm)."""
+
+    config: DITConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
+        c = self.config
+        u = AnnotatedLayerNorm(name="norm0")(x)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="self_attn")(u, u, u)
+        u = AnnotatedLayerNorm(name="norm1")(x)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, name="feed_forward")(u, deterministic)
+
+
+class DecoderLayer(nn.Module):
+    """Self-attention, cross-attention to the memory, feed-forward; each pre-norm with a residual."""
+
+    config: DITConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
+        c = self.config
+        u = AnnotatedLayerNorm(name="norm0")(x)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="self_attn")(u, u, u)
+        u = AnnotatedLayerNorm(name="norm1")(x)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="src_attn")(u, memory, memory)
+        u = AnnotatedLayerNorm(name="norm2")(x)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, name="feed_forward")(u, deterministic)
+
+
+class Encoder(nn.Module):
+    config: DITConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
+        for i in range(self.config.n_blocks):
+            x = EncoderLayer(self.config, name=f"layers_{i}")(x, deterministic)
+        return AnnotatedLayerNorm(name="norm")(x)
+
+
+class Decoder(nn.Module):
+    config: DITConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
+        for i in range(self.config.n_blocks):
+            x = DecoderLayer(self.config, name=f"layers_{i}")(x, memory, deterministic)
+        return AnnotatedLayerNorm(name="norm")(x)
+
+
+class PFT(nn.Module):
+    """phi(a, b) = Decoder(b, memory=Encoder(a)), applied in both directions with shared weights.
+
+    Given F_X and F_Y (PSE features plus positional encodings) returns ``(src_p, tgt_p)`` with
+    ``tgt_p = phi(F_X, F_Y)`` and ``src_p = phi(F_Y, F_X)``.
+    """
+
+    config: DITConfig
+
+    def setup(self):
+        self.encoder = Encoder(self.config)
+        self.decoder = Decoder(self.config)
+
+    def phi(self, first: jax.Array, second: jax.Array, deterministic: bool = True) -> jax.Array:
+        """Encodes ``first`` (N, E), decodes ``second`` (M, E) against it; returns (M, E)."""
+        return self.decoder(second, self.encoder(first, deterministic), deterministic)
+
+    def __call__(self, f_x: jax.Array, f_y: jax.Array, deterministic: bool = True):
+        """f_x: (N, E), f_y: (M, E) -> src_p (N, E), tgt_p (M, E)."""
+        return self.phi(f_y, f_x, deterministic), self.phi(f_x, f_y, deterministic)
+
+
+class SqueezeExcitation(nn.Module):
+    """f * sigmoid(W_2 ReLU(W_1 mean_points(f))), per channel, widths E -> E / r -> E, no biases."""
+
+    emb_dims: int
+    reduction: int = 16
+
+    @nn.compact
+    def __call__(self, features: jax.Array) -> jax.Array:
+        """features: (N, E) -> (N, E)."""
+        squeezed = jnp.mean(features, axis=0)
+        hidden = jax.nn.relu(torch_dense(self.emb_dims // self.reduction, "fc0", use_bias=False)(squeezed))
+        gate = jax.nn.sigmoid(torch_dense(self.emb_dims, "fc2", use_bias=False)(hidden))
+        return features * gate
