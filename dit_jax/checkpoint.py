@@ -1,0 +1,82 @@
+"""Model checkpoints on orbax: the params and the :class:`DITConfig` they belong to, in one directory.
+
+Layout (an orbax composite checkpoint)::
+
+    DIR/params/   the params tree (orbax StandardSave)
+    DIR/config/   {"format": 1, "dit_config": {...}} (JSON)
+
+Saving is atomic (orbax writes to a temporary directory and renames it), so an interrupted save leaves no
+half-written checkpoint behind. Restoring checks the stored tree against the stored config.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+from dit_jax import model
+from dit_jax.configs import DITConfig
+
+FORMAT = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint is missing, damaged or does not fit its config."""
+
+
+def _handler() -> ocp.Checkpointer:
+    return ocp.Checkpointer(ocp.CompositeCheckpointHandler())
+
+
+def save(directory: str | os.PathLike, params: Any, config: DITConfig, *, overwrite: bool = False) -> str:
+    """Writes ``params`` and ``config`` to ``directory`` (which must not exist unless ``overwrite``).
+
+    Returns the absolute path written.
+    """
+    path = os.path.abspath(os.fspath(directory))
+    if os.path.exists(path) and not overwrite:
+        raise CheckpointError(f"{path} already exists; choose a new directory")
+    meta = {"format": FORMAT, "dit_config": config.to_dict()}
+    with _handler() as ckptr:
+        ckptr.save(path, ocp.args.Composite(params=ocp.args.StandardSave(params),
+                                            config=ocp.args.JsonSave(meta)), force=overwrite)
+    return path
+
+
+def read_config(directory: str | os.PathLike) -> DITConfig:
+    """The :class:`DITConfig` stored in a checkpoint."""
+    path = os.path.abspath(os.fspath(directory))
+    if not os.path.isdir(path):
+        raise CheckpointError(f"{path}: no such checkpoint directory")
+    try:
+        with _handler() as ckptr:
+            meta = ckptr.restore(path, ocp.args.Composite(config=ocp.args.JsonRestore())).config
+    except Exception as err:  # orbax raises many types for damaged files
+        raise CheckpointError(f"{path}: not a dit-jax checkpoint or damaged ({type(err).__name__}: {err})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or "dit_config" not in meta:
+        raise CheckpointError(f"{path}: unknown checkpoint format (expected format {FORMAT})")
+    try:
+        return DITConfig.from_dict(meta["dit_config"])
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"{path}: stored config is invalid: {err}") from None
+
+
+def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
+    """Restores ``(params, config)`` from a checkpoint written by :func:`save`.
+
+    Raises:
+      CheckpointError: with one line naming the directory and the problem.
+    """
+    config = read_config(directory)
+    path = os.path.abspath(os.fspath(directory))
+    abstract = jax.eval_shape(lambda: model.init(jax.random.key(0), config))
+    try:
+        with _handler() as ckptr:
+            params = ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore(abstract))).params
+    except Exception as err:
+        raise CheckpointError(f"{path}: params do not restore for the stored config "
+                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    return params, config
