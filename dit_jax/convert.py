@@ -6,7 +6,7 @@ PyTorch ``Linear`` weights (out, in) become Flax kernels (in, out). Tensors the 
 uses (``emb_nn.project``, ``attn.norm1`` inside the token transformers, ``head.temperature``, ``head.reflect``)
 are dropped.
 
-Command line (needs the ``torch`` extra to read ``.pth``)::
+Command line (PyTorch is needed only for files saved before PyTorch 1.6)::
 
     python -m dit_jax.convert model.best.t7 OUT_DIR [--config paper] [--n-heads 4]
 
@@ -17,6 +17,7 @@ writes an orbax checkpoint of the converted params and the config, restorable wi
 from __future__ import annotations
 
 import argparse
+import pickle
 import re
 import sys
 from typing import Any, Callable, Mapping
@@ -25,7 +26,7 @@ import jax
 import numpy as np
 from flax import traverse_util
 
-from dit_jax import configs, model
+from dit_jax import configs, model, torch_pickle
 from dit_jax.configs import DITConfig
 
 UNUSED = (
@@ -156,19 +157,71 @@ def from_torch_state_dict(state_dict: Mapping[str, Any], config: DITConfig) -> d
     return traverse_util.unflatten_dict(flat)
 
 
+def authors_names(config: DITConfig) -> list[str]:
+    """Every tensor name the authors' state dict has for ``config`` that carries a used weight."""
+    names = [f"emb_nn.norm.{leaf}" for leaf in ("weight", "bias")]
+    for layer in range(1, configs.PSE_LAYERS + 1):
+        base = f"emb_nn.attention{layer}."
+        names += [base + "attn.qkv.weight", base + "attn.proj.weight", base + "attn.proj.bias"]
+        names += [base + f"{mod}.{leaf}" for mod in ("norm1", "norm2", "mlp.fc1", "mlp.fc2")
+                  for leaf in ("weight", "bias")]
+    names += [f"Position_encoding.PE.{i}.{leaf}" for i in (0, 2) for leaf in ("weight", "bias")]
+    for part, attns, n_norms in (("encoder", ("self_attn",), 2), ("decoder", ("self_attn", "src_attn"), 3)):
+        for block in range(config.n_blocks):
+            base = f"attention.model.{part}.layers.{block}."
+            names += [base + f"{attn}.linears.{i}.{leaf}" for attn in attns for i in range(4)
+                      for leaf in ("weight", "bias")]
+            names += [base + f"feed_forward.{w}.{leaf}" for w in ("w_1", "w_2") for leaf in ("weight", "bias")]
+            names += [base + f"sublayer.{j}.norm.{leaf}" for j in range(n_norms) for leaf in ("a_2", "b_2")]
+        names += [f"attention.model.{part}.norm.{leaf}" for leaf in ("a_2", "b_2")]
+    names += ["SE_Block.fc.0.weight", "SE_Block.fc.2.weight"]
+    names += [f"temp_net.nn.{i}.{leaf}" for i in range(0, 10, 3) for leaf in ("weight", "bias")]
+    names += [f"temp_net.nn.{i}.{leaf}" for i in (1, 4, 7) for leaf in ("weight", "bias")]
+    return names
+
+
+def to_torch_state_dict(params: Any, config: DITConfig) -> dict[str, np.ndarray]:
+    """The inverse of :func:`from_torch_state_dict`: params to the authors' names and layouts.
+
+    Only the used tensors are produced; the authors' unused ones are absent (PyTorch's
+    ``load_state_dict(..., strict=False)`` takes the result).
+    """
+    flat = traverse_util.flatten_dict(params)
+    out = {}
+    for name in authors_names(config):
+        path, kind = _map_name(name)
+        array = np.asarray(flat[path], dtype=np.float32)
+        out[name] = array.T if kind == "weight" else array
+    return out
+
+
 def load_pth(path: str) -> dict[str, np.ndarray]:
-    """Reads a PyTorch checkpoint (a state dict, or a dict holding one) into numpy arrays on the CPU."""
+    """Reads a PyTorch checkpoint (a state dict, or a dict holding one under ``state_dict`` / ``model``).
+
+    Zip-format files (PyTorch >= 1.6) are read without PyTorch (:mod:`dit_jax.torch_pickle`); older ones
+    need the ``torch`` extra.
+    """
     try:
-        import torch
-    except ImportError:
-        raise SystemExit("reading .pth needs PyTorch: pip install 'dit-jax[torch]'") from None
-    obj = torch.load(path, map_location="cpu", weights_only=True)
+        obj = torch_pickle.load(path)
+    except torch_pickle.UnsupportedFile as err:
+        try:
+            import torch
+        except ImportError:
+            raise ConversionError(f"{err}; install the torch extra (pip install 'dit-jax[torch]') to read it") from None
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+        obj = _to_numpy(obj)
     for key in ("state_dict", "model", "model_state_dict"):
-        if isinstance(obj, dict) and key in obj and isinstance(obj[key], dict):
+        if isinstance(obj, dict) and isinstance(obj.get(key), dict):
             obj = obj[key]
     if not isinstance(obj, dict):
         raise ConversionError(f"{path}: expected a state dict, found {type(obj).__name__}")
-    return {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}
+    return {k: np.asarray(v) for k, v in obj.items() if isinstance(v, np.ndarray)}
+
+
+def _to_numpy(obj):
+    if isinstance(obj, dict):
+        return {k: _to_numpy(v) for k, v in obj.items()}
+    return obj.detach().cpu().numpy() if hasattr(obj, "detach") else obj
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -193,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
             config = infer_config(state_dict, n_heads=args.n_heads, gmcce_threshold=threshold)
         params = from_torch_state_dict(state_dict, config)
         checkpoint.save(args.out, params, config)
-    except (ConversionError, checkpoint.CheckpointError, OSError) as err:
+    except (ValueError, OSError, pickle.UnpicklingError) as err:  # our errors are all ValueErrors
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"wrote {args.out} ({config})")

@@ -1,0 +1,48 @@
+"""Shared fixtures: the paths of ../shared and small clouds."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import numpy as np
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
+REFERENCE_FILE = SHARED / "reference" / "dit_reference_a.npz"
+MODELNET_DIR = SHARED / "data" / "modelnet40_ply_hdf5_1024"
+TEST_DATA = ROOT / "tests" / "data"
+
+
+@pytest.fixture(scope="session")
+def reference_file() -> pathlib.Path:
+    if not REFERENCE_FILE.exists():
+        pytest.skip(f"the authors' reference file is not here ({REFERENCE_FILE}); it ships with ../shared")
+    return REFERENCE_FILE
+
+
+@pytest.fixture(scope="session")
+def reference_data(reference_file) -> dict[str, np.ndarray]:
+    with np.load(reference_file) as npz:
+        return {k: npz[k] for k in npz.files}
+
+
+@pytest.fixture(scope="session")
+def modelnet_shapes() -> np.ndarray:
+    """(S, 1024, 3) shapes from the first ModelNet40 test file."""
+    h5py = pytest.importorskip("h5py", reason="reading ModelNet40 needs h5py (the test extra)")
+    path = MODELNET_DIR / "ply_data_test0.h5"
+    if not path.exists():
+        pytest.skip(f"ModelNet40 is not here ({MODELNET_DIR}); it ships with ../shared")
+    with h5py.File(path, "r") as f:
+        return np.asarray(f["data"][:64], dtype=np.float32)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random rotation (det +1) from the QR of a Gaussian matrix."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
