@@ -208,8 +208,11 @@ def load_pth(path: str) -> dict[str, np.ndarray]:
             import torch
         except ImportError:
             raise ConversionError(f"{err}; install the torch extra (pip install 'dit-jax[torch]') to read it") from None
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-        obj = _to_numpy(obj)
+        try:
+            obj = _to_numpy(torch.load(path, map_location="cpu", weights_only=True))
+        except Exception as torch_err:  # torch raises many types; the user needs the file and the reason
+            reason = str(torch_err).strip().splitlines()[0] if str(torch_err).strip() else type(torch_err).__name__
+            raise ConversionError(f"{path}: not a readable PyTorch checkpoint ({reason[:200]})") from None
     for key in ("state_dict", "model", "model_state_dict"):
         if isinstance(obj, dict) and isinstance(obj.get(key), dict):
             obj = obj[key]
@@ -247,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         params = from_torch_state_dict(state_dict, config)
         checkpoint.save(args.out, params, config)
     except (ValueError, OSError, pickle.UnpicklingError) as err:  # our errors are all ValueErrors
-        print(f"error: {err}", file=sys.stderr)
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return 2
     print(f"wrote {args.out} ({config})")
     return 0

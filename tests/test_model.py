@@ -1,0 +1,118 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dit_jax import configs, convert, model
+
+CONFIG = configs.tiny()
+
+
+@pytest.fixture(scope="module")
+def params():
+    return model.init(jax.random.key(0), CONFIG)
+
+
+def _pair(seed, n=48, m=40, batch=2):
+    rng = np.random.default_rng(seed)
+    src = rng.uniform(-1, 1, size=(batch, n, 3)).astype(np.float32)
+    tgt = rng.uniform(-1, 1, size=(batch, m, 3)).astype(np.float32)
+    return jnp.asarray(src), jnp.asarray(tgt)
+
+
+def _assert_proper_rotations(rot):
+    rot = np.asarray(rot)
+    assert np.isfinite(rot).all()
+    np.testing.assert_allclose(rot @ np.swapaxes(rot, -1, -2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-5)
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-5)
+
+
+def test_register_under_jit_and_vmap_with_n_not_m(params):
+    src, tgt = _pair(0)
+    rot, trans, extras = jax.jit(model.register, static_argnames="config")(params, src, tgt, CONFIG)
+    assert rot.shape == (2, 3, 3) and trans.shape == (2, 3)
+    assert extras["correspondences"].shape == (2, 48) and int(extras["correspondences"].max()) < 40
+    assert extras["step_rotation"].shape == (2, CONFIG.n_iters, 3, 3)
+    _assert_proper_rotations(rot)
+    # Batching changes nothing: each pair alone gives the same answer.
+    for b in range(2):
+        rot_b, trans_b, _ = model.register(params, src[b:b + 1], tgt[b:b + 1], CONFIG)
+        np.testing.assert_allclose(np.asarray(rot_b[0]), np.asarray(rot[b]), atol=1e-5)
+        np.testing.assert_allclose(np.asarray(trans_b[0]), np.asarray(trans[b]), atol=1e-5)
+    # vmap over an extra axis of pairs works on the user's side too.
+    outer = jax.vmap(lambda s, t: model.register(params, s, t, CONFIG)[0])(src[:, None], tgt[:, None])
+    np.testing.assert_allclose(np.asarray(outer[:, 0]), np.asarray(rot), atol=1e-5)
+
+
+def test_register_composes_the_iterations(params):
+    src, tgt = _pair(1, batch=1)
+    rot, trans, extras = model.register(params, src, tgt, CONFIG)
+    total_r, total_t = np.eye(3), np.zeros(3)
+    for r_i, t_i in zip(np.asarray(extras["step_rotation"][0]), np.asarray(extras["step_translation"][0])):
+        total_r, total_t = r_i @ total_r, r_i @ total_t + t_i
+    np.testing.assert_allclose(np.asarray(rot[0]), total_r, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(trans[0]), total_t, atol=1e-5)
+
+
+@pytest.mark.parametrize("case", ["identical_points", "collinear", "repeated_points", "coplanar"])
+def test_register_never_nan_on_degenerate_clouds(params, case):
+    rng = np.random.default_rng(2)
+    n = 40
+    if case == "identical_points":
+        src = np.full((n, 3), 0.25, np.float32)
+    elif case == "collinear":
+        src = np.outer(np.linspace(-1, 1, n), [0.3, -0.2, 0.9]).astype(np.float32)
+    elif case == "repeated_points":
+        src = np.repeat(rng.normal(size=(4, 3)), n // 4, axis=0).astype(np.float32)
+    else:
+        src = rng.normal(size=(n, 3)).astype(np.float32)
+        src[:, 2] = 0
+    tgt = src[rng.permutation(n)][: n - 5] + 0.1
+    rot, trans, extras = model.register(params, jnp.asarray(src[None]), jnp.asarray(tgt[None]), CONFIG)
+    _assert_proper_rotations(rot)
+    assert np.isfinite(np.asarray(trans)).all()
+    assert np.isfinite(np.asarray(extras["weights"])).all()
+
+
+def test_gmcce_rejecting_everything_falls_back_to_soft_weights(params):
+    config = CONFIG.replace(gmcce_threshold=1.0)  # confidence never exceeds 1: every match rejected
+    src, tgt = _pair(3, batch=1)
+    rot, trans, extras = model.register(params, src, tgt, config)
+    fallback = np.asarray(extras["gmcce_fallback"][0])
+    assert not fallback[0] and fallback[1:].all(), "soft mode needs no fallback; every GMCCE step does"
+    assert np.asarray(extras["weights"]).min() > 0, "the fallback uses the positive soft weights"
+    _assert_proper_rotations(rot)
+
+
+def test_register_rejects_bad_shapes_in_one_line(params):
+    src, tgt = _pair(4)
+    with pytest.raises(ValueError, match=r"src must have shape \(B, N, 3\)"):
+        model.register(params, src[0], tgt, CONFIG)
+    with pytest.raises(ValueError, match="tgt has 5 points; this config needs at least 11"):
+        model.register(params, src, tgt[:, :5], CONFIG)
+    with pytest.raises(ValueError, match="batch sizes differ"):
+        model.register(params, src, tgt[:1], CONFIG)
+
+
+def test_features_are_permutation_equivariant(params):
+    # Point order carries no meaning: permuting the source permutes its features and nothing else.
+    src, tgt = _pair(5, batch=1)
+    perm = np.random.default_rng(5).permutation(src.shape[1])
+    _, feats = model.features(params, src[0], tgt[0], CONFIG)
+    _, feats_p = model.features(params, src[0][perm], tgt[0], CONFIG)
+    np.testing.assert_allclose(np.asarray(feats_p.phi_src), np.asarray(feats.phi_src)[perm], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(feats_p.phi_tgt), np.asarray(feats.phi_tgt), atol=1e-4)
+
+
+def test_reference_weights_register_their_pair_with_part_of_the_target(reference_data):
+    # The authors' small (partly trained) network registers its own pair exactly; dropping 16 target points
+    # (N = 256, M = 240) must not change that.
+    config = configs.from_authors(str(reference_data["config"]), gmcce_threshold=0.99)
+    sd = {k[len("param/"):]: v for k, v in reference_data.items() if k.startswith("param/")}
+    params = convert.from_torch_state_dict(sd, config)
+    keep = np.random.default_rng(0).permutation(len(reference_data["tgt"]))[:240]
+    src, tgt = reference_data["src"][None], reference_data["tgt"][keep][None]
+    rot, trans, extras = model.register(params, jnp.asarray(src), jnp.asarray(tgt), config)
+    np.testing.assert_allclose(np.asarray(rot[0]), reference_data["R_gt"], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(trans[0]), reference_data["t_gt"], atol=1e-5)
+    assert 0 < float(extras["inlier_ratio"][0]) < 1
