@@ -55,3 +55,13 @@ def test_unreadable_file_exits_2(tmp_path, capsys):
     path.write_bytes(b"nope")
     assert reference_check.main([str(path)]) == 2
     assert "broken.npz" in capsys.readouterr().err
+
+
+def test_command_line_exit_status(reference_file):
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "dit_jax.reference_check", str(reference_file)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "PASSED: 26/26 checks" in done.stdout
