@@ -46,3 +46,26 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     if np.linalg.det(q) < 0:
         q[:, 0] = -q[:, 0]
     return q
+
+
+@pytest.fixture(scope="session")
+def prepared_dir(tmp_path_factory) -> str:
+    """Where the tests' TFDS preparations go (fresh per session, so preparation itself is tested)."""
+    return str(tmp_path_factory.mktemp("tfds"))
+
+
+@pytest.fixture(scope="session")
+def modelnet_test(prepared_dir):
+    """The official test split of the shared ModelNet40 copy, prepared through TFDS."""
+    if not MODELNET_DIR.exists():
+        pytest.skip(f"ModelNet40 is not here ({MODELNET_DIR}); it ships with ../shared")
+    from dit_jax.data import shapes
+
+    return shapes.load_shapes(MODELNET_DIR, "test", n_points=1000, data_dir=prepared_dir)
+
+
+@pytest.fixture(scope="session")
+def modelnet_train(prepared_dir, modelnet_test):
+    from dit_jax.data import shapes
+
+    return shapes.load_shapes(MODELNET_DIR, "train", n_points=1000, data_dir=prepared_dir)
