@@ -1,0 +1,131 @@
+import hashlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import MODELNET_DIR
+from dit_jax.data import pairs
+
+
+def _batch(shapes, n=200, **kw):
+    ds = pairs.PairDataset(shapes, pairs.PairConfig(**kw))
+    return ds, ds.batch(np.arange(n))
+
+
+def _counterparts(b, i):
+    """Source points with a counterpart, moved by the ground truth, and those counterparts."""
+    has = b["correspondence"][i] >= 0
+    moved = b["src"][i][has] @ b["R"][i].T + b["t"][i]
+    return moved, b["tgt"][i][b["correspondence"][i][has]]
+
+
+def test_clean_pairs_are_exact(modelnet_test):
+    _, b = _batch(modelnet_test, 50, setting="clean")
+    assert b["src"].shape == (50, 1000, 3) and b["tgt"].shape == (50, 1000, 3)
+    for i in range(50):
+        assert (b["correspondence"][i] >= 0).all()
+        moved, target = _counterparts(b, i)
+        np.testing.assert_allclose(moved, target, atol=2e-6)
+        # The target is shuffled: its point order tells nothing.
+        assert (b["correspondence"][i] != np.arange(1000)).mean() > 0.99
+
+
+@pytest.mark.parametrize("setting,clip", [("low_noise_partial", 0.001), ("high_noise_partial", 0.05)])
+def test_partial_settings_statistics(modelnet_test, setting, clip):
+    _, b = _batch(modelnet_test, 200, setting=setting)
+    assert b["src"].shape == (200, 800, 3) and b["tgt"].shape == (200, 800, 3)
+    shared = (b["correspondence"] >= 0).sum(axis=1)
+    assert 550 <= shared.min() and shared.max() <= 650, "about 600 shared points"
+    for i in range(20):
+        moved, target = _counterparts(b, i)
+        # Two independent noises, each clipped to [-c, c] per coordinate of the shape's frame (the target's
+        # noise is added before it moves, so rotate the difference back).
+        residual = np.abs((moved - target) @ b["R"][i])
+        assert residual.max() <= 2 * clip * 1.001 + 1e-5
+        assert residual.max() > 0.5 * clip, "noise is there"
+    if setting == "high_noise_partial":
+        moved, target = _counterparts(b, 0)
+        # N(0, 0.01^2) per cloud: the difference has std 0.01 * sqrt(2).
+        assert np.std(moved - target) == pytest.approx(0.01 * np.sqrt(2), rel=0.1)
+
+
+@pytest.mark.parametrize("setting", list(pairs.SETTINGS))
+def test_angle_and_translation_ranges(modelnet_test, setting):
+    _, b = _batch(modelnet_test, 400, setting=setting)
+    angles, t = b["euler_zyx"], b["t"]
+    assert angles.min() >= -45 and angles.max() <= 45
+    assert angles.min() < -40 and angles.max() > 40, "the whole range is drawn"
+    assert t.min() >= -0.5 and t.max() <= 0.5 and t.min() < -0.45 and t.max() > 0.45
+    np.testing.assert_allclose(b["R"], pairs.euler_zyx_to_matrix(angles), atol=1e-6)
+
+
+def test_euler_convention_is_rx_ry_rz():
+    az, ay, ax = 30.0, -20.0, 10.0
+    r = pairs.euler_zyx_to_matrix(np.array([az, ay, ax]))
+    rz = pairs.euler_zyx_to_matrix(np.array([az, 0.0, 0.0]))
+    ry = pairs.euler_zyx_to_matrix(np.array([0.0, ay, 0.0]))
+    rx = pairs.euler_zyx_to_matrix(np.array([0.0, 0.0, ax]))
+    np.testing.assert_allclose(r, rx @ ry @ rz, atol=1e-12)
+    np.testing.assert_allclose(rz @ [1, 0, 0], [np.cos(np.radians(30)), np.sin(np.radians(30)), 0], atol=1e-12)
+
+
+def test_unseen_split_keeps_categories_apart(modelnet_test, modelnet_train):
+    test = pairs.PairDataset(modelnet_test, pairs.PairConfig(unseen=True))
+    train = pairs.PairDataset(modelnet_train, pairs.PairConfig(unseen=True, train=True))
+    assert set(np.unique(test.batch(np.arange(len(test)))["label"])) == set(range(20, 40))
+    assert set(np.unique(train.batch(np.arange(len(train)))["label"])) == set(range(20))
+    seen = pairs.PairDataset(modelnet_test, pairs.PairConfig())
+    assert len(seen) == 2468
+
+
+def _test_pair_digest(n):
+    code = (
+        "import hashlib, sys; from dit_jax.data import shapes, pairs;"
+        f"s = shapes.load_shapes({str(MODELNET_DIR)!r}, 'test', data_dir=sys.argv[1]);"
+        "p = pairs.PairDataset(s, pairs.PairConfig(setting='high_noise_partial'))[" + str(n) + "];"
+        "print(hashlib.sha256(b''.join(p[k].tobytes() for k in sorted(p))).hexdigest())"
+    )
+    return code
+
+
+def test_test_pair_is_bit_identical_across_runs(modelnet_test, prepared_dir):
+    pair = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="high_noise_partial"))[17]
+    digest = hashlib.sha256(b"".join(pair[k].tobytes() for k in sorted(pair))).hexdigest()
+    other_run = subprocess.run([sys.executable, "-c", _test_pair_digest(17), prepared_dir],
+                               capture_output=True, text=True, timeout=300)
+    assert other_run.returncode == 0, other_run.stderr
+    assert other_run.stdout.strip() == digest
+
+
+def test_pair_n_is_the_same_alone_and_in_any_batch(modelnet_test):
+    ds = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="low_noise_partial"))
+    alone = ds[7]
+    batched = ds.batch([3, 7, 11])
+    for key in alone:
+        np.testing.assert_array_equal(alone[key], batched[key][1])
+
+
+def test_training_pairs_are_fresh_each_epoch_and_reproducible(modelnet_test):
+    ds = pairs.PairDataset(modelnet_test, pairs.PairConfig(train=True, seed=3))
+    e0, e1, e0_again = ds.batch([5], epoch=0), ds.batch([5], epoch=1), ds.batch([5], epoch=0)
+    assert not np.allclose(e0["R"], e1["R"])
+    np.testing.assert_array_equal(e0["tgt"], e0_again["tgt"])
+    other_seed = pairs.PairDataset(modelnet_test, pairs.PairConfig(train=True, seed=4)).batch([5], epoch=0)
+    assert not np.allclose(e0["R"], other_seed["R"])
+
+
+def test_peers_variant(modelnet_test):
+    _, b = _batch(modelnet_test, 200, setting="high_noise_partial", variant="peers")
+    assert b["src"].shape == (200, 700, 3)
+    assert b["euler_zyx"].min() >= 0 and b["euler_zyx"].max() <= 45 and b["euler_zyx"].max() > 40
+    shared = (b["correspondence"] >= 0).sum(axis=1)
+    assert 400 <= shared.min() and shared.max() <= 700 and 450 < shared.mean() < 600
+
+
+def test_bad_configs_are_refused():
+    with pytest.raises(ValueError, match="unknown setting 'noisy'"):
+        pairs.PairConfig(setting="noisy")
+    with pytest.raises(ValueError, match="unknown variant"):
+        pairs.PairConfig(variant="dcp")
