@@ -84,6 +84,40 @@ def _compute_dtype(dtype) -> jnp.dtype:
     return jnp.promote_types(dtype, jax.dtypes.canonicalize_dtype(jnp.float64))
 
 
+@jax.custom_jvp
+def rotation_from_cross_covariance(cross_cov: jax.Array) -> jax.Array:
+    """The rotation R (det +1) maximising ``trace(R^T H)`` for a (3, 3) cross-covariance H (Kabsch).
+
+    With H = U diag(s) V^T: R = U D V^T, D = diag(1, 1, sign(det U det V)) so that R is never a reflection.
+
+    The derivative is that of the special polar factor, ``dR = U' W V^T`` with
+    ``W_ij = (M_ij - M_ji) / (s'_i + s'_j)``, ``M = U'^T dH V``, ``U' = U D``, ``s' = D s``. Unlike
+    differentiating the SVD itself it is finite when singular values repeat (symmetric or planar shapes);
+    where ``s'_i + s'_j`` vanishes R is not differentiable and that term is set to zero.
+    """
+    return _special_polar(cross_cov)[0]
+
+
+def _special_polar(cross_cov):
+    u, s, vt = jnp.linalg.svd(cross_cov)
+    reflect = jnp.linalg.det(u) * jnp.linalg.det(vt) < 0
+    signs = jnp.ones(3, cross_cov.dtype).at[2].set(jnp.where(reflect, -1.0, 1.0))
+    u_signed = u * signs
+    return jnp.matmul(u_signed, vt, precision=_HIGHEST), u_signed, s * signs, vt
+
+
+@rotation_from_cross_covariance.defjvp
+def _rotation_jvp(primals, tangents):
+    (cross_cov,), (d_cross_cov,) = primals, tangents
+    rotation, u_signed, s_signed, vt = _special_polar(cross_cov)
+    m = u_signed.T @ d_cross_cov @ vt.T
+    denom = s_signed[:, None] + s_signed[None, :]
+    scale = jnp.maximum(jnp.max(jnp.abs(s_signed)), jnp.finfo(cross_cov.dtype).tiny)
+    safe = jnp.abs(denom) > 1e-6 * scale
+    w = jnp.where(safe, (m - m.T) / jnp.where(safe, denom, 1.0), 0.0)
+    return rotation, u_signed @ w @ vt
+
+
 def weighted_procrustes(src: jax.Array, tgt: jax.Array, weights: jax.Array):
     """The rigid motion that best maps weighted ``src`` onto ``tgt`` (Kabsch, reflection-safe).
 
@@ -122,9 +156,6 @@ def weighted_procrustes(src: jax.Array, tgt: jax.Array, weights: jax.Array):
     tgt_c = tgt - tgt_mean
     cross_cov = jnp.einsum("n,ni,nj->ij", weights, tgt_c, src_c, precision=_HIGHEST)
 
-    u, _, vt = jnp.linalg.svd(cross_cov)
-    reflect = jnp.linalg.det(u) * jnp.linalg.det(vt) < 0
-    signs = jnp.array([1.0, 1.0, 1.0], dtype).at[2].set(jnp.where(reflect, -1.0, 1.0))
-    rotation = jnp.matmul(u * signs, vt, precision=_HIGHEST)
+    rotation = rotation_from_cross_covariance(cross_cov)
     translation = tgt_mean - jnp.matmul(rotation, src_mean, precision=_HIGHEST)
     return rotation.astype(out_dtype), translation.astype(out_dtype)

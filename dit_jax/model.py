@@ -187,3 +187,62 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     _check_inputs(src, tgt, config)
     chex.assert_rank([src, tgt], 3)
     return jax.vmap(_register_one, in_axes=(None, 0, 0, None))(params, src, tgt, config)
+
+
+class Iterations(NamedTuple):
+    """What training needs of each iteration of one pair, stacked over iterations (leading axis I)."""
+
+    rotation: jax.Array  # (I, 3, 3) composed estimate after iteration i, source to target
+    translation: jax.Array  # (I, 3)
+    rotation_ab: jax.Array  # (I, 3, 3) iteration i's own increment, source to target
+    translation_ab: jax.Array  # (I, 3)
+    rotation_ba: jax.Array  # (I, 3, 3) iteration i's reverse estimate, target to moved source
+    translation_ba: jax.Array  # (I, 3)
+    soft_weights: jax.Array  # (I, N) max_j softmax(temperature S)_ij
+    correspondences: jax.Array  # (I, N) int32 argmax_j S_ij
+    temperature: jax.Array  # (I,)
+
+
+def _soft_pose(src, tgt, scores, temperature, differentiable: bool):
+    """Soft-mode pose of one direction. ``differentiable``: Procrustes on the soft targets P Y with the soft
+    weights, gradients flowing through it; otherwise the authors' hard matches with detached weights."""
+    probs = jax.nn.softmax(temperature * scores, axis=-1)
+    weights = jnp.max(probs, axis=-1)
+    matches = jnp.argmax(probs, axis=-1).astype(jnp.int32)
+    if differentiable:
+        rotation, translation = geometry.weighted_procrustes(src, jnp.matmul(probs, tgt), weights)
+    else:
+        rotation, translation = jax.lax.stop_gradient(
+            geometry.weighted_procrustes(src, tgt[matches], weights))
+    return rotation, translation, weights, matches
+
+
+def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_iters: int, *,
+           differentiable: bool = False, dropout_key: jax.Array | None = None) -> Iterations:
+    """The training-time iterations of one pair (SPEC.md sections 10-11): soft mode, both directions.
+
+    Each iteration runs the network on the moved source and estimates source-to-target and
+    target-to-source motions (the latter for the cycle loss). The source moves by the detached estimate, so
+    gradients do not cross iterations. ``dropout_key`` turns PFT's dropout on.
+
+    Args:
+      src: (N, 3); tgt: (M, 3).
+      n_iters: iterations (the authors train with 2).
+      differentiable: see :func:`_soft_pose`.
+    """
+    tgt_embedding = embed(params, tgt, config)
+    rotation = jnp.eye(3, dtype=src.dtype)
+    translation = jnp.zeros(3, dtype=src.dtype)
+    moved = src
+    records = []
+    for i in range(n_iters):
+        key = None if dropout_key is None else jax.random.fold_in(dropout_key, i)
+        _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding,
+                            deterministic=key is None, dropout_key=key)
+        r_ab, t_ab, weights, matches = _soft_pose(moved, tgt, feats.scores, feats.temperature, differentiable)
+        r_ba, t_ba, _, _ = _soft_pose(tgt, moved, feats.scores.T, feats.temperature, differentiable)
+        rotation, translation = geometry.compose(r_ab, t_ab, rotation, translation)
+        moved = geometry.apply_transform(jax.lax.stop_gradient(r_ab), jax.lax.stop_gradient(t_ab), moved)
+        records.append(Iterations(rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches,
+                                  feats.temperature))
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *records)

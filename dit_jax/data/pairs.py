@@ -127,7 +127,8 @@ class PairDataset:
             raise ValueError(f"shapes hold {shapes.points.shape[1]} points, fewer than the {config.n_points} asked")
         rows = np.arange(len(shapes.labels))
         if config.unseen:
-            rows = rows[shapes.labels < 20] if config.train else rows[shapes.labels >= 20]
+            # Shapes without a ModelNet40 category (label -1, embedded set only) belong to neither side.
+            rows = rows[(shapes.labels >= 0) & (shapes.labels < 20)] if config.train else rows[shapes.labels >= 20]
         self.shapes = shapes
         self.config = config
         self.rows = rows  # pair n uses shape rows[n]

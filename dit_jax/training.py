@@ -1,0 +1,461 @@
+"""Training DIT: optax, orbax checkpoints, data parallelism over a device mesh, resumable.
+
+:func:`train` is the whole job behind ``python train.py``. Its pieces are usable on their own:
+:func:`make_optimizer`, :func:`init_state`, :func:`make_train_step` (a jitted, sharded step that skips
+non-finite updates) and :func:`validate`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from typing import Any, Callable, Iterator, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from dit_jax import configs, losses, metrics, model
+from dit_jax.configs import DITConfig
+from dit_jax.data import pairs as pairs_lib
+from dit_jax.data import pipeline, shapes as shapes_lib
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on. Presets: :data:`PRESETS`.
+
+    Attributes:
+      model: a :mod:`dit_jax.configs` preset name; ``model_overrides`` changes its fields.
+      setting: data setting (``clean``, ``low_noise_partial``, ``high_noise_partial``).
+      data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
+      unseen: the unseen-category split (labels 0-19 train, 20-39 test).
+      variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).
+      n_points: points per shape.
+      batch_size: pairs per step (divisible by the number of devices).
+      epochs: passes over the training pairs; ``max_steps`` caps the steps if set.
+      lr, weight_decay: Adam's learning rate and coupled (L2) weight decay, as PyTorch's Adam.
+      lr_drops: fractions of the run after which the learning rate is multiplied by ``lr_drop_factor``.
+      clip_norm: global gradient-norm clipping.
+      train_iters: registration iterations unrolled in training (the authors use 2).
+      differentiable: gradients through weighted Procrustes with soft correspondences; False is the authors'
+        detached Procrustes, where only the discrimination term trains the network.
+      val_fraction: share of the training shapes held out for validation (never the test split).
+      val_pairs: validation pairs evaluated (the first ones, deterministic).
+      eval_every, ckpt_every: steps between validations / checkpoints (also at the end).
+      keep: last checkpoints kept (the best one is kept apart).
+      seed: parameters, dropout, training pairs and their order.
+      log_every: steps between metric lines in ``metrics.jsonl``.
+    """
+
+    model: str = "cpu"
+    model_overrides: tuple[tuple[str, Any], ...] = ()
+    setting: str = "clean"
+    data_dir: str | None = None
+    unseen: bool = False
+    variant: str = "authors"
+    n_points: int = 1000
+    batch_size: int = 8
+    epochs: int = 100
+    max_steps: int | None = None
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    lr_drops: tuple[float, ...] = (0.3, 0.6, 0.8)
+    lr_drop_factor: float = 0.1
+    clip_norm: float = 10.0
+    train_iters: int = 2
+    differentiable: bool = False
+    val_fraction: float = 0.1
+    val_pairs: int = 64
+    eval_every: int = 200
+    ckpt_every: int = 100
+    keep: int = 3
+    seed: int = 0
+    log_every: int = 10
+
+    def model_config(self) -> DITConfig:
+        return configs.get(self.model, self.setting).replace(**dict(self.model_overrides))
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["model_overrides"] = [list(kv) for kv in self.model_overrides]
+        d["lr_drops"] = list(self.lr_drops)
+        return d
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> "TrainConfig":
+        d = dict(d)
+        d["model_overrides"] = tuple(tuple(kv) for kv in d.get("model_overrides", ()))
+        d["lr_drops"] = tuple(d.get("lr_drops", ()))
+        return cls(**d)
+
+
+PRESETS: Mapping[str, TrainConfig] = {
+    # The authors' recipe (SPEC.md section 11): batch 2, Adam 3e-5, wd 1e-4, drops at 30/60/80 %.
+    "paper": TrainConfig(model="paper", n_points=1000, batch_size=2, epochs=100, lr=3e-5, weight_decay=1e-4,
+                         eval_every=2000, ckpt_every=1000),
+    # A CPU-sized network and point count that learns in hours on two cores.
+    "cpu": TrainConfig(model="cpu", n_points=512, batch_size=8, epochs=100, lr=1e-3),
+    # What `python train.py` runs: a short run on the embedded set that ends within minutes on two cores.
+    "quick": TrainConfig(model="cpu", n_points=256, batch_size=8, epochs=6, lr=1e-3, val_pairs=32,
+                         eval_every=50, ckpt_every=50, log_every=5),
+    # For tests.
+    "tiny": TrainConfig(model="tiny", n_points=64, batch_size=4, epochs=1, lr=1e-3, val_pairs=8, eval_every=10,
+                        ckpt_every=5, log_every=1),
+}
+
+
+class TrainState(struct.PyTreeNode):
+    """All that a step changes. ``rng`` is a raw uint32 key so orbax stores it as a plain array."""
+
+    step: jax.Array
+    params: Any
+    opt_state: Any
+    rng: jax.Array
+    skipped: jax.Array  # steps whose loss or gradients were not finite, and so were not applied
+
+
+# ------------------------------------------------------------------------------------------ optimisation
+
+
+def lr_schedule(config: TrainConfig, total_steps: int) -> optax.Schedule:
+    """Constant ``lr``, times ``lr_drop_factor`` after each fraction in ``lr_drops`` of the run."""
+    boundaries = {max(1, int(f * total_steps)): config.lr_drop_factor for f in config.lr_drops}
+    return optax.piecewise_constant_schedule(config.lr, boundaries)
+
+
+def make_optimizer(config: TrainConfig, total_steps: int) -> optax.GradientTransformation:
+    """Clipping, then PyTorch-style Adam with L2 weight decay added to the gradient, then the schedule."""
+    return optax.chain(
+        optax.clip_by_global_norm(config.clip_norm),
+        optax.add_decayed_weights(config.weight_decay),
+        optax.scale_by_adam(),
+        optax.scale_by_learning_rate(lr_schedule(config, total_steps)),
+    )
+
+
+def init_state(config: TrainConfig, optimizer: optax.GradientTransformation) -> TrainState:
+    key = jax.random.PRNGKey(config.seed)
+    params = model.init(jax.random.fold_in(key, 1), config.model_config())
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params),
+                      rng=key, skipped=jnp.zeros((), jnp.int32))
+
+
+def _batch_loss(params, batch, model_config: DITConfig, config: TrainConfig, key):
+    """Mean loss over the batch and the mean of each term and error."""
+
+    def one(src, tgt, rotation_gt, translation_gt, pair_key):
+        its = model.unroll(params, src, tgt, model_config, config.train_iters,
+                           differentiable=config.differentiable, dropout_key=pair_key)
+        total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt)
+        terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
+        terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
+        return total, terms
+
+    keys = jax.random.split(key, batch["src"].shape[0])
+    totals, terms = jax.vmap(one)(batch["src"], batch["tgt"], batch["R"], batch["t"], keys)
+    return jnp.mean(totals), jax.tree.map(jnp.mean, terms)
+
+
+def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation, mesh: Mesh) -> Callable:
+    """A jitted ``step(state, batch) -> (state, metrics)``: params replicated, the batch split over ``mesh``.
+
+    A step whose loss or gradients are not all finite changes nothing but ``step`` and ``skipped``.
+    """
+    model_config = config.model_config()
+    replicated = NamedSharding(mesh, PartitionSpec())
+
+    def step(state: TrainState, batch):
+        key = jax.random.fold_in(state.rng, state.step)
+        (loss, terms), grads = jax.value_and_grad(_batch_loss, has_aux=True)(
+            state.params, batch, model_config, config, key)
+        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        finite = jnp.isfinite(loss) & jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
+        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+        new_state = state.replace(
+            step=state.step + 1,
+            params=keep(params, state.params),
+            opt_state=keep(opt_state, state.opt_state),
+            skipped=state.skipped + (~finite).astype(jnp.int32),
+        )
+        out = dict(terms, loss=loss, grad_norm=optax.global_norm(grads), finite=finite)
+        return new_state, out
+
+    return jax.jit(step, out_shardings=(replicated, replicated), donate_argnums=0)
+
+
+def make_mesh(devices=None) -> Mesh:
+    """A 1-D mesh named ``data`` over all devices (of all hosts)."""
+    return Mesh(np.asarray(devices if devices is not None else jax.devices()), ("data",))
+
+
+def shard_batch(batch: Mapping[str, np.ndarray], mesh: Mesh) -> dict[str, jax.Array]:
+    """Places this process's part of a global batch on the mesh, split along the batch axis.
+
+    Every process builds the whole global batch (pairs are cheap and deterministic) and contributes the rows
+    of its own devices, so one and several hosts run the same code.
+    """
+    sharding = NamedSharding(mesh, PartitionSpec("data"))
+    n_proc, proc = jax.process_count(), jax.process_index()
+    out = {}
+    for key in ("src", "tgt", "R", "t"):
+        value = np.asarray(batch[key])
+        local = np.array_split(value, n_proc)[proc] if n_proc > 1 else value
+        out[key] = jax.make_array_from_process_local_data(sharding, local, value.shape)
+    return out
+
+
+def replicate(tree, mesh: Mesh):
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+# ------------------------------------------------------------------------------------------ data
+
+
+def _split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shapes_lib.Shapes, shapes_lib.Shapes]:
+    """Training and validation shapes: a fixed share of the training split, the same for every seed."""
+    order = np.random.default_rng(20261122).permutation(len(shapes.labels))
+    n_val = max(1, int(round(fraction * len(order)))) if fraction > 0 else 0
+    val, train = np.sort(order[:n_val]), np.sort(order[n_val:])
+    take = lambda rows: shapes_lib.Shapes(shapes.points[rows], shapes.labels[rows], shapes.ids[rows],
+                                          shapes.shape_names)
+    return take(train), take(val)
+
+
+def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
+    """(training pairs, validation pairs) from the training split of the chosen source."""
+    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=config.n_points, data_dir=prepared_dir)
+    train_shapes, val_shapes = _split_validation(shapes, config.val_fraction)
+    common = dict(setting=config.setting, unseen=config.unseen, variant=config.variant, n_points=config.n_points)
+    train = pairs_lib.PairDataset(train_shapes, pairs_lib.PairConfig(train=True, seed=config.seed, **common))
+    # Validation pairs are fixed (seeded by index); the unseen split keeps the training categories there.
+    val = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(train=False, **common))
+    if config.unseen:
+        keep = (val_shapes.labels >= 0) & (val_shapes.labels < 20)
+        val.rows = val.rows[keep[val.rows]]
+    return train, val
+
+
+def validate(params, dataset: pairs_lib.PairDataset, model_config: DITConfig, n_pairs: int,
+             batch_size: int = 8) -> dict[str, float]:
+    """Inference (``register``, GMCCE included) on the first ``n_pairs`` validation pairs: mean isotropic
+    rotation (degrees) and translation errors."""
+    n = min(n_pairs, len(dataset))
+    rot_err, trans_err = [], []
+    for start in range(0, n, batch_size):
+        b = dataset.batch(np.arange(start, min(n, start + batch_size)))
+        rotation, translation, _ = model.register(params, jnp.asarray(b["src"]), jnp.asarray(b["tgt"]), model_config)
+        rot_err.append(np.asarray(metrics.rotation_error_deg(rotation, b["R"])))
+        trans_err.append(np.asarray(metrics.translation_error(translation, b["t"])))
+    return {"rotation_error": float(np.mean(np.concatenate(rot_err))),
+            "translation_error": float(np.mean(np.concatenate(trans_err)))}
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+
+
+class TrainCheckpointError(RuntimeError):
+    """The working directory's checkpoints cannot be resumed: damaged, or made by another config."""
+
+
+def _managers(workdir: str, keep: int):
+    options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
+    last = ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options,
+                                 item_names=("state", "meta"))
+    best_options = ocp.CheckpointManagerOptions(max_to_keep=1, create=True, enable_async_checkpointing=False)
+    best = ocp.CheckpointManager(os.path.join(workdir, "best"), options=best_options, item_names=("state", "meta"))
+    return last, best
+
+
+def _save(manager, state: TrainState, meta: dict) -> None:
+    host_state = jax.device_get(state)
+    manager.save(int(host_state.step), args=ocp.args.Composite(state=ocp.args.StandardSave(host_state),
+                                                                meta=ocp.args.JsonSave(meta)), force=True)
+    manager.wait_until_finished()
+
+
+def _restore(manager, step: int, abstract: TrainState, config: TrainConfig) -> tuple[TrainState, dict]:
+    where = os.path.join(str(manager.directory), str(step))
+    try:
+        meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+    except Exception as err:
+        raise TrainCheckpointError(f"{where}: checkpoint metadata unreadable ({type(err).__name__}); "
+                                   "the checkpoint is damaged -- delete it to resume from an earlier one") from None
+    saved = TrainConfig.from_json(meta["train_config"])
+    if saved.model_config() != config.model_config():
+        raise TrainCheckpointError(f"{where}: made for model {saved.model_config()}, not "
+                                   f"{config.model_config()}; use another --workdir")
+    try:
+        state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
+    except Exception as err:
+        raise TrainCheckpointError(f"{where}: train state does not restore ({type(err).__name__}: "
+                                   f"{str(err).splitlines()[0][:200] if str(err) else ''})") from None
+    return state, meta
+
+
+def export_params(workdir: str, out_dir: str) -> str:
+    """Writes the best (else the latest) params of a training run as a model checkpoint
+    (:mod:`dit_jax.checkpoint`), the format ``evaluate.py`` and the registration API read."""
+    from dit_jax import checkpoint
+
+    for sub in ("best", "checkpoints"):
+        path = os.path.join(workdir, sub)
+        if not os.path.isdir(path):
+            continue
+        manager = ocp.CheckpointManager(path, item_names=("state", "meta"))
+        step = manager.latest_step()
+        if step is None:
+            continue
+        meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+        config = TrainConfig.from_json(meta["train_config"])
+        raw = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore())).state
+        return checkpoint.save(out_dir, raw["params"], config.model_config(), overwrite=True)
+    raise TrainCheckpointError(f"{workdir}: no checkpoints to export")
+
+
+# ------------------------------------------------------------------------------------------ the loop
+
+
+def _append_jsonl(path: str, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def _truncate_log(path: str, after_step: int) -> None:
+    """Drops log lines past ``after_step`` (written by a run that was killed before its next checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [line for line in f if line.strip() and json.loads(line).get("step", 0) <= after_step]
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        f.writelines(lines)
+    os.replace(tmp, path)
+
+
+def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None,
+          progress: bool = True, stop_after: int | None = None) -> dict:
+    """Trains DIT; returns the final validation metrics and where the results are.
+
+    Writes to ``workdir``: ``checkpoints/`` (the last ``keep``), ``best/`` (lowest validation rotation
+    error), ``metrics.jsonl``, ``train_config.json`` and, at the end, ``model/`` (the best params as a model
+    checkpoint for ``evaluate.py``).
+
+    Args:
+      resume: continue from the latest checkpoint in ``workdir`` (step, optimiser, RNG and data order
+        exactly). Without it, a ``workdir`` that holds checkpoints is refused rather than overwritten.
+      stop_after: end after this global step, as if killed (for tests).
+    """
+    os.makedirs(workdir, exist_ok=True)
+    model_config = config.model_config()
+    mesh = make_mesh()
+    n_dev = mesh.devices.size
+    if config.batch_size % n_dev:
+        raise ValueError(f"batch_size {config.batch_size} is not divisible by the {n_dev} devices")
+
+    train_ds, val_ds = make_datasets(config, prepared_dir)
+    steps_per_epoch = len(train_ds) // config.batch_size
+    if steps_per_epoch == 0:
+        raise ValueError(f"{len(train_ds)} training pairs are fewer than one batch of {config.batch_size}")
+    total_steps = steps_per_epoch * config.epochs
+    if config.max_steps:
+        total_steps = min(total_steps, config.max_steps)
+    optimizer = make_optimizer(config, total_steps)
+    last_mgr, best_mgr = _managers(workdir, config.keep)
+    log_path = os.path.join(workdir, "metrics.jsonl")
+
+    state = init_state(config, optimizer)
+    best_val = math.inf
+    latest = last_mgr.latest_step()
+    if latest is not None:
+        if not resume:
+            raise TrainCheckpointError(f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
+                                       "continue, or choose a new --workdir")
+        state, meta = _restore(last_mgr, latest, jax.eval_shape(lambda: state), config)
+        best_val = meta.get("best_val", math.inf)
+        _truncate_log(log_path, latest)
+    else:
+        _truncate_log(log_path, -1)
+        with open(os.path.join(workdir, "train_config.json"), "w") as f:
+            json.dump(config.to_json(), f, indent=2)
+    state = replicate(state, mesh)
+    step_fn = make_train_step(config, optimizer, mesh)
+
+    def meta(step):
+        return {"train_config": config.to_json(), "step": step, "best_val": best_val,
+                "steps_per_epoch": steps_per_epoch}
+
+    start = int(state.step)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", dynamic_ncols=True)
+
+    def batches_from(step: int) -> Iterator[tuple[int, dict]]:
+        epoch, offset = divmod(step, steps_per_epoch)
+        while step < total_steps:
+            for b in pipeline.batches(train_ds, config.batch_size, epoch=epoch, start_batch=offset):
+                yield epoch, b
+                step += 1
+                if step >= total_steps:
+                    return
+            epoch, offset = epoch + 1, 0
+
+    val_metrics = {}
+    t_last = time.time()
+    step = start
+    for epoch, batch in batches_from(start):
+        state, out = step_fn(state, shard_batch(batch, mesh))
+        step += 1
+        if step % config.log_every == 0 or step == total_steps:
+            out = {k: float(v) for k, v in jax.device_get(out).items()}
+            now = time.time()
+            record = {"step": step, "epoch": epoch, "split": "train", "skipped": int(state.skipped),
+                      "lr": float(lr_schedule(config, total_steps)(step - 1)), **out,
+                      "seconds_per_step": (now - t_last) / config.log_every}
+            t_last = now
+            _append_jsonl(log_path, record)
+            if bar is not None:
+                bar.set_postfix(loss=f"{out['loss']:.3f}", disc=f"{out['discrimination']:.3f}",
+                                acc=f"{out['match_accuracy']:.2f}", rot=f"{out['rotation_error']:.1f}",
+                                trans=f"{out['translation_error']:.3f}", refresh=False)
+        if bar is not None:
+            bar.update(1)
+        if step % config.eval_every == 0 or step == total_steps:
+            val_metrics = validate(state.params, val_ds, model_config, config.val_pairs)
+            _append_jsonl(log_path, {"step": step, "epoch": epoch, "split": "val", **val_metrics})
+            if bar is not None:
+                bar.write(f"step {step}: validation rotation error {val_metrics['rotation_error']:.2f} deg, "
+                          f"translation error {val_metrics['translation_error']:.4f}")
+            if val_metrics["rotation_error"] < best_val:
+                best_val = val_metrics["rotation_error"]
+                _save(best_mgr, state, meta(step))
+        if step % config.ckpt_every == 0 or step == total_steps:
+            _save(last_mgr, state, meta(step))
+        if stop_after is not None and step >= stop_after:
+            break
+    if bar is not None:
+        bar.close()
+    last_mgr.close()
+    best_mgr.close()
+    result = {"step": step, "total_steps": total_steps, "skipped": int(state.skipped), "val": val_metrics,
+              "best_val_rotation_error": best_val, "workdir": os.path.abspath(workdir)}
+    if step >= total_steps:
+        result["model"] = export_params(workdir, os.path.join(workdir, "model"))
+    return result
+
+
+def initial_validation(config: TrainConfig, prepared_dir: str | None = None) -> dict[str, float]:
+    """Validation errors of freshly initialised params (the starting point a run should improve on)."""
+    _, val_ds = make_datasets(config, prepared_dir)
+    state = init_state(config, make_optimizer(config, 1))
+    return validate(state.params, val_ds, config.model_config(), config.val_pairs)
