@@ -1,0 +1,56 @@
+"""Training throughput (pairs per second) of a preset's train step on this machine.
+
+    python benchmarks/train_throughput.py --preset cpu
+    python benchmarks/train_throughput.py --preset paper
+
+Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps).
+"""
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--steps", type=int, default=3)
+    parser.add_argument("--n-points", type=int, default=None)
+    args = parser.parse_args()
+
+    import dataclasses
+
+    from dit_jax import training
+
+    config = training.PRESETS[args.preset]
+    if args.n_points:
+        config = dataclasses.replace(config, n_points=args.n_points)
+    optimizer = training.make_optimizer(config, 1000)
+    mesh = training.make_mesh()
+    state = training.replicate(training.init_state(config, optimizer), mesh)
+    step = training.make_train_step(config, optimizer, mesh)
+    rng = np.random.default_rng(0)
+    b, n = config.batch_size, config.n_points
+    src = rng.uniform(-1, 1, (b, n, 3)).astype(np.float32)
+    batch = training.shard_batch({"src": src, "tgt": src[:, ::-1] + 0.1, "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
+                                  "t": np.full((b, 3), 0.1, np.float32)}, mesh)
+    t0 = time.perf_counter()
+    state, out = step(state, batch)
+    out["loss"].block_until_ready()
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(args.steps):
+        t0 = time.perf_counter()
+        state, out = step(state, batch)
+        out["loss"].block_until_ready()
+        times.append(time.perf_counter() - t0)
+    step_s = float(np.median(times))
+    print(json.dumps({"preset": args.preset, "model": config.model, "n_points": n, "batch_size": b,
+                      "train_iters": config.train_iters, "compile_and_first_step_s": compile_s,
+                      "step_s": step_s, "pairs_per_s": b / step_s}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

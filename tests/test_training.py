@@ -1,0 +1,166 @@
+import dataclasses
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dit_jax import losses, training
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TINY = dataclasses.replace(training.PRESETS["tiny"], max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4)
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("prepared"))
+
+
+def _params(workdir):
+    return training.export_params(str(workdir), str(pathlib.Path(workdir) / "exported"))
+
+
+def _equal_params(dir_a, dir_b):
+    from dit_jax import checkpoint
+
+    a, _ = checkpoint.restore(dir_a)
+    b, _ = checkpoint.restore(dir_b)
+    return jax.tree.all(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b))
+
+
+def _step_setup(config, prepared, devices=None):
+    train_ds, _ = training.make_datasets(config, prepared)
+    optimizer = training.make_optimizer(config, 100)
+    mesh = training.make_mesh(devices)
+    state = training.replicate(training.init_state(config, optimizer), mesh)
+    return train_ds, mesh, state, training.make_train_step(config, optimizer, mesh)
+
+
+def test_a_few_dozen_steps_lower_the_loss(prepared):
+    config = dataclasses.replace(TINY, lr=3e-3)
+    train_ds, mesh, state, step = _step_setup(config, prepared)
+    batch = training.shard_batch(train_ds.batch(np.arange(4), epoch=0), mesh)
+    history = []
+    for _ in range(36):
+        state, out = step(state, batch)
+        history.append(float(out["loss"]))
+    assert np.mean(history[-5:]) < 0.8 * np.mean(history[:5]), history
+
+
+def test_non_finite_batches_are_skipped_not_applied(prepared):
+    train_ds, mesh, state, step = _step_setup(TINY, prepared)
+    good = train_ds.batch(np.arange(4), epoch=0)
+    bad = dict(good, src=good["src"].copy())
+    bad["src"][1, 3, 0] = np.nan
+    before = jax.device_get(state.params)
+    state, out = step(state, training.shard_batch(bad, mesh))
+    assert not bool(out["finite"]) and int(state.skipped) == 1 and int(state.step) == 1
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(a, np.asarray(b)), before, state.params)
+    state, out = step(state, training.shard_batch(good, mesh))
+    assert bool(out["finite"]) and int(state.skipped) == 1
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.params))
+    changed = jax.tree.map(lambda a, b: not np.array_equal(a, np.asarray(b)), before, state.params)
+    assert any(jax.tree.leaves(changed))
+
+
+def test_training_writes_checkpoints_and_metrics(tmp_path, prepared):
+    result = training.train(TINY, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+    assert result["step"] == 12 and result["skipped"] == 0
+    assert sorted(os.listdir(tmp_path / "run" / "checkpoints")) == ["12", "4", "8"]
+    assert os.listdir(tmp_path / "run" / "best")
+    lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    assert any('"split": "val"' in line for line in lines) and len(lines) >= 12
+    from dit_jax import checkpoint
+
+    _, config = checkpoint.restore(result["model"])
+    assert config == TINY.model_config()
+    # Starting again in the same directory without --resume is refused, never a silent restart.
+    with pytest.raises(training.TrainCheckpointError, match="pass --resume"):
+        training.train(TINY, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+
+
+def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared):
+    whole = training.train(TINY, str(tmp_path / "whole"), prepared_dir=prepared, progress=False)
+    workdir = tmp_path / "killed"
+    cmd = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--workdir", str(workdir), "--no-progress",
+           "--prepared-dir", prepared, "--set", "max_steps=12", "--set", "ckpt_every=4", "--set", "eval_every=6",
+           "--set", "val_pairs=4"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while time.time() < deadline and not (workdir / "checkpoints" / "4").exists():
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (workdir / "checkpoints" / "4").exists(), "the run made no checkpoint before the kill"
+    resumed = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert _equal_params(whole["model"], workdir / "model")
+
+
+def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared):
+    config = dataclasses.replace(TINY, max_steps=4)
+    training.train(config, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+    for f in (tmp_path / "run" / "checkpoints" / "4" / "state").rglob("*"):
+        if f.is_file() and f.stat().st_size > 0 and "metadata" not in f.name:
+            f.write_bytes(b"\0" * 7)
+    with pytest.raises(training.TrainCheckpointError, match="does not restore"):
+        training.train(dataclasses.replace(config, max_steps=8), str(tmp_path / "run"), resume=True,
+                       prepared_dir=prepared, progress=False)
+    other = dataclasses.replace(config, model_overrides=(("n_blocks", 2),))
+    with pytest.raises(training.TrainCheckpointError, match="made for model"):
+        training.train(other, str(tmp_path / "run"), resume=True, prepared_dir=prepared, progress=False)
+
+
+SHARDED_SCRIPT = """
+import sys, numpy as np, jax
+sys.path.insert(0, {tests!r})
+from test_training import TINY, _step_setup
+assert len(jax.devices()) == 2, jax.devices()
+outs = []
+for devices in (jax.devices()[:1], jax.devices()):
+    train_ds, mesh, state, step = _step_setup(TINY, {prepared!r}, devices)
+    for i in range(2):
+        state, out = step(state, __import__("dit_jax.training").training.shard_batch(train_ds.batch(np.arange(4 * i, 4 * i + 4)), mesh))
+    outs.append((jax.device_get(state.params), float(out["loss"])))
+(p1, l1), (p2, l2) = outs
+diff = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) for a, b in zip(jax.tree.leaves(p1), jax.tree.leaves(p2)))
+print("max param difference", diff, "losses", l1, l2)
+assert diff < 1e-5 and abs(l1 - l2) < 1e-5
+"""
+
+
+def test_two_device_sharded_step_equals_one_device(prepared):
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    done = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT.format(tests=str(ROOT / "tests"), prepared=prepared)],
+                          capture_output=True, text=True, timeout=600, env=env, cwd=str(ROOT))
+    assert done.returncode == 0, done.stdout[-1000:] + done.stderr[-3000:]
+    assert "max param difference" in done.stdout
+
+
+def test_losses_vanish_at_the_truth():
+    eye, zero = jnp.eye(3), jnp.zeros(3)
+    assert float(losses.transformation_loss(eye, zero, eye, zero)) == 0.0
+    assert float(losses.cycle_loss(eye, zero, eye, zero)) == 0.0
+    src = jnp.asarray(np.random.default_rng(0).normal(size=(10, 3)), jnp.float32)
+    labels = losses.match_labels(src, src + 1.0, jnp.arange(10), eye, jnp.ones(3))
+    np.testing.assert_array_equal(np.asarray(labels), 1.0)
+    wrong = losses.match_labels(src, src + 1.0, jnp.roll(jnp.arange(10), 1), eye, jnp.ones(3))
+    assert float(wrong.mean()) < 0.5
+    assert float(losses.discrimination_loss(jnp.array([1.0, 0.0]), jnp.array([1.0, 0.0]))) < 1e-5
+
+
+def test_train_cli_rejects_unknown_fields(capsys):
+    sys.path.insert(0, str(ROOT))
+    import train
+
+    with pytest.raises(SystemExit):
+        train.parse(["--set", "bogus=1"])
+    assert "no such field" in capsys.readouterr().err
+    _, config, workdir = train.parse(["--preset", "tiny", "--set", "lr=0.5", "--set", "model.n_blocks=2"])
+    assert config.lr == 0.5 and config.model_config().n_blocks == 2 and workdir == "runs/tiny-clean"
