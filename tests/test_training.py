@@ -69,8 +69,9 @@ def test_non_finite_batches_are_skipped_not_applied(prepared):
     assert any(jax.tree.leaves(changed))
 
 
-def test_training_writes_checkpoints_and_metrics(tmp_path, prepared):
-    result = training.train(TINY, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+def test_training_writes_checkpoints_and_metrics(tmp_path, prepared, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # a relative workdir, as `python train.py` gets by default
+    result = training.train(TINY, "run", prepared_dir=prepared, progress=False)
     assert result["step"] == 12 and result["skipped"] == 0
     assert sorted(os.listdir(tmp_path / "run" / "checkpoints")) == ["12", "4", "8"]
     assert os.listdir(tmp_path / "run" / "best")
