@@ -31,23 +31,38 @@ def _handler() -> ocp.Checkpointer:
     return ocp.Checkpointer(ocp.CompositeCheckpointHandler())
 
 
-def save(directory: str | os.PathLike, params: Any, config: DITConfig, *, overwrite: bool = False) -> str:
+def save(directory: str | os.PathLike, params: Any, config: DITConfig, *, overwrite: bool = False,
+         extra: dict | None = None) -> str:
     """Writes ``params`` and ``config`` to ``directory`` (which must not exist unless ``overwrite``).
 
-    Returns the absolute path written.
+    ``extra``: JSON-able facts about how the params were made (training data, point count, steps), read back
+    by :func:`read_extra`. Returns the absolute path written.
     """
     path = os.path.abspath(os.fspath(directory))
     if os.path.exists(path) and not overwrite:
         raise CheckpointError(f"{path} already exists; choose a new directory")
-    meta = {"format": FORMAT, "dit_config": config.to_dict()}
+    meta = {"format": FORMAT, "dit_config": config.to_dict(), "extra": extra or {}}
     with _handler() as ckptr:
         ckptr.save(path, ocp.args.Composite(params=ocp.args.StandardSave(params),
                                             config=ocp.args.JsonSave(meta)), force=overwrite)
     return path
 
 
+def read_extra(directory: str | os.PathLike) -> dict:
+    """The ``extra`` facts stored with a checkpoint (empty if none)."""
+    return _read_meta(directory).get("extra", {})
+
+
 def read_config(directory: str | os.PathLike) -> DITConfig:
     """The :class:`DITConfig` stored in a checkpoint."""
+    meta = _read_meta(directory)
+    try:
+        return DITConfig.from_dict(meta["dit_config"])
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: stored config is invalid: {err}") from None
+
+
+def _read_meta(directory: str | os.PathLike) -> dict:
     path = os.path.abspath(os.fspath(directory))
     if not os.path.isdir(path):
         raise CheckpointError(f"{path}: no such checkpoint directory")
@@ -58,10 +73,7 @@ def read_config(directory: str | os.PathLike) -> DITConfig:
         raise CheckpointError(f"{path}: not a dit-jax checkpoint or damaged ({type(err).__name__}: {err})") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT or "dit_config" not in meta:
         raise CheckpointError(f"{path}: unknown checkpoint format (expected format {FORMAT})")
-    try:
-        return DITConfig.from_dict(meta["dit_config"])
-    except (TypeError, ValueError) as err:
-        raise CheckpointError(f"{path}: stored config is invalid: {err}") from None
+    return meta
 
 
 def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:

@@ -330,7 +330,10 @@ def export_params(workdir: str, out_dir: str) -> str:
         meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
         config = TrainConfig.from_json(meta["train_config"])
         raw = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore())).state
-        return checkpoint.save(out_dir, raw["params"], config.model_config(), overwrite=True)
+        extra = {"step": int(step), "chosen_by": sub, "n_points": config.n_points, "setting": config.setting,
+                 "data": config.data_dir or "embedded", "unseen": config.unseen, "variant": config.variant,
+                 "train_config": config.to_json()}
+        return checkpoint.save(out_dir, raw["params"], config.model_config(), overwrite=True, extra=extra)
     raise TrainCheckpointError(f"{workdir}: no checkpoints to export")
 
 

@@ -52,7 +52,8 @@ class PairConfig:
       unseen: split by category: labels 0-19 for training, 20-39 for testing.
       variant: "authors" (SPEC.md) or "peers" (angles in [0, 45], RPM-Net plane crop keeping 70 %).
       n_points: points taken from each shape (its first ones).
-      partial_points: points each cloud keeps in the authors' partial settings.
+      partial_points: points each cloud keeps in the authors' partial settings (default: 80 % of n_points,
+        the authors' 800 of 1000).
       peers_keep: fraction each cloud keeps in the peers' crop.
       max_angle: degrees; angles are uniform in [-max, max] (authors) or [0, max] (peers).
       max_translation: t is uniform in [-max, max]^3.
@@ -64,7 +65,7 @@ class PairConfig:
     unseen: bool = False
     variant: str = "authors"
     n_points: int = 1000
-    partial_points: int = 800
+    partial_points: int | None = None
     peers_keep: float = 0.7
     max_angle: float = 45.0
     max_translation: float = 0.5
@@ -75,8 +76,8 @@ class PairConfig:
             raise ValueError(f"unknown setting {self.setting!r}; choose one of {', '.join(SETTINGS)}")
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
-        if self.partial and self.variant == "authors" and self.partial_points > self.n_points:
-            raise ValueError(f"partial_points ({self.partial_points}) exceeds n_points ({self.n_points})")
+        if self.partial_points is not None and not 0 < self.partial_points <= self.n_points:
+            raise ValueError(f"partial_points ({self.partial_points}) must be in 1..n_points ({self.n_points})")
 
     @property
     def noise_clip(self) -> float:
@@ -92,7 +93,7 @@ class PairConfig:
             return self.n_points
         if self.variant == "peers":
             return int(round(self.peers_keep * self.n_points))
-        return self.partial_points
+        return self.partial_points or int(round(0.8 * self.n_points))
 
 
 def euler_zyx_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
@@ -119,6 +120,8 @@ class PairDataset:
     * ``R`` (3, 3), ``t`` (3,) float32, the ground truth; ``euler_zyx`` (3,) its angles (az, ay, ax) in degrees;
     * ``correspondence`` (N,) int32: the row of ``tgt`` holding each source point's own counterpart, or -1
       where the crop removed it (the discrimination loss's labels);
+    * ``tgt_clean`` (P, 3) float32: the whole noise-free shape in the target's frame (for RPM-Net's Chamfer
+      distance);
     * ``label`` () int64 and ``index`` () int64: the shape's category and its row in the split.
     """
 
@@ -193,6 +196,7 @@ class PairDataset:
         np.put_along_axis(where, tgt_keep, np.broadcast_to(np.arange(tgt_keep.shape[1]), tgt_keep.shape), axis=1)
         correspondence = np.take_along_axis(where, src_keep, axis=1)
 
+        shape_in_tgt_frame = np.einsum("bij,bnj->bni", rot, clouds) + trans[:, None, :]
         return {
             "src": src.astype(np.float32),
             "tgt": tgt.astype(np.float32),
@@ -200,6 +204,7 @@ class PairDataset:
             "t": trans.astype(np.float32),
             "euler_zyx": angles.astype(np.float32),
             "correspondence": correspondence.astype(np.int32),
+            "tgt_clean": shape_in_tgt_frame.astype(np.float32),
             "label": self.shapes.labels[self.rows[indices]],
             "index": indices,
         }
