@@ -16,6 +16,7 @@ SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
     parser.add_argument("--checkpoint", default="runs/quick-clean/model", help="a model checkpoint directory")
+    parser.add_argument("--no-dit", action="store_true", help="evaluate the baselines alone")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--settings", nargs="+", default=["clean"], choices=SETTINGS + ("all",))
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
@@ -36,7 +37,7 @@ def main(argv=None) -> int:
     from dit_jax.data.shapes import DataError
 
     try:
-        results = evaluation.evaluate(args.checkpoint, args.out, data_dir=args.data_dir, settings=settings,
+        results = evaluation.evaluate(None if args.no_dit else args.checkpoint, args.out, data_dir=args.data_dir, settings=settings,
                                       unseen=args.unseen, variant=args.variant, n_points=args.n_points,
                                       max_pairs=args.max_pairs, n_iters=args.iters,
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
@@ -45,7 +46,11 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(results["table"])
-    print(f"wrote {args.out}/results.md, results.json, success_ratio.png, registrations.png")
+    import os
+
+    written = [f for f in ("results.md", "results.json", "success_ratio.png", "registrations.png")
+               if os.path.exists(os.path.join(args.out, f))]
+    print(f"wrote {', '.join(os.path.join(args.out, f) for f in written)}")
     return 0
 
 

@@ -120,7 +120,7 @@ def plot_success(results: dict, path: str) -> None:
         for name, r in results["settings"][setting].items():
             curve = r["success_curve"]
             ax.plot(curve["rotation_thresholds"], curve["ratio"], marker="o", label=name)
-        ticks = results["settings"][setting][METHOD_DIT]["success_curve"]
+        ticks = next(iter(results["settings"][setting].values()))["success_curve"]
         ax.set_xscale("log")
         ax.set_xticks(ticks["rotation_thresholds"])
         ax.set_xticklabels([f"{r:g}\u00b0\n{t:g}" for r, t in zip(ticks["rotation_thresholds"],
@@ -163,7 +163,7 @@ def plot_registrations(dataset: pairs_lib.PairDataset, pred: dict, indices: np.n
     plt.close(fig)
 
 
-def evaluate(checkpoint_dir: str, out_dir: str, *, data_dir: str | None = None,
+def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
              settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
              n_points: int | None = None, max_pairs: int | None = None, n_iters: int = 3,
              gmcce_threshold: float | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
@@ -172,18 +172,23 @@ def evaluate(checkpoint_dir: str, out_dir: str, *, data_dir: str | None = None,
 
     Args:
       checkpoint_dir: a model checkpoint (:mod:`dit_jax.checkpoint`; ``WORKDIR/model`` of a training run, or
-        converted authors' weights).
+        converted authors' weights); None evaluates the baselines alone (no registrations figure then).
       n_points: points per shape; default the training run's, else 1000.
       max_pairs: evaluate only the first pairs of each setting (all by default).
       gmcce_threshold: overrides the authors' per-setting threshold.
     """
-    params, config = checkpoint.restore(checkpoint_dir)
-    extra = checkpoint.read_extra(checkpoint_dir)
+    if checkpoint_dir is None and not baselines:
+        raise ValueError("nothing to evaluate: give a checkpoint or baselines")
+    if checkpoint_dir is not None:
+        params, config = checkpoint.restore(checkpoint_dir)
+        extra = checkpoint.read_extra(checkpoint_dir)
+    else:
+        params, config, extra = None, None, {}
     n_points = n_points or extra.get("n_points") or 1000
     test_shapes = shapes_lib.load_shapes(data_dir, "test", n_points=n_points, data_dir=prepared_dir)
     os.makedirs(out_dir, exist_ok=True)
-    results = {"checkpoint": os.path.abspath(checkpoint_dir), "data": data_dir or "embedded", "n_points": n_points,
-               "model_config": config.to_dict(), "settings": {}, "setting_info": {}}
+    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
+               "n_points": n_points, "model_config": config and config.to_dict(), "settings": {}, "setting_info": {}}
     bar = None
     datasets = {}
     for setting in settings:
@@ -193,15 +198,18 @@ def evaluate(checkpoint_dir: str, out_dir: str, *, data_dir: str | None = None,
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=sum(len(ix) for _, ix in datasets.values()) * (1 + len(baselines)), desc="evaluate",
+        methods = len(baselines) + (params is not None)
+        bar = tqdm(total=sum(len(ix) for _, ix in datasets.values()) * methods, desc="evaluate",
                    unit="pair", dynamic_ncols=True)
     first_dit = None
     for setting, (ds, indices) in datasets.items():
         threshold = gmcce_threshold if gmcce_threshold is not None else GMCCE_THRESHOLDS[setting]
-        run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters)
-        if bar is not None:
-            bar.set_postfix_str(f"{setting}: DIT")
-        preds = {METHOD_DIT: predict_dit(params, run_config, ds, indices, batch_size, bar)}
+        preds = {}
+        if params is not None:
+            if bar is not None:
+                bar.set_postfix_str(f"{setting}: DIT")
+            run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters)
+            preds[METHOD_DIT] = predict_dit(params, run_config, ds, indices, batch_size, bar)
         for name in baselines:
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
@@ -210,7 +218,7 @@ def evaluate(checkpoint_dir: str, out_dir: str, *, data_dir: str | None = None,
                                         for name, p in preds.items()}
         results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
                                             "variant": variant, "gmcce_threshold": threshold, "n_iters": n_iters}
-        if first_dit is None:
+        if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
     if bar is not None:
         bar.close()
@@ -220,9 +228,10 @@ def evaluate(checkpoint_dir: str, out_dir: str, *, data_dir: str | None = None,
     with open(os.path.join(out_dir, "results.md"), "w") as f:
         f.write(table)
     plot_success(results, os.path.join(out_dir, "success_ratio.png"))
-    setting, ds, pred = first_dit
-    shown = np.arange(min(3, len(pred["R"])))
-    plot_registrations(ds, {k: v[shown] for k, v in pred.items()}, shown,
-                       os.path.join(out_dir, "registrations.png"), f"DIT on {results['data']} ({setting})")
+    if first_dit is not None:
+        setting, ds, pred = first_dit
+        shown = np.arange(min(3, len(pred["R"])))
+        plot_registrations(ds, {k: v[shown] for k, v in pred.items()}, shown,
+                           os.path.join(out_dir, "registrations.png"), f"DIT on {results['data']} ({setting})")
     results["table"] = table
     return results

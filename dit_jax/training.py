@@ -46,7 +46,8 @@ class TrainConfig:
       clip_norm: global gradient-norm clipping.
       train_iters: registration iterations unrolled in training (the authors use 2).
       differentiable: gradients through weighted Procrustes with soft correspondences (the default: on the
-        same 200-step run it reached 0.02 degrees where the authors' detached Procrustes stayed near 40, see
+        same 200-step run the network's own error reached 0.39 degrees where the authors' detached Procrustes
+        stayed near 40, see
         docs/BENCHMARKS.md); False is the authors' detached Procrustes, where only the discrimination term
         trains the network.
       val_fraction: share of the training shapes held out for validation (never the test split).
