@@ -34,9 +34,9 @@ def _equal_params(dir_a, dir_b):
     return jax.tree.all(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b))
 
 
-def _step_setup(config, prepared, devices=None):
+def _step_setup(config, prepared, devices=None, optimizer=None):
     train_ds, _ = training.make_datasets(config, prepared)
-    optimizer = training.make_optimizer(config, 100)
+    optimizer = optimizer or training.make_optimizer(config, 100)
     mesh = training.make_mesh(devices)
     state = training.replicate(training.init_state(config, optimizer), mesh)
     return train_ds, mesh, state, training.make_train_step(config, optimizer, mesh)
@@ -119,20 +119,27 @@ def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared):
 
 
 SHARDED_SCRIPT = """
-import sys, numpy as np, jax
+import sys, numpy as np, jax, optax
 sys.path.insert(0, {tests!r})
 from test_training import TINY, _step_setup
+from dit_jax import training
 assert len(jax.devices()) == 2, jax.devices()
 outs = []
 for devices in (jax.devices()[:1], jax.devices()):
-    train_ds, mesh, state, step = _step_setup(TINY, {prepared!r}, devices)
-    for i in range(2):
-        state, out = step(state, __import__("dit_jax.training").training.shard_batch(train_ds.batch(np.arange(4 * i, 4 * i + 4)), mesh))
-    outs.append((jax.device_get(state.params), float(out["loss"])))
-(p1, l1), (p2, l2) = outs
-diff = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) for a, b in zip(jax.tree.leaves(p1), jax.tree.leaves(p2)))
-print("max param difference", diff, "losses", l1, l2)
-assert diff < 1e-5 and abs(l1 - l2) < 1e-5
+    # Plain SGD: Adam's first step moves every parameter by +-lr whatever the size of its gradient, so
+    # rounding-level differences in near-zero gradients would show up as lr-sized differences.
+    train_ds, mesh, state, step = _step_setup(TINY, {prepared!r}, devices, optax.sgd(0.05))
+    before = jax.device_get(state.params)
+    state, out = step(state, training.shard_batch(train_ds.batch(np.arange(4)), mesh))
+    update = jax.tree.map(lambda a, b: np.asarray(a) - np.asarray(b), jax.device_get(state.params), before)
+    outs.append((update, float(out["loss"]), float(out["grad_norm"])))
+(u1, l1, g1), (u2, l2, g2) = outs
+diff = max(float(np.max(np.abs(a - b))) for a, b in zip(jax.tree.leaves(u1), jax.tree.leaves(u2)))
+largest = max(float(np.max(np.abs(a))) for a in jax.tree.leaves(u1))
+print("max update difference", diff, "largest update", largest, "losses", l1, l2, "grad norms", g1, g2)
+# The same step up to float32 rounding: the order of reductions differs across devices, and the gradient
+# (through softmax at temperatures up to 100 and the Procrustes derivative) magnifies it to ~1e-5 relative.
+assert abs(l1 - l2) < 1e-5 * abs(l1) and diff < 1e-3 * largest and abs(g1 - g2) < 1e-3 * g1
 """
 
 
@@ -141,7 +148,7 @@ def test_two_device_sharded_step_equals_one_device(prepared):
     done = subprocess.run([sys.executable, "-c", SHARDED_SCRIPT.format(tests=str(ROOT / "tests"), prepared=prepared)],
                           capture_output=True, text=True, timeout=600, env=env, cwd=str(ROOT))
     assert done.returncode == 0, done.stdout[-1000:] + done.stderr[-3000:]
-    assert "max param difference" in done.stdout
+    assert "max update difference" in done.stdout
 
 
 def test_losses_vanish_at_the_truth():
