@@ -359,7 +359,7 @@ def _truncate_log(path: str, after_step: int) -> None:
 
 
 def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None,
-          progress: bool = True, stop_after: int | None = None) -> dict:
+          progress: bool = True) -> dict:
     """Trains DIT; returns the final validation metrics and where the results are.
 
     Writes to ``workdir``: ``checkpoints/`` (the last ``keep``), ``best/`` (lowest validation rotation
@@ -369,7 +369,6 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     Args:
       resume: continue from the latest checkpoint in ``workdir`` (step, optimiser, RNG and data order
         exactly). Without it, a ``workdir`` that holds checkpoints is refused rather than overwritten.
-      stop_after: end after this global step, as if killed (for tests).
     """
     workdir = os.path.abspath(workdir)  # orbax needs absolute paths
     os.makedirs(workdir, exist_ok=True)
@@ -460,8 +459,6 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
                 _save(best_mgr, state, meta(step))
         if step % config.ckpt_every == 0 or step == total_steps:
             _save(last_mgr, state, meta(step))
-        if stop_after is not None and step >= stop_after:
-            break
     if bar is not None:
         bar.close()
     last_mgr.close()
@@ -472,9 +469,3 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         result["model"] = export_params(workdir, os.path.join(workdir, "model"))
     return result
 
-
-def initial_validation(config: TrainConfig, prepared_dir: str | None = None) -> dict[str, float]:
-    """Validation errors of freshly initialised params (the starting point a run should improve on)."""
-    _, val_ds = make_datasets(config, prepared_dir)
-    state = init_state(config, make_optimizer(config, 1))
-    return validate(state.params, val_ds, config.model_config(), config.val_pairs)
