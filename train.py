@@ -3,7 +3,8 @@
     python train.py                                   # a short run on the embedded furniture set
     python train.py --preset paper --data-dir /data/modelnet40_ply_hdf5_2048 --setting clean
     python train.py --preset cpu --set lr=3e-4 --set model.n_blocks=4 --workdir runs/mine
-    python train.py --workdir runs/mine --resume      # continue where a run stopped (even after kill -9)
+    python train.py --workdir runs/mine --resume      # continue where a run stopped (even after kill -9),
+                                                      # with the config saved in the workdir
 
 Every field of the preset can be overridden with --set FIELD=VALUE (fields of dit_jax.training.TrainConfig;
 model.FIELD for dit_jax.configs.DITConfig). Multi-host: start one process per host with --distributed (and
@@ -14,6 +15,7 @@ import argparse
 import ast
 import dataclasses
 import json
+import os
 import sys
 
 
@@ -28,7 +30,8 @@ def parse(argv=None):
     from dit_jax import training
 
     parser = argparse.ArgumentParser(description="Train DIT (see the module docstring for examples).")
-    parser.add_argument("--preset", default="quick", choices=sorted(training.PRESETS))
+    parser.add_argument("--preset", default=None, choices=sorted(training.PRESETS),
+                        help="default: quick, or with --resume the config saved in the workdir")
     parser.add_argument("--workdir", default=None, help="default: runs/<preset>-<setting>")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--setting", default=None, choices=["clean", "low_noise_partial", "high_noise_partial"])
@@ -41,7 +44,12 @@ def parse(argv=None):
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
 
-    config = training.PRESETS[args.preset]
+    preset = args.preset or "quick"
+    config = training.PRESETS[preset]
+    saved = os.path.join(args.workdir or "", "train_config.json")
+    if args.resume and args.preset is None and args.workdir and os.path.exists(saved):
+        with open(saved) as f:
+            config = training.TrainConfig.from_json(json.load(f))
     changes, model_changes = {}, dict(config.model_overrides)
     for name, value in (("data_dir", args.data_dir), ("setting", args.setting), ("variant", args.variant)):
         if value is not None:
@@ -65,7 +73,7 @@ def parse(argv=None):
         config.model_config()
     except (TypeError, ValueError) as err:
         parser.error(str(err))
-    workdir = args.workdir or f"runs/{args.preset}-{config.setting}"
+    workdir = args.workdir or f"runs/{preset}-{config.setting}"
     return args, config, workdir
 
 

@@ -172,3 +172,15 @@ def test_train_cli_rejects_unknown_fields(capsys):
     assert "no such field" in capsys.readouterr().err
     _, config, workdir = train.parse(["--preset", "tiny", "--set", "lr=0.5", "--set", "model.n_blocks=2"])
     assert config.lr == 0.5 and config.model_config().n_blocks == 2 and workdir == "runs/tiny-clean"
+
+
+def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
+    sys.path.insert(0, str(ROOT))
+    import train
+
+    config = dataclasses.replace(TINY, lr=0.123, model_overrides=(("n_blocks", 2),))
+    (tmp_path / "train_config.json").write_text(__import__("json").dumps(config.to_json()))
+    _, resumed, _ = train.parse(["--workdir", str(tmp_path), "--resume"])
+    assert resumed == config
+    _, explicit, _ = train.parse(["--workdir", str(tmp_path), "--resume", "--preset", "tiny"])
+    assert explicit == training.PRESETS["tiny"]
