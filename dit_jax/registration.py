@@ -1,0 +1,210 @@
+"""Registering your own point clouds: load a model once, then ``register(src, tgt)`` in the caller's units.
+
+    from dit_jax import registration
+    model = registration.load()                      # the shipped weights; or load("runs/x/model"), load("a.pth")
+    result = model.register(src_points, tgt_points)  # (N, 3), (M, 3) arrays in any units
+    moved = result.apply(src_points)                 # result.matrix is the 4x4 transform
+
+What :meth:`Registrar.register` does to a pair, in order:
+
+1. checks both clouds (finite (N, 3) real coordinates, at least :func:`dit_jax.model.min_points` points, not all
+   one point) and raises :class:`InputError` naming the cloud otherwise;
+2. resamples each cloud to the model's point count by farthest-point sampling (seeded; clouds above
+   ``fps_pool`` points are first thinned to ``fps_pool`` uniformly at random, which keeps the cost linear);
+   clouds with fewer points than that are used whole;
+3. moves both into the unit sphere with one shared offset (the centroid of the two sampled clouds together;
+   ``centring="separate"`` uses each cloud's own) and one shared scale (the largest distance of a sampled
+   point from its centre), in float64;
+4. runs the jitted :func:`dit_jax.model.register` (one compilation per pair of cloud sizes: with both clouds
+   at least the model's point count, every call after the first reuses the same program);
+5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
+   ``y = R x + s t' + c_y - R c_x``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dit_jax import model as model_lib
+from dit_jax.configs import DITConfig
+
+#: Where the weights that ship with the package live (see README, "Shipped weights").
+SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
+
+
+class InputError(ValueError):
+    """A cloud handed to :meth:`Registrar.register` that DIT cannot register; the message names it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """A registration, in the caller's units: ``tgt ~ src @ rotation.T + translation``.
+
+    Attributes:
+      rotation: (3, 3) float64.
+      translation: (3,) float64.
+      matrix: (4, 4) float64 homogeneous transform.
+      source_indices: (n,) rows of the caller's source cloud the model saw.
+      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
+      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
+      inlier_ratio: share of the sampled source points GMCCE accepted in the last iteration.
+      seconds: wall time of the network call (excluding sampling and a first call's compilation).
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    matrix: np.ndarray
+    source_indices: np.ndarray
+    correspondences: np.ndarray
+    confidence: np.ndarray
+    inlier_ratio: float
+    seconds: float
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Moves (N, 3) points by the estimated transform."""
+        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+    def to_json(self) -> dict:
+        return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
+                "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
+                "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
+                "seconds": self.seconds}
+
+
+def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: int | None = None) -> np.ndarray:
+    """Indices of ``n`` points spread over the cloud by farthest-point sampling.
+
+    Args:
+      points: (N, 3).
+      n: how many to take; all N (in order) when N <= n.
+      seed: picks the first point (and the random thinning).
+      pool: above this many points the cloud is first thinned uniformly at random to ``pool`` points.
+
+    Returns:
+      (min(N, n),) int64 indices into ``points``, no repeats.
+    """
+    count = len(points)
+    if count <= n:
+        return np.arange(count)
+    rng = np.random.default_rng(seed)
+    candidates = np.sort(rng.choice(count, pool, replace=False)) if pool and count > pool else np.arange(count)
+    cloud = np.asarray(points[candidates], np.float64)
+    chosen = np.empty(n, np.int64)
+    chosen[0] = rng.integers(len(cloud))
+    nearest = np.sum((cloud - cloud[chosen[0]]) ** 2, axis=1)
+    for i in range(1, n):
+        chosen[i] = np.argmax(nearest)
+        np.minimum(nearest, np.sum((cloud - cloud[chosen[i]]) ** 2, axis=1), out=nearest)
+    return candidates[chosen]
+
+
+def check_cloud(name: str, points, min_points: int) -> np.ndarray:
+    """Returns ``points`` as (N, 3) float64 or raises :class:`InputError` saying what is wrong with it."""
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{name}: not an array of coordinates ({err})") from None
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InputError(f"{name}: expected N x 3 coordinates, got shape {array.shape}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InputError(f"{name}: expected real coordinates, got dtype {array.dtype}")
+    array = array.astype(np.float64, copy=False)
+    bad = ~np.isfinite(array).all(axis=1)
+    if bad.any():
+        raise InputError(f"{name}: {int(bad.sum())} of {len(array)} points have NaN or Inf coordinates")
+    if len(array) < min_points:
+        raise InputError(f"{name}: {len(array)} points; the model needs at least {min_points}")
+    extent = float(np.ptp(array, axis=0).max())
+    if extent <= 1e-9 * max(1.0, float(np.abs(array).max())):
+        raise InputError(f"{name}: all {len(array)} points are the same point")
+    return array
+
+
+class Registrar:
+    """A model loaded once, registering pairs of clouds of any size, scale and offset.
+
+    Args:
+      params, config: the model (see :func:`load` to read them from a checkpoint).
+      n_points: points the network sees per cloud (default 1000, the paper's protocol).
+      n_iters: registration iterations (default: the config's).
+      seed: farthest-point sampling's start (results are deterministic for a given seed).
+      fps_pool: clouds above this many points are thinned at random to it before farthest-point sampling.
+      centring: "shared" moves both clouds by the centroid of the two together (the clouds keep their offset,
+        as in training, where targets sit up to 0.5 radii away); "separate" moves each to its own centroid,
+        for clouds that lie far apart (more than about half their size) in the caller's frame.
+    """
+
+    def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
+                 seed: int = 0, fps_pool: int = 50_000, centring: str = "shared"):
+        if centring not in ("shared", "separate"):
+            raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
+        self.centring = centring
+        self.config = config if n_iters is None else config.replace(n_iters=n_iters)
+        self.params = jax.tree_util.tree_map(jnp.asarray, params)
+        self.n_points = int(n_points)
+        self.seed = seed
+        self.fps_pool = fps_pool
+        if self.n_points < model_lib.min_points(self.config):
+            raise ValueError(f"n_points={n_points} is below the model's minimum {model_lib.min_points(self.config)}")
+
+    def register(self, src, tgt) -> Result:
+        """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units; see the module docs."""
+        need = model_lib.min_points(self.config)
+        src = check_cloud("source", src, need)
+        tgt = check_cloud("target", tgt, need)
+        src_idx = farthest_point_sample(src, self.n_points, seed=self.seed, pool=self.fps_pool)
+        tgt_idx = farthest_point_sample(tgt, self.n_points, seed=self.seed + 1, pool=self.fps_pool)
+        src_s, tgt_s = src[src_idx], tgt[tgt_idx]
+        if self.centring == "shared":
+            src_centre = tgt_centre = np.concatenate([src_s, tgt_s]).mean(axis=0)
+        else:
+            src_centre, tgt_centre = src_s.mean(axis=0), tgt_s.mean(axis=0)
+        scale = max(float(np.linalg.norm(src_s - src_centre, axis=1).max()),
+                    float(np.linalg.norm(tgt_s - tgt_centre, axis=1).max()))
+        src_n = ((src_s - src_centre) / scale).astype(np.float32)[None]
+        tgt_n = ((tgt_s - tgt_centre) / scale).astype(np.float32)[None]
+        started = time.perf_counter()
+        rotation, translation, extras = model_lib.register(self.params, src_n, tgt_n, self.config)
+        rotation, translation, extras = jax.device_get((rotation, translation, extras))
+        seconds = time.perf_counter() - started
+        rotation = np.asarray(rotation[0], np.float64)
+        translation = scale * np.asarray(translation[0], np.float64) + tgt_centre - rotation @ src_centre
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = rotation, translation
+        return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
+                      correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
+                      confidence=np.asarray(extras["weights"][0], np.float64),
+                      inlier_ratio=float(extras["inlier_ratio"][0]), seconds=seconds)
+
+
+def shipped_weights() -> str:
+    """Path of the weights that ship with the package (a checkpoint directory)."""
+    return os.fspath(importlib.resources.files("dit_jax") / SHIPPED_WEIGHTS)
+
+
+def load(checkpoint: str | os.PathLike | None = None, **kwargs) -> Registrar:
+    """A :class:`Registrar` from an orbax checkpoint directory, the authors' ``.pth`` weights, or (None) the
+    shipped weights. ``kwargs`` go to :class:`Registrar`; ``n_points`` defaults to what the checkpoint
+    records for inference, else 1000."""
+    from dit_jax import checkpoint as ckpt_lib  # orbax is slow to import; only loading needs it
+    from dit_jax import convert
+
+    path = os.fspath(checkpoint) if checkpoint is not None else shipped_weights()
+    if checkpoint is None and not os.path.isdir(path):
+        raise ckpt_lib.CheckpointError(f"no checkpoint given and the shipped weights are missing ({path})")
+    if os.path.isfile(path) and path.endswith((".pth", ".pt", ".t7")):
+        state_dict = convert.load_pth(path)
+        config = convert.infer_config(state_dict)
+        params, extra = convert.from_torch_state_dict(state_dict, config), {}
+    else:
+        params, config = ckpt_lib.restore(path)
+        extra = ckpt_lib.read_extra(path)
+    kwargs.setdefault("n_points", extra.get("inference_points") or 1000)
+    return Registrar(params, config, **kwargs)

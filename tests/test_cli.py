@@ -1,0 +1,133 @@
+"""`dit-register`: prints the transform, writes the moved source, and refuses bad input with exit status 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from dit_jax import checkpoint, cli, configs, io, model
+from dit_jax.data.pairs import euler_zyx_to_matrix
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> str:
+    config = configs.tiny()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny"
+    return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
+                           extra={"inference_points": 128})
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """A smooth surface (a bumpy sphere) and the same surface moved, shuffled, as two files."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(600, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    src = d * (1 + 0.2 * np.sin(3 * d[:, :1]) * np.cos(2 * d[:, 1:2])) * 20.0 + 300.0
+    rotation = euler_zyx_to_matrix([20.0, -10.0, 15.0])
+    tgt = (src @ rotation.T + [2.0, -1.0, 3.0])[rng.permutation(600)]
+    folder = tmp_path_factory.mktemp("pair")
+    io.write(folder / "src.ply", src)
+    io.write(folder / "tgt.pcd", tgt)
+    return folder, src, tgt
+
+
+def run(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_prints_matrix_and_writes_moved_source(capsys, tiny_checkpoint, pair):
+    folder, src, _ = pair
+    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                         "--out", folder / "moved.xyz")
+    assert code == 0, err
+    rows = [line for line in out.splitlines() if line.strip().startswith("[")]
+    assert len(rows) == 4 and "inlier ratio" in out and "128 of 600 source points" in out
+    matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
+    moved = io.read(folder / "moved.xyz")
+    np.testing.assert_allclose(moved, src @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-5)
+
+
+def test_json_output(capsys, tiny_checkpoint, pair):
+    folder, _, _ = pair
+    code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json")
+    report = json.loads(out)
+    assert code == 0 and np.shape(report["matrix"]) == (4, 4) and report["points_used"] == 128
+    assert report["matrix"][3] == [0.0, 0.0, 0.0, 1.0] and 0.0 <= report["inlier_ratio"] <= 1.0
+
+
+def _bad_inputs(folder):
+    """(name, src path, expected fragment) for every kind of bad input the issue lists."""
+    rng = np.random.default_rng(1)
+    cases = []
+    cases.append(("missing", folder / "nope.ply", "no such file"))
+    (folder / "garbage.ply").write_bytes(b"\x00" * 64)
+    cases.append(("unreadable", folder / "garbage.ply", "not a PLY file"))
+    (folder / "cloud.stl").write_text("solid x\n")
+    cases.append(("unknown format", folder / "cloud.stl", "unknown format"))
+    nan = rng.normal(size=(300, 3))
+    nan[5, 0] = np.nan
+    io.write(folder / "nan.npy", nan)
+    cases.append(("nan", folder / "nan.npy", "NaN or Inf"))
+    inf = rng.normal(size=(300, 3))
+    inf[9, 2] = np.inf
+    io.write(folder / "inf.ply", inf)
+    cases.append(("inf", folder / "inf.ply", "NaN or Inf"))
+    io.write(folder / "few.xyz", rng.normal(size=(5, 3)))
+    cases.append(("too few points", folder / "few.xyz", "needs at least"))
+    np.save(folder / "two.npy", rng.normal(size=(300, 2)))
+    cases.append(("not three coordinates", folder / "two.npy", "not three coordinates"))
+    io.write(folder / "same.pcd", np.tile([[1.0, 2.0, 3.0]], (300, 1)))
+    cases.append(("identical points", folder / "same.pcd", "same point"))
+    return cases
+
+
+@pytest.mark.parametrize("case", range(8))
+def test_bad_input_exits_2_with_one_line_and_no_output(capsys, tmp_path, tiny_checkpoint, pair, case):
+    folder, _, _ = pair
+    name, bad, fragment = _bad_inputs(tmp_path)[case]
+    out_file = tmp_path / "out.ply"
+    for argv in ((bad, folder / "tgt.pcd"), (folder / "src.ply", bad)):
+        code, out, err = run(capsys, *argv, "--checkpoint", tiny_checkpoint, "--out", out_file)
+        assert code == 2, (name, out, err)
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"dit-register: error: {bad}:"), (name, err)
+        assert fragment in lines[0] and "Traceback" not in err
+        assert not out_file.exists() and not [p for p in os.listdir(tmp_path) if p.startswith(".tmp")]
+
+
+def test_bad_checkpoint_and_output_path(capsys, tmp_path, pair):
+    folder, _, _ = pair
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tmp_path / "none")
+    assert code == 2 and err.count("\n") == 1 and "none" in err
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.stl")
+    assert code == 2 and "unknown output format" in err
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "no" / "a.ply")
+    assert code == 2 and "folder does not exist" in err
+
+
+def test_large_clouds_are_downsampled_unless_refused(capsys, tmp_path, tiny_checkpoint, pair):
+    folder, _, _ = pair
+    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                         "--max-points", 400)
+    assert code == 0 and "600 points, above --max-points; using a random 400" in err
+    assert "128 of 400 source points" in out
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                       "--max-points", 400, "--no-downsample")
+    assert code == 2 and "above the limit of 400" in err and err.count("\n") == 1
+
+
+def test_console_script_exit_status(tmp_path):
+    """The installed entry point, as a user runs it: no traceback, status 2."""
+    proc = subprocess.run([sys.executable, "-m", "dit_jax.cli", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"dit-register: error: {tmp_path / 'a.ply'}: no such file"

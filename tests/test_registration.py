@@ -1,0 +1,108 @@
+"""The registration API: sampling, input checks, one compilation per size, and units in = units out."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from dit_jax import checkpoint, configs, model, registration
+from dit_jax.data.pairs import euler_zyx_to_matrix
+
+
+@pytest.fixture(scope="module")
+def tiny_registrar() -> registration.Registrar:
+    config = configs.tiny()
+    return registration.Registrar(model.init(jax.random.PRNGKey(0), config), config, n_points=96)
+
+
+def _rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = (np.trace(a.T @ b) - 1) / 2
+    sin = np.linalg.norm([(a.T @ b)[2, 1] - (a.T @ b)[1, 2], (a.T @ b)[0, 2] - (a.T @ b)[2, 0],
+                          (a.T @ b)[1, 0] - (a.T @ b)[0, 1]]) / 2
+    return float(np.degrees(np.arctan2(sin, cos)))
+
+
+def test_farthest_point_sample_spreads_points():
+    rng = np.random.default_rng(0)
+    dense = rng.normal(size=(5000, 3)) * 0.01  # a tight blob ...
+    far = np.array([[5.0, 0, 0], [-5.0, 0, 0], [0, 5.0, 0], [0, 0, -5.0]])  # ... and four outliers
+    points = np.concatenate([dense, far])
+    idx = registration.farthest_point_sample(points, 10, seed=1)
+    assert len(set(idx.tolist())) == 10
+    assert set(range(5000, 5004)) <= set(idx.tolist())  # FPS reaches every extreme point
+    np.testing.assert_array_equal(idx, registration.farthest_point_sample(points, 10, seed=1))
+    np.testing.assert_array_equal(registration.farthest_point_sample(points[:7], 10), np.arange(7))
+    pooled = registration.farthest_point_sample(points, 10, seed=1, pool=1000)
+    assert len(set(pooled.tolist())) == 10 and pooled.max() < len(points)
+
+
+@pytest.mark.parametrize("bad,fragment", [
+    (np.zeros((100, 2)), "N x 3"),
+    (np.zeros((100, 3, 1)), "N x 3"),
+    (np.full((100, 3), "a"), "real coordinates"),
+    (np.where(np.arange(300).reshape(100, 3) == 7, np.nan, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
+    (np.where(np.arange(300).reshape(100, 3) == 7, np.inf, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
+    (np.random.default_rng(0).normal(size=(5, 3)), "needs at least"),
+    (np.tile([[1000.0, 2.0, 3.0]], (100, 1)), "same point"),
+])
+def test_bad_clouds_are_refused_with_their_name(tiny_registrar, bad, fragment):
+    good = np.random.default_rng(1).normal(size=(100, 3))
+    with pytest.raises(registration.InputError, match=fragment) as info:
+        tiny_registrar.register(bad, good)
+    assert str(info.value).startswith("source:")
+    with pytest.raises(registration.InputError, match="^target:"):
+        tiny_registrar.register(good, bad)
+
+
+def test_one_compilation_for_every_cloud_size_above_the_model_size(tiny_registrar):
+    rng = np.random.default_rng(2)
+    before = model.register._cache_size()
+    for n_src, n_tgt in ((150, 400), (97, 3000), (2000, 96)):
+        result = tiny_registrar.register(rng.normal(size=(n_src, 3)), rng.normal(size=(n_tgt, 3)))
+        assert result.source_indices.shape == result.confidence.shape == (96,)
+        assert np.all(result.correspondences < n_tgt)
+        assert np.all(np.isfinite(result.matrix)) and 0.0 <= result.inlier_ratio <= 1.0
+    assert model.register._cache_size() - before <= 1
+
+
+def test_result_matrix_and_apply_agree(tiny_registrar):
+    rng = np.random.default_rng(3)
+    result = tiny_registrar.register(rng.normal(size=(200, 3)), rng.normal(size=(200, 3)))
+    points = rng.normal(size=(10, 3))
+    homogeneous = np.concatenate([points, np.ones((10, 1))], axis=1) @ result.matrix.T
+    np.testing.assert_allclose(result.apply(points), homogeneous[:, :3], atol=1e-12)
+    np.testing.assert_allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
+    assert np.linalg.det(result.rotation) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_shipped_weights_load_by_default():
+    registrar = registration.load()
+    path = registration.shipped_weights()
+    assert registrar.n_points == checkpoint.read_extra(path).get("inference_points", 1000)
+    assert registrar.config == checkpoint.read_config(path)
+
+
+def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
+    """A ModelNet40 shape moved by a known transform, in metre units (x50, offset 1000), registers back as
+    well as the same pair at unit scale: rotation within 0.05 deg of it, translation within 1e-4 radii."""
+    registrar = registration.load()
+    rng = np.random.default_rng(4)
+    scale, offset = 50.0, np.array([1000.0, -1000.0, 1000.0])
+    for shape in modelnet_shapes[:4]:
+        shape = shape[:1000].astype(np.float64)
+        rotation = euler_zyx_to_matrix(rng.uniform(-45, 45, 3))  # the authors' test-pair angles
+        translation = rng.uniform(-0.5, 0.5, 3)
+        moved = (shape @ rotation.T + translation)[rng.permutation(len(shape))]
+        unit = registrar.register(shape, moved)
+        metric = registrar.register(shape * scale + offset, moved * scale + offset)
+        # In metre units the same motion is x -> R x + (scale t + offset - R offset).
+        true_metric_t = scale * translation + offset - rotation @ offset
+        unit_r = _rotation_error_deg(unit.rotation, rotation)
+        metric_r = _rotation_error_deg(metric.rotation, rotation)
+        unit_t = np.linalg.norm(unit.translation - translation)
+        metric_t = np.linalg.norm(metric.translation - true_metric_t) / scale
+        assert metric_r <= unit_r + 0.05, (metric_r, unit_r)
+        assert metric_t <= unit_t + 1e-4, (metric_t, unit_t)
+        assert unit_r < 1.0  # the shipped model registers these clean pairs in the first place
+
