@@ -49,6 +49,10 @@ class DITConfig:
       temp_hidden: hidden width of the temperature net.
       pe_expansion: the positional encoding's hidden width is ``pe_expansion * emb_dims``.
       dropout: dropout after PFT's feed-forward activation in training (the authors use 0.2).
+      attention_chunk: attention over more query points than this runs in blocks of this many rows (same
+        result, memory linear in N; see :func:`dit_jax.layers.attention`); 0 never splits.
+      compute_dtype: "float32" (the default, the authors' numbers) or "bfloat16": PFT's matrix products in
+        bfloat16 with float32 parameters, logits, softmax, norms and residuals (accuracy: docs/BENCHMARKS.md).
     """
 
     emb_dims: int = 512
@@ -68,6 +72,8 @@ class DITConfig:
     temp_hidden: int = 128
     pe_expansion: int = 8
     dropout: float = 0.2
+    attention_chunk: int = 1024
+    compute_dtype: str = "float32"
 
     def __post_init__(self):
         problems = []
@@ -86,6 +92,10 @@ class DITConfig:
             problems.append("gmcce_k must be at least 2 (a triangle needs two neighbours)")
         if not self.temp_factor >= 1.0:
             problems.append(f"temp_factor must be >= 1, got {self.temp_factor}")
+        if self.compute_dtype not in ("float32", "bfloat16"):
+            problems.append(f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+        if self.attention_chunk < 0:
+            problems.append(f"attention_chunk must be >= 0, got {self.attention_chunk}")
         if problems:
             raise ValueError("invalid DITConfig: " + "; ".join(problems))
 

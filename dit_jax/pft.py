@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from flax import linen as nn
 
 from dit_jax.configs import DITConfig
-from dit_jax.layers import AnnotatedLayerNorm, torch_dense
+from dit_jax.layers import AnnotatedLayerNorm, attention, torch_dense
 
 
 class PositionalEncoding(nn.Module):
@@ -32,19 +32,20 @@ class MultiHeadAttention(nn.Module):
 
     emb_dims: int
     n_heads: int
+    attention_chunk: int = 0  # query rows per block, see :func:`dit_jax.layers.attention`
+    dtype: str = "float32"  # of the products; parameters and outputs stay float32
 
     @nn.compact
     def __call__(self, query: jax.Array, key: jax.Array, value: jax.Array) -> jax.Array:
         """query: (N, E); key, value: (M, E). Returns (N, E)."""
         head_dims = self.emb_dims // self.n_heads
         split = lambda a: a.reshape(a.shape[0], self.n_heads, head_dims)
-        q = split(torch_dense(self.emb_dims, "q")(query))
-        k = split(torch_dense(self.emb_dims, "k")(key))
-        v = split(torch_dense(self.emb_dims, "v")(value))
-        logits = jnp.einsum("nhd,mhd->hnm", q, k) / jnp.sqrt(jnp.asarray(head_dims, q.dtype))
-        attn = jax.nn.softmax(logits, axis=-1)
-        mixed = jnp.einsum("hnm,mhd->nhd", attn, v).reshape(query.shape[0], self.emb_dims)
-        return torch_dense(self.emb_dims, "o")(mixed)
+        q = split(torch_dense(self.emb_dims, "q", dtype=self.dtype)(query))
+        k = split(torch_dense(self.emb_dims, "k", dtype=self.dtype)(key))
+        v = split(torch_dense(self.emb_dims, "v", dtype=self.dtype)(value))
+        mixed = attention(q, k, v, jnp.sqrt(jnp.asarray(head_dims, jnp.float32)), chunk=self.attention_chunk)
+        mixed = mixed.reshape(query.shape[0], self.emb_dims)
+        return torch_dense(self.emb_dims, "o", dtype=self.dtype)(mixed).astype(jnp.float32)
 
 
 class FeedForward(nn.Module):
@@ -53,12 +54,13 @@ class FeedForward(nn.Module):
     emb_dims: int
     ff_dims: int
     dropout: float
+    dtype: str = "float32"  # of the products; parameters and outputs stay float32
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
-        hidden = jax.nn.leaky_relu(torch_dense(self.ff_dims, "w_1")(x), negative_slope=0.2)
+        hidden = jax.nn.leaky_relu(torch_dense(self.ff_dims, "w_1", dtype=self.dtype)(x), negative_slope=0.2)
         hidden = nn.Dropout(self.dropout)(hidden, deterministic=deterministic)
-        return torch_dense(self.emb_dims, "w_2")(hidden)
+        return torch_dense(self.emb_dims, "w_2", dtype=self.dtype)(hidden).astype(jnp.float32)
 
 
 class EncoderLayer(nn.Module):
@@ -70,9 +72,11 @@ class EncoderLayer(nn.Module):
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="self_attn")(u, u, u)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+                                   name="self_attn")(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, name="feed_forward")(u, deterministic)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype,
+                               name="feed_forward")(u, deterministic)
 
 
 class DecoderLayer(nn.Module):
@@ -84,11 +88,14 @@ class DecoderLayer(nn.Module):
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="self_attn")(u, u, u)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+                                   name="self_attn")(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, name="src_attn")(u, memory, memory)
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+                                   name="src_attn")(u, memory, memory)
         u = AnnotatedLayerNorm(name="norm2")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, name="feed_forward")(u, deterministic)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype,
+                               name="feed_forward")(u, deterministic)
 
 
 class Encoder(nn.Module):
@@ -124,9 +131,17 @@ class PFT(nn.Module):
         self.encoder = Encoder(self.config)
         self.decoder = Decoder(self.config)
 
+    def encode(self, features: jax.Array, deterministic: bool = True) -> jax.Array:
+        """The encoder's memory of one cloud, (N, E) -> (N, E); it depends on that cloud alone."""
+        return self.encoder(features, deterministic)
+
+    def decode(self, features: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
+        """Decodes one cloud's features (M, E) against the other's memory (N, E); returns (M, E)."""
+        return self.decoder(features, memory, deterministic)
+
     def phi(self, first: jax.Array, second: jax.Array, deterministic: bool = True) -> jax.Array:
         """Encodes ``first`` (N, E), decodes ``second`` (M, E) against it; returns (M, E)."""
-        return self.decoder(second, self.encoder(first, deterministic), deterministic)
+        return self.decode(second, self.encode(first, deterministic), deterministic)
 
     def __call__(self, f_x: jax.Array, f_y: jax.Array, deterministic: bool = True):
         """f_x: (N, E), f_y: (M, E) -> src_p (N, E), tgt_p (M, E)."""

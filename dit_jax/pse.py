@@ -15,7 +15,7 @@ from flax import linen as nn
 
 from dit_jax import geometry
 from dit_jax.configs import PSE_LAYERS, DITConfig
-from dit_jax.layers import layer_norm, torch_dense
+from dit_jax.layers import attention, layer_norm, torch_dense
 
 
 def local_feature_integration(features: jax.Array, knn_idx: jax.Array) -> jax.Array:
@@ -42,6 +42,7 @@ class TokenTransformer(nn.Module):
 
     token_dim: int
     n_heads: int = 4
+    attention_chunk: int = 0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -53,9 +54,8 @@ class TokenTransformer(nn.Module):
         q, k, v = jnp.split(qkv, 3, axis=-1)
         split = lambda a: a.reshape(n_points, self.n_heads, head_dims)
         scale = (in_dims // self.n_heads) ** -0.5
-        logits = jnp.einsum("nhd,mhd->hnm", split(q) * scale, split(k))
-        attn = jax.nn.softmax(logits, axis=-1)
-        mixed = jnp.einsum("hnm,mhd->nhd", attn, split(v)).reshape(n_points, self.token_dim)
+        mixed = attention(split(q) * scale, split(k), split(v), chunk=self.attention_chunk)
+        mixed = mixed.reshape(n_points, self.token_dim)
         out = v + torch_dense(self.token_dim, "proj")(mixed)
         z = layer_norm("norm2")(out)
         hidden = nn.gelu(torch_dense(self.token_dim, "fc1")(z), approximate=False)
@@ -75,7 +75,7 @@ class PSE(nn.Module):
         for layer in range(1, PSE_LAYERS + 1):
             lfi = local_feature_integration(features, knn_idx)
             features = TokenTransformer(self.config.token_dim, self.config.pse_heads,
-                                        name=f"attention{layer}")(lfi)
+                                        self.config.attention_chunk, name=f"attention{layer}")(lfi)
             tokens.append(features)
         # The paper writes ReLU here; the authors' code (and so their weights) use leaky ReLU.
         out = jax.nn.leaky_relu(jnp.concatenate(tokens, axis=-1), negative_slope=0.01)

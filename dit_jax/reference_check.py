@@ -1,6 +1,6 @@
 """Checks dit-jax against activations recorded from the authors' implementation.
 
-    python -m dit_jax.reference_check FILE.npz [--json] [--x64]
+    python -m dit_jax.reference_check FILE.npz [--json] [--x64 | --bfloat16]
 
 The file (format: end of SPEC.md) holds the authors' config, their weights under ``param/*``, one input pair and
 the activations their code produced. This converts the weights with the file's config, runs dit-jax on the pair
@@ -47,8 +47,10 @@ def _channel_first(a) -> np.ndarray:
     return np.asarray(a).T[None]  # (N, C) -> (1, C, N), the authors' layout
 
 
-def compute(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Runs dit-jax on the file's pair and returns its activations under the file's names and layouts."""
+def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32") -> dict[str, np.ndarray]:
+    """Runs dit-jax on the file's pair and returns its activations under the file's names and layouts.
+
+    ``compute_dtype="bfloat16"`` runs PFT's products in bfloat16 (to measure what that mode costs)."""
     import jax
     import jax.numpy as jnp
 
@@ -58,7 +60,7 @@ def compute(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     raw = data["config"]
     authors = ast.literal_eval(str(raw.item() if raw.shape == () else raw))
     n_iters = len([k for k in data if re.fullmatch(r"iter\d+_R", k)]) or 2
-    config = configs.from_authors(authors, n_iters=n_iters)
+    config = configs.from_authors(authors, n_iters=n_iters).replace(compute_dtype=compute_dtype)
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
     state_dict = {k[len("param/"):]: v for k, v in data.items() if k.startswith("param/")}
     params = jax.tree.map(lambda a: jnp.asarray(a, dtype), convert.from_torch_state_dict(state_dict, config))
@@ -157,7 +159,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("file", help="reference .npz (see SPEC.md)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     parser.add_argument("--x64", action="store_true", help="run dit-jax in float64 instead of float32")
+    parser.add_argument("--bfloat16", action="store_true",
+                        help="PFT's products in bfloat16 (expect failures: this measures the mode's error)")
     args = parser.parse_args(argv)
+    if args.x64 and args.bfloat16:
+        parser.error("--x64 and --bfloat16 exclude each other")
 
     if args.x64:
         import jax
@@ -171,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         missing = [k for k in ("config", "src", "tgt") if k not in data]
         if missing:
             raise ValueError(f"missing entries {', '.join(missing)}")
-        ours = compute(data)
+        ours = compute(data, "bfloat16" if args.bfloat16 else "float32")
     except (OSError, ValueError, SyntaxError, ConversionError) as err:
         print(f"error: {args.file}: {err}", file=sys.stderr)
         return 2
@@ -180,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         report = {
             "file": args.file,
-            "dtype": "float64" if args.x64 else "float32",
+            "dtype": "float64" if args.x64 else "bfloat16 (PFT products)" if args.bfloat16 else "float32",
             "max_abs_error": {c.name: c.value for c in checks if c.kind == "error"},
             "agreement": {c.name: c.value for c in checks if c.kind == "agreement"},
             "bounds": {c.name: c.bound for c in checks},

@@ -237,10 +237,12 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     """(training pairs, validation pairs) from the training split of the chosen source."""
     shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=config.n_points, data_dir=prepared_dir)
     train_shapes, val_shapes = _split_validation(shapes, config.val_fraction)
-    common = dict(setting=config.setting, unseen=config.unseen, variant=config.variant, n_points=config.n_points)
-    train = pairs_lib.PairDataset(train_shapes, pairs_lib.PairConfig(train=True, seed=config.seed, **common))
-    # Validation pairs are fixed (seeded by index); the unseen split keeps the training categories there.
-    val = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(train=False, **common))
+    common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
+    train = pairs_lib.PairDataset(train_shapes, pairs_lib.PairConfig(train=True, seed=config.seed,
+                                                                     unseen=config.unseen, **common))
+    # Validation pairs are fixed (seeded by index) test-style pairs of held-out training shapes; with the
+    # unseen split they keep the training categories (a test-style unseen config would keep 20-39 instead).
+    val = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(train=False, unseen=False, **common))
     if config.unseen:
         keep = (val_shapes.labels >= 0) & (val_shapes.labels < 20)
         val.rows = val.rows[keep[val.rows]]

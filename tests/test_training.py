@@ -184,3 +184,14 @@ def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
     assert resumed == config
     _, explicit, _ = train.parse(["--workdir", str(tmp_path), "--resume", "--preset", "tiny"])
     assert explicit == training.PRESETS["tiny"]
+
+
+def test_unseen_split_validates_on_held_out_training_categories(prepared):
+    """With --unseen, validation pairs come from held-out shapes of categories 0-19 (never empty, never the
+    test categories)."""
+    config = dataclasses.replace(TINY, unseen=True)
+    train_ds, val_ds = training.make_datasets(config, prepared)
+    assert len(val_ds) > 0 and len(train_ds) > 0
+    val_labels = val_ds.shapes.labels[val_ds.rows]
+    assert np.all((val_labels >= 0) & (val_labels < 20))
+    assert np.all(train_ds.shapes.labels[train_ds.rows] < 20)

@@ -1,0 +1,227 @@
+"""Inference speed, FLOPs and memory of `register` for a config, against this machine's matmul peak.
+
+    python benchmarks/inference.py                         # paper config: everything issue 7 asks for
+    python benchmarks/inference.py --sizes 512 1024 --skip-batches
+    python benchmarks/inference.py --dtype bfloat16
+
+One run measures, in order:
+1. a matmul-peak probe: jitted (S x S) @ (S x S) float32 products, best of 5, in GFLOP/s;
+2. at --n-points (1000) for each of --iters (2 and 3) and --batches (1 and 8): seconds per pair and pairs per
+   second of the compiled `model.register` (warm: compiled and run once first; median of --repeats), XLA's
+   FLOP count of one call (cost analysis of its parts, see `register_flops`) and the achieved GFLOP/s;
+3. for each of --sizes (512 ... 8192 points, batch 1, the largest --iters): time per pair and the peak
+   resident memory of a fresh process doing only that (compile included), plus XLA's own buffer estimate.
+
+Weights are random (speed does not depend on them). Prints a markdown report and writes --json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+
+def _setup_jax():
+    import jax
+
+    return jax
+
+
+def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
+    """Best GFLOP/s of a jitted float32 (size x size) matmul."""
+    jax = _setup_jax()
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.PRNGKey(0), (size, size), jnp.float32)
+    b = jax.random.normal(jax.random.PRNGKey(1), (size, size), jnp.float32)
+    f = jax.jit(jnp.matmul)
+    f(a, b).block_until_ready()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f(a, b).block_until_ready()
+        best = min(best, time.perf_counter() - t0)
+    return 2 * size ** 3 / best / 1e9
+
+
+def _inputs(batch: int, n_points: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    shape = rng.normal(size=(batch, n_points, 3)).astype(np.float32)
+    shape /= np.linalg.norm(shape, axis=-1, keepdims=True)  # points on a sphere ...
+    shape *= rng.uniform(0.5, 1.0, size=(batch, n_points, 1)).astype(np.float32)  # ... filled in
+    angle = np.radians(30.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]], np.float32)
+    tgt = (shape @ rot.T + 0.1)[:, rng.permutation(n_points)]
+    return shape, tgt
+
+
+def _flops(fn, *args) -> float:
+    import jax
+
+    cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost.get("flops", float("nan"))) if cost else float("nan")
+
+
+def register_flops(params, config, src, tgt) -> float:
+    """FLOPs of one pair's registration, summed over its parts as `register` runs them.
+
+    XLA's cost analysis counts a loop body once whatever its trip count, and `register` runs its GMCCE
+    iterations in a `lax.scan`; so this adds the target's embedding and memory, the source's kNN graph,
+    and n_iters network passes with the soft head once and the GMCCE head n_iters - 1 times.
+    """
+    from dit_jax import geometry, model
+    from dit_jax.head import head
+
+    emb = model.embed(params, tgt, config, encode=True)
+    knn = geometry.knn(src, config.k)
+    feats = model.features(params, src, tgt, config, tgt_embedding=emb, src_knn=knn)[1]
+    total = _flops(lambda p, y: model.embed(p, y, config, encode=True), params, tgt)
+    total += _flops(lambda x: geometry.knn(x, config.k), src)
+    total += config.n_iters * _flops(
+        lambda p, x, e, kn: model.features(p, x, tgt, config, tgt_embedding=e, src_knn=kn)[1].scores,
+        params, src, emb, knn)
+    for use_gmcce, times in ((False, 1), (True, config.n_iters - 1)):
+        if times:
+            total += times * _flops(lambda s_, t_: head(src, tgt, s_, t_, config, use_gmcce).rotation,
+                                    feats.scores, feats.temperature)
+    return total
+
+
+def time_register(config, batch: int, n_points: int, repeats: int, count_flops: bool = True) -> dict:
+    """Compiles `register` for (batch, n_points), runs it once, then times ``repeats`` calls."""
+    jax = _setup_jax()
+    from dit_jax import model
+
+    params = model.init(jax.random.PRNGKey(0), config)
+    src, tgt = _inputs(batch, n_points)
+    src, tgt = jax.device_put(src), jax.device_put(tgt)
+    t0 = time.perf_counter()
+    lowered = model.register.lower(params, src, tgt, config)
+    compiled = lowered.compile()
+    compile_s = time.perf_counter() - t0
+    memory = compiled.memory_analysis()
+    jax.block_until_ready(compiled(params, src, tgt))  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(params, src, tgt))
+        times.append(time.perf_counter() - t0)
+    seconds = statistics.median(times)
+    flops = batch * register_flops(params, config, src[0], tgt[0]) if count_flops else float("nan")
+    return {
+        "batch": batch, "n_points": n_points, "n_iters": config.n_iters, "compile_s": compile_s,
+        "times_s": times, "seconds_per_call": seconds, "seconds_per_pair": seconds / batch,
+        "pairs_per_s": batch / seconds, "flops_per_call": flops, "gflops_per_s": flops / seconds / 1e9,
+        "xla_temp_bytes": getattr(memory, "temp_size_in_bytes", None),
+        "xla_argument_bytes": getattr(memory, "argument_size_in_bytes", None),
+    }
+
+
+def _child(args) -> None:
+    """Runs one size in this (fresh) process and prints its record with the peak RSS."""
+    from dit_jax import configs
+
+    config = configs.get(args.config, "clean").replace(n_iters=args.child_iters)
+    if args.dtype != "float32":
+        config = config.replace(compute_dtype=args.dtype)
+    record = time_register(config, 1, args.child, repeats=1, count_flops=False)
+    record["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    print("RECORD " + json.dumps(record))
+
+
+def _run_child(args, n_points: int, n_iters: int) -> dict:
+    cmd = [sys.executable, __file__, "--child", str(n_points), "--child-iters", str(n_iters),
+           "--config", args.config, "--dtype", args.dtype]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    for line in proc.stdout.splitlines():
+        if line.startswith("RECORD "):
+            return json.loads(line[len("RECORD "):])
+    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+    return {"n_points": n_points, "n_iters": n_iters, "error": " / ".join(tail)}
+
+
+def _gb(n: float | None) -> str:
+    return "-" if n is None else f"{n / 2 ** 30:.2f}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", default="paper")
+    parser.add_argument("--n-points", type=int, default=1000)
+    parser.add_argument("--iters", type=int, nargs="+", default=[2, 3])
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 8])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--sizes", type=int, nargs="*", default=[512, 1024, 2048, 4096, 8192])
+    parser.add_argument("--skip-batches", action="store_true", help="only the scaling sweep")
+    parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
+    parser.add_argument("--json", default=None, help="also write the records here")
+    parser.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--child-iters", type=int, default=3, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child is not None:
+        _child(args)
+        return
+
+    jax = _setup_jax()
+    from dit_jax import configs
+
+    report = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
+              "cpus": os.cpu_count(), "jax": jax.__version__, "devices": [str(d) for d in jax.devices()],
+              "config": args.config, "dtype": args.dtype}
+    report["matmul_peak_gflops"] = max(matmul_peak(2048), matmul_peak(4096, repeats=3))
+    print(f"matmul peak: {report['matmul_peak_gflops']:.0f} GFLOP/s", flush=True)
+    report["runs"] = []
+    if not args.skip_batches:
+        for n_iters in args.iters:
+            config = configs.get(args.config, "clean").replace(n_iters=n_iters)
+            if args.dtype != "float32":
+                config = config.replace(compute_dtype=args.dtype)
+            for batch in args.batches:
+                record = time_register(config, batch, args.n_points, args.repeats)
+                report["runs"].append(record)
+                print(json.dumps({k: v for k, v in record.items() if k != "times_s"}), flush=True)
+    report["scaling"] = []
+    for n_points in args.sizes:
+        record = _run_child(args, n_points, max(args.iters))
+        report["scaling"].append(record)
+        print(json.dumps({k: v for k, v in record.items() if k != "times_s"}), flush=True)
+
+    peak = report["matmul_peak_gflops"]
+    lines = [f"Date {report['date']}; {report['cpus']} CPUs; JAX {report['jax']} on {report['devices'][0]}; "
+             f"config `{args.config}`, {args.dtype}. Matmul peak probe: {peak:.0f} GFLOP/s.", ""]
+    if report["runs"]:
+        lines += ["| points | iterations | batch | s / pair | pairs / s | GFLOP / call | GFLOP/s | % of matmul peak |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in report["runs"]:
+            lines.append(f"| {r['n_points']} | {r['n_iters']} | {r['batch']} | {r['seconds_per_pair']:.3f} | "
+                         f"{r['pairs_per_s']:.2f} | {r['flops_per_call'] / 1e9:.1f} | {r['gflops_per_s']:.0f} | "
+                         f"{100 * r['gflops_per_s'] / peak:.0f} % |")
+        lines.append("")
+    if report["scaling"]:
+        lines += ["| points | iterations | s / pair | compile s | peak RSS GB | XLA temp buffers GB |",
+                  "|---|---|---|---|---|---|"]
+        for r in report["scaling"]:
+            if "error" in r:
+                lines.append(f"| {r['n_points']} | {r['n_iters']} | failed: {r['error'][:80]} | | | |")
+            else:
+                lines.append(f"| {r['n_points']} | {r['n_iters']} | {r['seconds_per_pair']:.2f} | "
+                             f"{r['compile_s']:.1f} | {_gb(r['peak_rss_bytes'])} | {_gb(r['xla_temp_bytes'])} |")
+    print("\n".join(lines))
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
