@@ -1,6 +1,7 @@
 """Evaluate a DIT checkpoint beside classical baselines on the same test pairs.
 
-    python evaluate.py                                    # the checkpoint of `python train.py`, embedded set
+    python evaluate.py                                    # the shipped weights, embedded set
+    python evaluate.py --checkpoint runs/quick-clean/model  # what `python train.py` trained
     python evaluate.py --checkpoint runs/clean/model --data-dir /data/modelnet40_ply_hdf5_2048 \\
         --settings all --unseen --baselines icp fpfh_ransac fgr
 
@@ -15,13 +16,15 @@ SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
-    parser.add_argument("--checkpoint", default="runs/quick-clean/model", help="a model checkpoint directory")
+    parser.add_argument("--checkpoint", default=None,
+                        help="a model checkpoint directory (default: the weights that ship with dit-jax)")
     parser.add_argument("--no-dit", action="store_true", help="evaluate the baselines alone")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--settings", nargs="+", default=["clean"], choices=SETTINGS + ("all",))
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
-    parser.add_argument("--n-points", type=int, default=None, help="default: the training run's, else 1000")
+    parser.add_argument("--n-points", type=int, default=None,
+                        help="default: the checkpoint's inference point count, else its training one, else 1000")
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
     parser.add_argument("--iters", type=int, default=3)
     parser.add_argument("--gmcce-threshold", type=float, default=None, help="default: per setting, as the authors")
@@ -32,12 +35,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     settings = SETTINGS if "all" in args.settings else tuple(dict.fromkeys(args.settings))
 
-    from dit_jax import evaluation
+    from dit_jax import evaluation, registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.data.shapes import DataError
 
     try:
-        results = evaluation.evaluate(None if args.no_dit else args.checkpoint, args.out, data_dir=args.data_dir, settings=settings,
+        checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
+        results = evaluation.evaluate(checkpoint, args.out, data_dir=args.data_dir, settings=settings,
                                       unseen=args.unseen, variant=args.variant, n_points=args.n_points,
                                       max_pairs=args.max_pairs, n_iters=args.iters,
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,

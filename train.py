@@ -5,6 +5,7 @@
     python train.py --preset cpu --set lr=3e-4 --set model.n_blocks=4 --workdir runs/mine
     python train.py --workdir runs/mine --resume      # continue where a run stopped (even after kill -9),
                                                       # with the config saved in the workdir
+    python train.py --preset cpu --setting low_noise_partial --init-from runs/mine/model   # fine-tune
 
 Every field of the preset can be overridden with --set FIELD=VALUE (fields of dit_jax.training.TrainConfig;
 model.FIELD for dit_jax.configs.DITConfig). Multi-host: start one process per host with --distributed (and
@@ -39,6 +40,8 @@ def parse(argv=None):
     parser.add_argument("--variant", default=None, choices=["authors", "peers"])
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--resume", action="store_true")
+    parser.add_argument("--init-from", default=None, metavar="MODEL_DIR",
+                        help="start from these params (a model checkpoint, e.g. runs/x/model): fine-tuning")
     parser.add_argument("--prepared-dir", default=None, help="where TFDS keeps prepared data")
     parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first")
     parser.add_argument("--no-progress", action="store_true")
@@ -56,6 +59,8 @@ def parse(argv=None):
             changes[name] = value
     if args.unseen:
         changes["unseen"] = True
+    if args.init_from:
+        changes["init_from"] = os.path.abspath(args.init_from)
     fields = {f.name for f in dataclasses.fields(training.TrainConfig)}
     for item in args.set:
         key, sep, text = item.partition("=")

@@ -176,7 +176,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     Args:
       checkpoint_dir: a model checkpoint (:mod:`dit_jax.checkpoint`; ``WORKDIR/model`` of a training run, or
         converted authors' weights); None evaluates the baselines alone (no registrations figure then).
-      n_points: points per shape; default the training run's, else 1000.
+      n_points: points per shape; default what the checkpoint records for inference (``inference_points``),
+        else its training point count, else 1000.
       max_pairs: evaluate only the first pairs of each setting (all by default).
       gmcce_threshold: overrides the authors' per-setting threshold.
     """
@@ -187,7 +188,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         extra = checkpoint.read_extra(checkpoint_dir)
     else:
         params, config, extra = None, None, {}
-    n_points = n_points or extra.get("n_points") or 1000
+    n_points = n_points or extra.get("inference_points") or extra.get("n_points") or 1000
     test_shapes = shapes_lib.load_shapes(data_dir, "test", n_points=n_points, data_dir=prepared_dir)
     os.makedirs(out_dir, exist_ok=True)
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",

@@ -56,6 +56,9 @@ class TrainConfig:
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
+      init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
+        whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
+        setting. Its network shape must match ``model``'s.
     """
 
     model: str = "cpu"
@@ -82,6 +85,7 @@ class TrainConfig:
     keep: int = 3
     seed: int = 0
     log_every: int = 10
+    init_from: str | None = None
 
     def model_config(self) -> DITConfig:
         return configs.get(self.model, self.setting).replace(**dict(self.model_overrides))
@@ -360,6 +364,18 @@ def _truncate_log(path: str, after_step: int) -> None:
     os.replace(tmp, path)
 
 
+def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTransformation) -> TrainState:
+    """``state`` with the params of the model checkpoint at ``path`` and a fresh optimiser state."""
+    from dit_jax import checkpoint
+
+    params, _ = checkpoint.restore(path)
+    shapes = lambda tree: jax.tree.map(lambda a: tuple(a.shape), tree)
+    if shapes(params) != shapes(state.params):
+        raise ValueError(f"init_from {path}: its network does not have this run's shape (model config)")
+    params = jax.tree.map(jnp.asarray, params)
+    return state.replace(params=params, opt_state=optimizer.init(params))
+
+
 def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None,
           progress: bool = True) -> dict:
     """Trains DIT; returns the final validation metrics and where the results are.
@@ -402,6 +418,8 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         best_val = meta.get("best_val", math.inf)
         _truncate_log(log_path, latest)
     else:
+        if config.init_from:
+            state = _initialise_from(state, config.init_from, optimizer)
         _truncate_log(log_path, -1)
         with open(os.path.join(workdir, "train_config.json"), "w") as f:
             json.dump(config.to_json(), f, indent=2)

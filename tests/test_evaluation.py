@@ -40,3 +40,15 @@ def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
 
     assert evaluate.main(["--checkpoint", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
     assert "no such checkpoint directory" in capsys.readouterr().err
+
+
+def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    import evaluate
+    from dit_jax import registration
+
+    assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress"]) == 0
+    saved = json.loads((tmp_path / "results.json").read_text())
+    assert saved["checkpoint"] == os.path.abspath(registration.shipped_weights())
+    extra = checkpoint.read_extra(registration.shipped_weights())
+    assert saved["n_points"] == (extra.get("inference_points") or extra.get("n_points") or 1000)

@@ -195,3 +195,20 @@ def test_unseen_split_validates_on_held_out_training_categories(prepared):
     val_labels = val_ds.shapes.labels[val_ds.rows]
     assert np.all((val_labels >= 0) & (val_labels < 20))
     assert np.all(train_ds.shapes.labels[train_ds.rows] < 20)
+
+
+def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
+    from dit_jax import checkpoint, configs, model
+
+    config = TINY
+    source = tmp_path / "source"
+    params = model.init(jax.random.PRNGKey(7), config.model_config())
+    checkpoint.save(source, params, config.model_config())
+    optimizer = training.make_optimizer(config, 10)
+    state = training._initialise_from(training.init_state(config, optimizer), str(source), optimizer)
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(np.array_equal(np.asarray(a), np.asarray(b))),
+                                     state.params, params))
+    wider = configs.tiny().replace(emb_dims=64, token_dim=8)
+    checkpoint.save(tmp_path / "wider", model.init(jax.random.PRNGKey(0), wider), wider)
+    with pytest.raises(ValueError, match="does not have this run's shape"):
+        training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)

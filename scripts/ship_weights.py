@@ -1,0 +1,58 @@
+"""Exports a training run's best params as the weights that ship with dit-jax (dit_jax/weights/...).
+
+    python scripts/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
+
+Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
+training command and config, the data, the step chosen and how, the steps run, the summed step time from
+the run's metrics.jsonl, its last validation figures, and ``inference_points`` (1000, the authors' test
+protocol), which the registration API and evaluate.py use by default.
+"""
+
+import argparse
+import json
+import os
+import shutil
+
+from dit_jax import checkpoint, registration, training
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("workdir")
+    parser.add_argument("--command", required=True, help="the command(s) that trained it, for the record")
+    parser.add_argument("--out", default=registration.shipped_weights())
+    parser.add_argument("--inference-points", type=int, default=1000)
+    parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
+    args = parser.parse_args()
+
+    records = [json.loads(line) for line in open(os.path.join(args.workdir, "metrics.jsonl"))]
+    train = [r for r in records if r.get("split") == "train"]
+    val = [r for r in records if r.get("split") == "val"]
+    log_every = training.TrainConfig.from_json(
+        json.load(open(os.path.join(args.workdir, "train_config.json")))).log_every
+    # metrics.jsonl may hold a step twice after a resume; count each logged step once
+    per_step = {r["step"]: r["seconds_per_step"] for r in train}
+    staging = args.out + ".new"
+    if os.path.exists(staging):
+        shutil.rmtree(staging)
+    path = training.export_params(args.workdir, staging)
+    extra = checkpoint.read_extra(path)
+    extra.update({
+        "command": args.command,
+        "steps_run": max(per_step) if per_step else 0,
+        "train_seconds": round(sum(per_step.values()) * log_every),
+        "last_validation": val[-1] if val else None,
+        "inference_points": args.inference_points,
+        "note": args.note,
+    })
+    params, config = checkpoint.restore(path)
+    shutil.rmtree(staging)
+    if os.path.exists(args.out):
+        shutil.rmtree(args.out)
+    checkpoint.save(args.out, params, config, extra=extra)
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
+    print(f"wrote {args.out} ({size / 2 ** 20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
+
+
+if __name__ == "__main__":
+    main()
