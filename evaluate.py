@@ -30,6 +30,7 @@ def main(argv=None) -> int:
     parser.add_argument("--gmcce-threshold", type=float, default=None, help="default: per setting, as the authors")
     parser.add_argument("--baselines", nargs="*", default=[], choices=["icp", "fpfh_ransac", "fgr"])
     parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -45,7 +46,8 @@ def main(argv=None) -> int:
                                       unseen=args.unseen, variant=args.variant, n_points=args.n_points,
                                       max_pairs=args.max_pairs, n_iters=args.iters,
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
-                                      batch_size=args.batch_size, progress=not args.no_progress)
+                                      batch_size=args.batch_size, progress=not args.no_progress,
+                                      compute_dtype="bfloat16" if args.bfloat16 else "float32")
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -170,7 +170,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
              settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
              n_points: int | None = None, max_pairs: int | None = None, n_iters: int = 3,
              gmcce_threshold: float | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
-             prepared_dir: str | None = None, progress: bool = True) -> dict:
+             prepared_dir: str | None = None, progress: bool = True, compute_dtype: str = "float32") -> dict:
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
     Args:
@@ -180,6 +180,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         else its training point count, else 1000.
       max_pairs: evaluate only the first pairs of each setting (all by default).
       gmcce_threshold: overrides the authors' per-setting threshold.
+      compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
     """
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
@@ -192,7 +193,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     test_shapes = shapes_lib.load_shapes(data_dir, "test", n_points=n_points, data_dir=prepared_dir)
     os.makedirs(out_dir, exist_ok=True)
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
-               "n_points": n_points, "model_config": config and config.to_dict(), "settings": {}, "setting_info": {}}
+               "n_points": n_points, "model_config": config and config.to_dict(), "compute_dtype": compute_dtype,
+               "settings": {}, "setting_info": {}}
     bar = None
     datasets = {}
     for setting in settings:
@@ -212,7 +214,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         if params is not None:
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: DIT")
-            run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters)
+            run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters, compute_dtype=compute_dtype)
             preds[METHOD_DIT] = predict_dit(params, run_config, ds, indices, batch_size, bar)
         for name in baselines:
             if bar is not None:
