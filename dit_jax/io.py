@@ -159,6 +159,17 @@ def _columns(path: str, names: list[str]) -> list[int]:
     return [names.index(axis) for axis in "xyz"]
 
 
+def _binary_records(path: str, dtype: np.dtype, offset: int, count: int, select, too_short: str) -> np.ndarray:
+    """The ``count`` records at ``offset``, memory-mapped, then the rows ``select`` keeps (all if None)."""
+    if os.path.getsize(path) < offset + count * dtype.itemsize:
+        raise CloudFileError(path, too_short.format(count))
+    if count == 0:
+        return np.zeros(0, dtype)
+    table = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
+    rows_kept = select(count)
+    return table if rows_kept is None else table[rows_kept]
+
+
 def _read_ply(path: str, select) -> tuple[np.ndarray, int]:
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
@@ -217,13 +228,7 @@ def _read_ply(path: str, select) -> tuple[np.ndarray, int]:
         return np.dtype([(n if n else f"_{i}", order + t) for i, (n, t) in enumerate(props_)])
 
     start = offset + sum(e[1] * record(e[2]).itemsize for e in elements[:index])
-    vertex = record(props)
-    if os.path.getsize(path) < start + count * vertex.itemsize:
-        raise CloudFileError(path, f"PLY file ends before its {count} vertices")
-    table = np.memmap(path, dtype=vertex, mode="r", offset=start, shape=(count,)) if count else \
-        np.zeros(0, vertex)
-    rows_kept = select(count)
-    table = table if rows_kept is None else table[rows_kept]
+    table = _binary_records(path, record(props), start, count, select, "PLY file ends before its {} vertices")
     return np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1), count
 
 
@@ -267,12 +272,7 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
                               enumerate(zip(names, types, sizes, counts))])
         except KeyError:
             raise CloudFileError(path, f"unsupported PCD TYPE/SIZE {list(zip(types, sizes))}") from None
-        if os.path.getsize(path) < offset + count * dtype.itemsize:
-            raise CloudFileError(path, f"PCD file ends before its {count} points")
-        table = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,)) if count else \
-            np.zeros(0, dtype)
-        rows_kept = select(count)
-        table = table if rows_kept is None else table[rows_kept]
+        table = _binary_records(path, dtype, offset, count, select, "PCD file ends before its {} points")
         points = np.stack([table[f"{names[c]}_{c}"][:, 0].astype(np.float64) for c in cols], axis=1)
         return points, count
     if data == "binary_compressed":
