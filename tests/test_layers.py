@@ -1,0 +1,31 @@
+"""Shared layers: blocked attention equals attention over all rows, in value and in gradient."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dit_jax import layers
+
+
+@pytest.mark.parametrize("chunk", [0, 7, 16, 50])
+def test_blocked_attention_is_attention(chunk):
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    q = jax.random.normal(keys[0], (50, 4, 8))
+    k = jax.random.normal(keys[1], (30, 4, 8))
+    v = jax.random.normal(keys[2], (30, 4, 6))
+    expected = jnp.einsum("hnm,mhd->nhd", jax.nn.softmax(jnp.einsum("nhd,mhd->hnm", q, k) / 2.0, axis=-1), v)
+    out = layers.attention(q, k, v, 2.0, chunk=chunk)
+    assert out.shape == (50, 4, 6)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(expected), atol=1e-5)
+    loss = lambda q, k, v, c: jnp.sum(jnp.sin(layers.attention(q, k, v, 2.0, chunk=c)))
+    for a, b in zip(jax.grad(loss, argnums=(0, 1, 2))(q, k, v, 0), jax.grad(loss, argnums=(0, 1, 2))(q, k, v, chunk)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5)
+
+
+def test_bfloat16_inputs_keep_float32_softmax():
+    q = jax.random.normal(jax.random.PRNGKey(1), (20, 2, 8))
+    exact = layers.attention(q, q, q, 8.0 ** 0.5)
+    low = layers.attention(q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0 ** 0.5)
+    assert low.dtype == jnp.bfloat16
+    np.testing.assert_allclose(np.asarray(low, np.float32), np.asarray(exact), atol=5e-2)
