@@ -85,7 +85,10 @@ def test_shipped_weights_load_by_default():
 
 def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
     """A ModelNet40 shape moved by a known transform, in metre units (x50, offset 1000), registers back as
-    well as the same pair at unit scale: rotation within 0.05 deg of it, translation within 1e-4 radii."""
+    well as the same pair at unit scale: rotation within 0.05 deg of it, and the moved source's points as
+    close to where they belong, in radii, within 1e-4. (The translation vector itself is not compared: with
+    the origin 1000 m away, float32's 1e-7 rotation error moves it by 1e-4 m per m of lever arm, while the
+    cloud itself lands as well as at unit scale.)"""
     registrar = registration.load()
     rng = np.random.default_rng(4)
     scale, offset = 50.0, np.array([1000.0, -1000.0, 1000.0])
@@ -96,13 +99,12 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
         moved = (shape @ rotation.T + translation)[rng.permutation(len(shape))]
         unit = registrar.register(shape, moved)
         metric = registrar.register(shape * scale + offset, moved * scale + offset)
-        # In metre units the same motion is x -> R x + (scale t + offset - R offset).
-        true_metric_t = scale * translation + offset - rotation @ offset
+        truth = shape @ rotation.T + translation
         unit_r = _rotation_error_deg(unit.rotation, rotation)
         metric_r = _rotation_error_deg(metric.rotation, rotation)
-        unit_t = np.linalg.norm(unit.translation - translation)
-        metric_t = np.linalg.norm(metric.translation - true_metric_t) / scale
+        unit_d = np.sqrt(np.mean(np.sum((unit.apply(shape) - truth) ** 2, axis=1)))
+        metric_d = np.sqrt(np.mean(np.sum((metric.apply(shape * scale + offset) - (truth * scale + offset)) ** 2,
+                                          axis=1))) / scale
         assert metric_r <= unit_r + 0.05, (metric_r, unit_r)
-        assert metric_t <= unit_t + 1e-4, (metric_t, unit_t)
+        assert metric_d <= unit_d + 1e-4, (metric_d, unit_d)
         assert unit_r < 1.0  # the shipped model registers these clean pairs in the first place
-
