@@ -72,7 +72,7 @@ class DITConfig:
     temp_hidden: int = 128
     pe_expansion: int = 8
     dropout: float = 0.2
-    attention_chunk: int = 1024
+    attention_chunk: int = 512
     compute_dtype: str = "float32"
 
     def __post_init__(self):

@@ -197,6 +197,10 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
     return rotation, translation, extras
 
 
+#: N * M above which the pairs of a batch go one at a time on every backend (memory of one pair).
+_MAP_PAIRS_ABOVE = 2048 * 2048
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
 def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     """Estimates the rigid motion mapping each source cloud onto its target.
@@ -204,7 +208,7 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     ``n_iters`` iterations: the first in soft mode, the rest in GMCCE mode; each re-runs the network on the
     moved source and composes its increment (SPEC.md section 10). Jitted with ``config`` static; it also
     nests inside a caller's ``jax.jit`` or ``jax.vmap``. The pairs of a batch are vmapped on accelerators and
-    mapped one after the other (``lax.map``) on CPU and for clouds above ``attention_chunk`` points, where
+    mapped one after the other (``lax.map``) on CPU and for clouds above about 2048 points, where
     that is faster and keeps memory at one pair's; the results are the same either way.
 
     Args:
@@ -225,7 +229,7 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
         # The same computation without the batch axis: XLA's CPU buffer assignment keeps ~5x more memory
         # alive for a vmapped batch of one (5.5 GB instead of 1.0 GB for one iteration at 8192 points).
         return jax.tree.map(lambda a: a[None], _register_one(params, src[0], tgt[0], config))
-    large = src.shape[1] * tgt.shape[1] > config.attention_chunk ** 2 > 0
+    large = src.shape[1] * tgt.shape[1] > _MAP_PAIRS_ABOVE
     if large or jax.default_backend() == "cpu":
         # One pair at a time: memory stays that of one pair, and on CPU it is faster than the vmapped
         # batch (paper config, 1000 points, batch 8: 2.26 s per pair against 3.87; the matmuls of one pair
