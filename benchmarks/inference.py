@@ -83,6 +83,9 @@ def register_flops(params, config, src, tgt) -> float:
     from dit_jax import geometry, model
     from dit_jax.head import head
 
+    # Blocked attention is a loop too (same products, counted once): count the unblocked program.
+    config = config.replace(attention_chunk=0)
+
     emb = model.embed(params, tgt, config, encode=True)
     knn = geometry.knn(src, config.k)
     feats = model.features(params, src, tgt, config, tgt_embedding=emb, src_knn=knn)[1]
@@ -128,6 +131,19 @@ def time_register(config, batch: int, n_points: int, repeats: int, count_flops: 
     }
 
 
+def _peak_rss_bytes() -> int:
+    """This process's peak resident memory. VmHWM belongs to the process's own address space; ru_maxrss
+    would also carry the parent's peak at fork time into a child started with fork + exec."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
 def _child(args) -> None:
     """Runs one size in this (fresh) process and prints its record with the peak RSS."""
     from dit_jax import configs
@@ -136,7 +152,7 @@ def _child(args) -> None:
     if args.dtype != "float32":
         config = config.replace(compute_dtype=args.dtype)
     record = time_register(config, 1, args.child, repeats=1, count_flops=False)
-    record["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    record["peak_rss_bytes"] = _peak_rss_bytes()
     print("RECORD " + json.dumps(record))
 
 
