@@ -64,19 +64,19 @@ def _read(path: str, args) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if args.out is not None:
-        from dit_jax import io
+    from dit_jax import io
 
-        ext = os.path.splitext(args.out)[1].lower()
-        if ext not in io.FORMATS:
-            return _fail(f"{args.out}: unknown output format {ext or '(no extension)'!r}; "
-                         f"expected one of {', '.join(io.FORMATS)}")
+    if args.out is not None:  # checked before any work, so a bad --out costs nothing
+        try:
+            io.file_format(args.out, kind="output format")
+        except io.CloudFileError as err:
+            return _fail(str(err))
         if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
             return _fail(f"{args.out}: its folder does not exist")
     if args.max_points < 1:
         return _fail(f"--max-points must be positive, got {args.max_points}")
 
-    from dit_jax import io, registration
+    from dit_jax import registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.convert import ConversionError
 

@@ -47,6 +47,15 @@ class CloudFileError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+def file_format(path: str | os.PathLike, kind: str = "format") -> str:
+    """The lower-case extension of ``path`` if it is one of :data:`FORMATS`, else :class:`CloudFileError`."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext not in FORMATS:
+        raise CloudFileError(path, f"unknown {kind} {ext or '(no extension)'!r}; expected one of "
+                                   f"{', '.join(FORMATS)}")
+    return ext
+
+
 def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 0,
          return_count: bool = False):
     """Reads the points of a .ply, .pcd, .xyz, .txt or .npy file.
@@ -65,10 +74,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         per point, or holds NaN or Inf values.
     """
     path = os.fspath(path)
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in FORMATS:
-        raise CloudFileError(path, f"unknown format {ext or '(no extension)'!r}; expected one of "
-                                   f"{', '.join(FORMATS)}")
+    ext = file_format(path)
     if not os.path.exists(path):
         raise CloudFileError(path, "no such file")
     if os.path.isdir(path):
@@ -101,10 +107,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
 def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> None:
     """Writes (N, 3) points as .ply, .pcd (binary unless ``binary=False``), .xyz/.txt or .npy, atomically."""
     path = os.fspath(path)
-    ext = os.path.splitext(path)[1].lower()
-    if ext not in FORMATS:
-        raise CloudFileError(path, f"unknown format {ext or '(no extension)'!r}; expected one of "
-                                   f"{', '.join(FORMATS)}")
+    ext = file_format(path)
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
