@@ -20,7 +20,7 @@ from flax import linen as nn
 
 from dit_jax import geometry, gmcce
 from dit_jax.configs import DITConfig
-from dit_jax.layers import layer_norm, torch_dense
+from dit_jax.layers import clip_inward, layer_norm, torch_dense
 
 #: The inverse temperature of the GMCCE mode's near-hard softmax.
 GMCCE_SOFTMAX_SCALE = 10000.0
@@ -31,6 +31,12 @@ class TemperatureNet(nn.Module):
 
     r = |mean(Phi_X) - mean(Phi_Y)|; three blocks of Linear, LayerNorm, LeakyReLU(0.01); Linear to one value,
     LeakyReLU; clamped to [1 / factor, factor].
+
+    The clamp's value is the authors'; its gradient is not (:func:`dit_jax.layers.clip_inward`). With their
+    clamp a temperature below 1 / factor gets no gradient at all, and a freshly initialised net lands there
+    for about half of the seeds (its last LeakyReLU is negative): the soft correspondences stay uniform
+    (weights 1 / M), the discrimination loss falls only as the match labels turn false, and training
+    destroyed the matching until the temperature drifted out by chance, or never (issue 15, docs/BENCHMARKS.md).
     """
 
     hidden: int = 128
@@ -44,7 +50,7 @@ class TemperatureNet(nn.Module):
             x = torch_dense(self.hidden, f"fc{i}")(x)
             x = jax.nn.leaky_relu(layer_norm(f"norm{i + 1}")(x), negative_slope=0.01)
         x = jax.nn.leaky_relu(torch_dense(1, "fc9")(x), negative_slope=0.01)
-        return jnp.clip(x[0], 1.0 / self.factor, self.factor)
+        return clip_inward(x[0], 1.0 / self.factor, self.factor)
 
 
 def similarity(phi_x: jax.Array, phi_y: jax.Array) -> jax.Array:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
@@ -82,3 +84,30 @@ def torch_dense(features: int, name: str, use_bias: bool = True, dtype: str = "f
         kernel_init=nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform"),
         name=name,
     )
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1, 2))
+def clip_inward(x: jax.Array, lower: float, upper: float) -> jax.Array:
+    """``jnp.clip(x, lower, upper)`` whose gradient does not die outside the range.
+
+    The value is exactly the clip's. The cotangent passes where ``x`` lies in the range, as with the clip,
+    and also where it lies outside and a descent step (against the cotangent) moves ``x`` back towards the
+    range; it is zero only where descent would push ``x`` further out. A plain clip passes nothing outside
+    the range, so a value that starts or lands there never learns its way back: DIT's temperature net
+    started at its lower bound for half of the seeds and its soft correspondences stayed uniform (see
+    :class:`dit_jax.head.TemperatureNet`).
+    """
+    return jnp.clip(x, lower, upper)
+
+
+def _clip_inward_fwd(x, lower, upper):
+    return jnp.clip(x, lower, upper), x
+
+
+def _clip_inward_bwd(lower, upper, x, cotangent):
+    # Descent moves x by -cotangent: below the range that raises x when the cotangent is negative.
+    passes = ((x >= lower) & (x <= upper)) | ((x < lower) & (cotangent < 0)) | ((x > upper) & (cotangent > 0))
+    return (jnp.where(passes, cotangent, jnp.zeros_like(cotangent)),)
+
+
+clip_inward.defvjp(_clip_inward_fwd, _clip_inward_bwd)
