@@ -261,19 +261,26 @@ def validate(params, dataset: pairs_lib.PairDataset, model_config: DITConfig, n_
       ``n_iters`` iterations, GMCCE included -- what a user gets;
     * ``network_rotation_error`` / ``network_translation_error``: one soft-mode iteration, the network's own
       estimate. On clean pairs GMCCE registers well even with untrained features, so this is the figure that
-      shows what training changed, and the one the best checkpoint is chosen by.
+      shows what training changed, and the one the best checkpoint is chosen by;
+    * ``network_match_accuracy``: the share of source points whose most similar target point lies within
+      :data:`dit_jax.losses.MATCH_RADIUS` of its true position (the discrimination loss's labels), from the
+      same soft iteration.
     """
     n = min(n_pairs, len(dataset))
     one_step = model_config.replace(n_iters=1)
     errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",
-                                               "network_translation_error")}
+                                               "network_translation_error", "network_match_accuracy")}
+    match_labels = jax.vmap(losses.match_labels)
     for start in range(0, n, batch_size):
         b = dataset.batch(np.arange(start, min(n, start + batch_size)))
         src, tgt = jnp.asarray(b["src"]), jnp.asarray(b["tgt"])
         for prefix, cfg in (("", model_config), ("network_", one_step)):
-            rotation, translation, _ = model.register(params, src, tgt, cfg)
+            rotation, translation, extras = model.register(params, src, tgt, cfg)
             errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(rotation, b["R"])))
             errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(translation, b["t"])))
+            if prefix == "network_":
+                labels = match_labels(src, tgt, extras["correspondences"], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
+                errors["network_match_accuracy"].append(np.asarray(labels).reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 
 
@@ -448,6 +455,25 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
             epoch, offset = epoch + 1, 0
 
     val_metrics = {}
+
+    def run_validation(step: int, epoch: int) -> None:
+        nonlocal val_metrics, best_val
+        val_metrics = validate(state.params, val_ds, model_config, config.val_pairs)
+        _append_jsonl(log_path, {"step": step, "epoch": epoch, "split": "val", **val_metrics})
+        line = (f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
+                f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
+                f"{val_metrics['network_match_accuracy']:.3f}), translation error "
+                f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})")
+        if bar is not None:
+            bar.write(line)
+        else:
+            print(line, flush=True)
+        if val_metrics["network_rotation_error"] < best_val:
+            best_val = val_metrics["network_rotation_error"]
+            _save(best_mgr, state, meta(step))
+
+    if start == 0:
+        run_validation(0, 0)  # where training starts from: the first point of every curve
     t_last = time.time()
     step = start
     for epoch, batch in batches_from(start):
@@ -468,15 +494,7 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         if bar is not None:
             bar.update(1)
         if step % config.eval_every == 0 or step == total_steps:
-            val_metrics = validate(state.params, val_ds, model_config, config.val_pairs)
-            _append_jsonl(log_path, {"step": step, "epoch": epoch, "split": "val", **val_metrics})
-            if bar is not None:
-                bar.write(f"step {step}: validation rotation error {val_metrics['rotation_error']:.2f} deg "
-                          f"(network alone {val_metrics['network_rotation_error']:.2f}), translation error "
-                          f"{val_metrics['translation_error']:.4f} ({val_metrics['network_translation_error']:.4f})")
-            if val_metrics["network_rotation_error"] < best_val:
-                best_val = val_metrics["network_rotation_error"]
-                _save(best_mgr, state, meta(step))
+            run_validation(step, epoch)
         if step % config.ckpt_every == 0 or step == total_steps:
             _save(last_mgr, state, meta(step))
     if bar is not None:
