@@ -29,3 +29,15 @@ def test_bfloat16_inputs_keep_float32_softmax():
     low = layers.attention(q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0 ** 0.5)
     assert low.dtype == jnp.bfloat16
     np.testing.assert_allclose(np.asarray(low, np.float32), np.asarray(exact), atol=5e-2)
+
+
+def test_clip_inward_has_the_value_of_clip_and_a_gradient_back_into_range():
+    x = jnp.asarray([-2.0, 0.005, 0.5, 3.0, 150.0])
+    np.testing.assert_array_equal(np.asarray(layers.clip_inward(x, 0.01, 100.0)), np.asarray(jnp.clip(x, 0.01, 100.0)))
+    # Loss -sum(clip): descent raises every value. Below the range that leads back in, so the gradient
+    # passes there (jnp.clip passes none); above the range it would lead further out, so none passes.
+    up = jax.grad(lambda v: -jnp.sum(layers.clip_inward(v, 0.01, 100.0)))(x)
+    np.testing.assert_array_equal(np.asarray(up), [-1.0, -1.0, -1.0, -1.0, 0.0])
+    down = jax.grad(lambda v: jnp.sum(layers.clip_inward(v, 0.01, 100.0)))(x)
+    np.testing.assert_array_equal(np.asarray(down), [0.0, 0.0, 1.0, 1.0, 1.0])
+    assert not np.any(np.asarray(jax.grad(lambda v: -jnp.sum(jnp.clip(v, 0.01, 100.0)))(x))[:2])

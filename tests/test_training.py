@@ -42,15 +42,33 @@ def _step_setup(config, prepared, devices=None, optimizer=None):
     return train_ds, mesh, state, training.make_train_step(config, optimizer, mesh)
 
 
-def test_a_few_dozen_steps_lower_the_loss(prepared):
-    config = dataclasses.replace(TINY, lr=3e-3)
-    train_ds, mesh, state, step = _step_setup(config, prepared)
-    batch = training.shard_batch(train_ds.batch(np.arange(4), epoch=0), mesh)
-    history = []
-    for _ in range(36):
-        state, out = step(state, batch)
-        history.append(float(out["loss"]))
-    assert np.mean(history[-5:]) < 0.8 * np.mean(history[:5]), history
+def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
+    """Learning, not a falling loss: fresh training pairs at every step, judged on pairs of held-out shapes.
+
+    The cpu network at 128 points, 30 steps, seeds 0 and 1. Before the temperature clamp let gradients back
+    into its range (issue 15), seed 0 started with a dead temperature and its held-out match accuracy fell
+    from 0.72 to 0.44 (rotation error of the network alone 17.6 -> 21.3 degrees); now both seeds reach about
+    0.95 and under 1 degree. One step function serves both seeds (one compilation).
+    """
+    from dit_jax.data import pipeline
+
+    steps = 30
+    base = dataclasses.replace(training.PRESETS["tiny"], model="cpu", n_points=128, max_steps=steps)
+    optimizer = training.make_optimizer(base, steps)
+    mesh = training.make_mesh()
+    step = training.make_train_step(base, optimizer, mesh)
+    for seed in (0, 1):
+        config = dataclasses.replace(base, seed=seed)
+        train_ds, val_ds = training.make_datasets(config, prepared)
+        state = training.replicate(training.init_state(config, optimizer), mesh)
+        before = training.validate(state.params, val_ds, config.model_config(), 16)
+        for _, batch in zip(range(steps), pipeline.batches(train_ds, config.batch_size, epoch=0)):
+            state, _ = step(state, training.shard_batch(batch, mesh))
+        assert int(state.step) == steps and int(state.skipped) == 0
+        after = training.validate(state.params, val_ds, config.model_config(), 16)
+        summary = f"seed {seed}: {before} -> {after}"
+        assert after["network_match_accuracy"] >= max(0.85, before["network_match_accuracy"] + 0.15), summary
+        assert after["network_rotation_error"] <= min(3.0, 0.2 * before["network_rotation_error"]), summary
 
 
 def test_non_finite_batches_are_skipped_not_applied(prepared):

@@ -1,0 +1,39 @@
+"""The head's temperature net: the authors' clamp in the forward pass, a gradient that can leave it."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dit_jax.head import TemperatureNet
+
+
+def _net_at_lower_clamp():
+    """A temperature net and input features whose raw output lies below 1 / factor (clamped)."""
+    net = TemperatureNet(hidden=16, factor=100.0)
+    phi_x = jax.random.normal(jax.random.PRNGKey(0), (32, 24))
+    phi_y = jax.random.normal(jax.random.PRNGKey(1), (40, 24))
+    for seed in range(20):
+        params = net.init(jax.random.PRNGKey(seed), phi_x, phi_y)
+        if float(net.apply(params, phi_x, phi_y)) == np.float32(0.01):
+            return net, params, phi_x, phi_y
+    raise AssertionError("no seed puts the temperature at its lower clamp")
+
+
+def test_a_clamped_temperature_still_learns_to_rise():
+    net, params, phi_x, phi_y = _net_at_lower_clamp()
+    # Any loss that wants a sharper softmax wants a higher temperature; it must reach the net's weights.
+    grads = jax.grad(lambda p: -net.apply(p, phi_x, phi_y))(params)
+    assert max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(grads)) > 0
+    stepped = jax.tree.map(lambda p, g: p - 0.05 * jnp.sign(g), params, grads)
+    for _ in range(50):
+        if float(net.apply(stepped, phi_x, phi_y)) > 0.01:
+            break
+        grads = jax.grad(lambda p: -net.apply(p, phi_x, phi_y))(stepped)
+        stepped = jax.tree.map(lambda p, g: p - 0.05 * jnp.sign(g), stepped, grads)
+    assert float(net.apply(stepped, phi_x, phi_y)) > 0.01
+
+
+def test_a_clamped_temperature_is_not_pushed_further_out():
+    net, params, phi_x, phi_y = _net_at_lower_clamp()
+    grads = jax.grad(lambda p: net.apply(p, phi_x, phi_y))(params)  # wants it lower still: nothing to do
+    assert all(float(jnp.max(jnp.abs(g))) == 0.0 for g in jax.tree.leaves(grads))
