@@ -33,10 +33,11 @@ class TemperatureNet(nn.Module):
     LeakyReLU; clamped to [1 / factor, factor].
 
     The clamp's value is the authors'; its gradient is not (:func:`dit_jax.layers.clip_inward`). With their
-    clamp a temperature below 1 / factor gets no gradient at all, and a freshly initialised net lands there
-    for about half of the seeds (its last LeakyReLU is negative): the soft correspondences stay uniform
-    (weights 1 / M), the discrimination loss falls only as the match labels turn false, and training
-    destroyed the matching until the temperature drifted out by chance, or never (issue 15, docs/BENCHMARKS.md).
+    clamp a temperature below 1 / factor gets no gradient at all, and a freshly initialised net starts there
+    whenever its last LeakyReLU is negative (the ``cpu`` network: on every validation pair for 11 of 40
+    seeds, on some pairs for more). The soft correspondences then stay uniform (weights 1 / M), and training
+    wrecked the matching until the temperature drifted out by chance, or for good (docs/BENCHMARKS.md,
+    "Training that learns on every seed").
     """
 
     hidden: int = 128

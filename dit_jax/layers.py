@@ -94,7 +94,7 @@ def clip_inward(x: jax.Array, lower: float, upper: float) -> jax.Array:
     and also where it lies outside and a descent step (against the cotangent) moves ``x`` back towards the
     range; it is zero only where descent would push ``x`` further out. A plain clip passes nothing outside
     the range, so a value that starts or lands there never learns its way back: DIT's temperature net
-    started at its lower bound for half of the seeds and its soft correspondences stayed uniform (see
+    often starts below its lower bound, and its soft correspondences then stayed uniform (see
     :class:`dit_jax.head.TemperatureNet`).
     """
     return jnp.clip(x, lower, upper)
