@@ -45,11 +45,10 @@ class TrainConfig:
       lr_drops: fractions of the run after which the learning rate is multiplied by ``lr_drop_factor``.
       clip_norm: global gradient-norm clipping.
       train_iters: registration iterations unrolled in training (the authors use 2).
-      differentiable: gradients through weighted Procrustes with soft correspondences (the default: on the
-        same 200-step run the network's own error reached 0.39 degrees where the authors' detached Procrustes
-        stayed near 40, see
-        docs/BENCHMARKS.md); False is the authors' detached Procrustes, where only the discrimination term
-        trains the network.
+      differentiable: gradients through weighted Procrustes with soft correspondences (the default); False
+        is the authors' detached Procrustes, where only the discrimination term trains the network. Both
+        learn the quick recipe alike (docs/BENCHMARKS.md); an earlier comparison in which the detached path
+        failed was made with the temperature stuck at its clamp.
       val_fraction: share of the training shapes held out for validation (never the test split).
       val_pairs: validation pairs evaluated (the first ones, deterministic).
       eval_every, ckpt_every: steps between validations / checkpoints (also at the end).

@@ -1,4 +1,5 @@
 import dataclasses
+import json
 import os
 import pathlib
 import signal
@@ -230,3 +231,19 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     checkpoint.save(tmp_path / "wider", model.init(jax.random.PRNGKey(0), wider), wider)
     with pytest.raises(ValueError, match="does not have this run's shape"):
         training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
+
+
+def test_training_curves_of_several_runs_plot_into_one_png(tmp_path):
+    runs = {}
+    for seed in (0, 1):
+        workdir = tmp_path / f"seed{seed}"
+        workdir.mkdir()
+        lines = [{"step": s, "split": "train", "loss": 1.0 / s} for s in (5, 10, 15)]
+        lines += [{"step": s, "split": "val", "rotation_error": 1e-4, "network_rotation_error": 20.0 / (1 + s),
+                   "network_match_accuracy": 0.5 + s / 40} for s in (0, 10, 15)]
+        (workdir / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in lines[::-1]) + "\n")
+        runs[f"seed {seed}"] = str(workdir)
+    records = training.read_metrics(runs["seed 0"])
+    assert [r["step"] for r in records["val"]] == [0, 10, 15] and [r["step"] for r in records["train"]] == [5, 10, 15]
+    training.plot_curves(runs, str(tmp_path / "curves.png"), title="two seeds")
+    assert (tmp_path / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
