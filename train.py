@@ -6,6 +6,7 @@
     python train.py --workdir runs/mine --resume      # continue where a run stopped (even after kill -9),
                                                       # with the config saved in the workdir
     python train.py --preset cpu --setting low_noise_partial --init-from runs/mine/model   # fine-tune
+    python train.py --preset cpu --settings clean independent_clean scan_high_noise   # a mix of settings
 
 Every field of the preset can be overridden with --set FIELD=VALUE (fields of dit_jax.training.TrainConfig;
 model.FIELD for dit_jax.configs.DITConfig). Multi-host: start one process per host with --distributed (and
@@ -35,7 +36,12 @@ def parse(argv=None):
                         help="default: quick, or with --resume the config saved in the workdir")
     parser.add_argument("--workdir", default=None, help="default: runs/<preset>-<setting>")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
-    parser.add_argument("--setting", default=None, choices=["clean", "low_noise_partial", "high_noise_partial"])
+    from dit_jax.data import pairs
+
+    parser.add_argument("--setting", default=None, choices=list(pairs.SETTINGS))
+    parser.add_argument("--settings", nargs="+", default=None, choices=list(pairs.SETTINGS), metavar="SETTING",
+                        help="train on a mix of these settings (repeat one to draw it more often); --setting "
+                             "defaults to the first")
     parser.add_argument("--unseen", action="store_true", help="train on categories 0-19 only")
     parser.add_argument("--variant", default=None, choices=["authors", "peers"])
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
@@ -57,6 +63,9 @@ def parse(argv=None):
     for name, value in (("data_dir", args.data_dir), ("setting", args.setting), ("variant", args.variant)):
         if value is not None:
             changes[name] = value
+    if args.settings:
+        changes["settings"] = tuple(args.settings)
+        changes.setdefault("setting", args.settings[0])
     if args.unseen:
         changes["unseen"] = True
     if args.init_from:
@@ -78,7 +87,7 @@ def parse(argv=None):
         config.model_config()
     except (TypeError, ValueError) as err:
         parser.error(str(err))
-    workdir = args.workdir or f"runs/{preset}-{config.setting}"
+    workdir = args.workdir or f"runs/{preset}-{'mix' if config.settings else config.setting}"
     return args, config, workdir
 
 

@@ -34,7 +34,11 @@ class TrainConfig:
 
     Attributes:
       model: a :mod:`dit_jax.configs` preset name; ``model_overrides`` changes its fields.
-      setting: data setting (``clean``, ``low_noise_partial``, ``high_noise_partial``).
+      setting: data setting (one of :data:`dit_jax.data.pairs.SETTINGS`); it also picks the model's GMCCE
+        threshold for validation.
+      settings: train on a mix of these settings instead (each batch from one of them, see
+        :class:`dit_jax.data.pairs.MixedPairs`; repeat one to draw it more often); validation then covers
+        each of them, and the mean over them chooses the best checkpoint.
       data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
       unseen: the unseen-category split (labels 0-19 train, 20-39 test).
       variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).
@@ -55,6 +59,7 @@ class TrainConfig:
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
+      match_radius: radius of the discrimination labels (:func:`dit_jax.losses.match_labels`).
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
         whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
         setting. Its network shape must match ``model``'s.
@@ -63,6 +68,7 @@ class TrainConfig:
     model: str = "cpu"
     model_overrides: tuple[tuple[str, Any], ...] = ()
     setting: str = "clean"
+    settings: tuple[str, ...] = ()
     data_dir: str | None = None
     unseen: bool = False
     variant: str = "authors"
@@ -84,6 +90,7 @@ class TrainConfig:
     keep: int = 3
     seed: int = 0
     log_every: int = 10
+    match_radius: float = losses.MATCH_RADIUS
     init_from: str | None = None
 
     def model_config(self) -> DITConfig:
@@ -93,6 +100,7 @@ class TrainConfig:
         d = dataclasses.asdict(self)
         d["model_overrides"] = [list(kv) for kv in self.model_overrides]
         d["lr_drops"] = list(self.lr_drops)
+        d["settings"] = list(self.settings)
         return d
 
     @classmethod
@@ -100,6 +108,7 @@ class TrainConfig:
         d = dict(d)
         d["model_overrides"] = tuple(tuple(kv) for kv in d.get("model_overrides", ()))
         d["lr_drops"] = tuple(d.get("lr_drops", ()))
+        d["settings"] = tuple(d.get("settings", ()))
         return cls(**d)
 
 
@@ -160,7 +169,8 @@ def _batch_loss(params, batch, model_config: DITConfig, config: TrainConfig, key
     def one(src, tgt, rotation_gt, translation_gt, pair_key):
         its = model.unroll(params, src, tgt, model_config, config.train_iters,
                            differentiable=config.differentiable, dropout_key=pair_key)
-        total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt)
+        total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt,
+                                       match_radius=config.match_radius)
         terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
         terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
         return total, terms
@@ -236,24 +246,42 @@ def _split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shape
     return take(train), take(val)
 
 
+def shape_points(data_dir: str | None, n_points: int, settings) -> int:
+    """Points to load per shape: ``n_points``, or all the source holds where a setting samples the two clouds
+    from disjoint points (they draw from the whole shape)."""
+    if any(pairs_lib.SETTINGS[s].independent for s in settings):
+        return max(n_points, shapes_lib.source_points(data_dir))
+    return n_points
+
+
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
-    """(training pairs, validation pairs) from the training split of the chosen source."""
-    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=config.n_points, data_dir=prepared_dir)
+    """(training pairs, validation pairs) from the training split of the chosen source: two
+    :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
+    ``config.settings``."""
+    settings = config.settings or (config.setting,)
+    n_shape = shape_points(config.data_dir, config.n_points, settings)
+    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir)
     train_shapes, val_shapes = _split_validation(shapes, config.val_fraction)
     common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
-    train = pairs_lib.PairDataset(train_shapes, pairs_lib.PairConfig(train=True, seed=config.seed,
-                                                                     unseen=config.unseen, **common))
+    train_config = pairs_lib.PairConfig(train=True, seed=config.seed, unseen=config.unseen, **common)
     # Validation pairs are fixed (seeded by index) test-style pairs of held-out training shapes; with the
     # unseen split they keep the training categories (a test-style unseen config would keep 20-39 instead).
-    val = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(train=False, unseen=False, **common))
+    val_config = pairs_lib.PairConfig(train=False, unseen=False, **common)
+    if config.settings:
+        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings)
+        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)))
+    else:
+        train = pairs_lib.PairDataset(train_shapes, train_config)
+        val = pairs_lib.PairDataset(val_shapes, val_config)
     if config.unseen:
         keep = (val_shapes.labels >= 0) & (val_shapes.labels < 20)
-        val.rows = val.rows[keep[val.rows]]
+        for ds in getattr(val, "datasets", {"": val}).values():
+            ds.rows = ds.rows[keep[ds.rows]]
     return train, val
 
 
-def validate(params, dataset: pairs_lib.PairDataset, model_config: DITConfig, n_pairs: int,
-             batch_size: int = 8) -> dict[str, float]:
+def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, model_config: DITConfig,
+             n_pairs: int, batch_size: int = 8) -> dict[str, float]:
     """Mean isotropic errors on the first ``n_pairs`` validation pairs, two ways:
 
     * ``rotation_error`` (degrees) / ``translation_error``: full inference, ``register`` with its
@@ -264,7 +292,20 @@ def validate(params, dataset: pairs_lib.PairDataset, model_config: DITConfig, n_
     * ``network_match_accuracy``: the share of source points whose most similar target point lies within
       :data:`dit_jax.losses.MATCH_RADIUS` of its true position (the discrimination loss's labels), from the
       same soft iteration.
+
+    For :class:`~dit_jax.data.pairs.MixedPairs`, each setting's ``n_pairs`` are measured (keys
+    ``SETTING/...``, full inference with that setting's GMCCE threshold) and the plain keys are the means over
+    the settings.
     """
+    if isinstance(dataset, pairs_lib.MixedPairs):
+        out = {}
+        for setting, ds in dataset.datasets.items():
+            cfg = model_config.replace(gmcce_threshold=configs.GMCCE_THRESHOLDS[setting])
+            out.update({f"{setting}/{k}": v for k, v in validate(params, ds, cfg, n_pairs, batch_size).items()})
+        for key in [k for k in out if k.startswith(f"{dataset.settings[0]}/")]:
+            name = key.split("/", 1)[1]
+            out[name] = float(np.mean([out[f"{s}/{name}"] for s in dataset.datasets]))
+        return out
     n = min(n_pairs, len(dataset))
     one_step = model_config.replace(n_iters=1)
     errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",

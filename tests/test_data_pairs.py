@@ -129,3 +129,78 @@ def test_bad_configs_are_refused():
         pairs.PairConfig(setting="noisy")
     with pytest.raises(ValueError, match="unknown variant"):
         pairs.PairConfig(variant="dcp")
+
+
+INDEPENDENT = [s for s, spec in pairs.SETTINGS.items() if spec.independent]
+
+
+@pytest.mark.parametrize("setting", INDEPENDENT)
+def test_independent_settings_share_no_point(modelnet_test, setting):
+    """The clouds are disjoint samples of the shape: at the true pose no source point lands on a target point,
+    yet most have a neighbour on the target nearby (the same surface)."""
+    _, b = _batch(modelnet_test, 12, setting=setting, n_points=1000)
+    spec = pairs.SETTINGS[setting]
+    expected = {"none": 500, "authors": 400, "scan": 200}[spec.crop]  # of the 1000 points each shape holds
+    assert b["src"].shape == (12, expected, 3) and b["tgt"].shape == (12, expected, 3)
+    for i in range(12):
+        moved = b["src"][i] @ b["R"][i].T + b["t"][i]
+        gaps = np.linalg.norm(moved[:, None] - b["tgt"][i][None], axis=-1).min(axis=1)
+        if spec.noise_clip == 0:
+            assert gaps.min() > 1e-4, "no point is shared"
+        assert np.median(gaps) < 0.12, "both clouds sample the same surface"
+        has = b["correspondence"][i] >= 0
+        assert 0.1 < has.mean() < 1.0
+        # Counterparts are target rows within the radius on the noise-free shape (noise moves them a little).
+        matched = np.linalg.norm(moved[has] - b["tgt"][i][b["correspondence"][i][has]], axis=-1)
+        assert matched.max() < pairs.CORRESPONDENCE_RADIUS + 4 * max(spec.noise_clip, 1e-6) * np.sqrt(3)
+
+
+def test_independent_pairs_are_deterministic_and_fresh_per_epoch(modelnet_test):
+    test = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="scan_high_noise"))
+    np.testing.assert_array_equal(test.batch([3, 4])["src"], test.batch([3, 4])["src"])
+    np.testing.assert_array_equal(test[4]["tgt"], test.batch([3, 4])["tgt"][1])
+    train = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="independent_clean", train=True))
+    assert not np.array_equal(train.batch([0], epoch=0)["src"], train.batch([0], epoch=1)["src"])
+
+
+def test_visible_points_of_a_sphere_face_the_camera():
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(2000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    camera = np.array([0.0, 0.0, 3.0])
+    seen = pairs.visible_points(sphere, camera)
+    # A camera 3 radii away sees the cap with z > 1/3; hidden-point removal finds most of it and nothing behind
+    # (a few points at the horizon are within sampling error of it).
+    assert sphere[seen, 2].min() > 0.1 and (sphere[seen, 2] < 0.25).mean() < 0.01
+    assert 0.7 < seen.sum() / (sphere[:, 2] > 1 / 3).sum() <= 1.1
+
+
+def test_scan_views_differ_by_at_most_sixty_degrees(modelnet_test):
+    """The two views' clouds lie on the sides of the shape their cameras face: their mean directions from the
+    shape's centre are less than about 90 degrees apart, where independent halves would be random."""
+    ds = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="scan_low_noise"))
+    b = ds.batch(np.arange(40))
+    angles = []
+    for i in range(40):
+        centre = modelnet_test.points[ds.rows[i]].mean(axis=0)
+        src_dir = (b["src"][i] - centre).mean(axis=0)
+        tgt_dir = ((b["tgt"][i] - b["t"][i]) @ b["R"][i] - centre).mean(axis=0)
+        cos = src_dir @ tgt_dir / np.linalg.norm(src_dir) / np.linalg.norm(tgt_dir)
+        angles.append(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    assert np.median(angles) < 60
+
+
+def test_mixed_pairs_draw_whole_batches_from_each_setting(modelnet_test):
+    config = pairs.PairConfig(train=True, n_points=512)
+    mixed = pairs.MixedPairs(modelnet_test, config, ("clean", "independent_clean", "scan_high_noise"))
+    seen = {}
+    for first in range(30):
+        indices = [first, first + 100]
+        setting = mixed.setting_of(indices, epoch=2)
+        b = mixed.batch(indices, epoch=2)
+        expected = mixed.datasets[setting].batch(indices, epoch=2)
+        np.testing.assert_array_equal(b["src"], expected["src"])
+        seen[setting] = seen.get(setting, 0) + 1
+        assert mixed.setting_of(indices, epoch=2) == setting, "deterministic"
+    assert set(seen) == {"clean", "independent_clean", "scan_high_noise"}
+    assert len(mixed) == len(mixed.datasets["clean"])

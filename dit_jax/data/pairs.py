@@ -10,9 +10,22 @@ For shape X (its first P points, P = 1000 by default):
    target its 800 nearest to one near (-1000, -1000, -1000), both in the shape's frame (about 600 shared);
 4. the target is moved, ``Y = R Y + t``, and its points are shuffled.
 
-Settings: ``clean``, ``low_noise_partial``, ``high_noise_partial``. ``variant="peers"`` follows DCP / PRNet /
-RPM-Net instead: angles in [0, 45] degrees and RPM-Net's crop (each cloud keeps the 70 % of its points on the
-far side of a plane through the centre with a random normal).
+The authors' settings: ``clean``, ``low_noise_partial``, ``high_noise_partial``. In all three the source and
+the target are made of the same points, which no pair of real scans is; a model can score 100 % on them by
+matching identical points. Settings as real data has them (see :data:`SETTINGS`):
+
+* ``independent_*``: the same three, but source and target are disjoint random halves of the shape's points
+  (each cloud takes ``min(n_points, P // 2)`` of the P points the shape holds), so no point is shared;
+* ``scan_low_noise`` / ``scan_high_noise``: scan-like partial views, sampled independently: each cloud is what
+  a range scanner at a random viewpoint 2 radii from the centre sees (hidden-point removal, Katz et al. 2007,
+  on all P points; about 45 % of a ModelNet40 shape), the target's viewpoint 0-60 degrees from the
+  source's; points both views see go to one cloud or the other at random; each cloud keeps
+  ``min(n_points, round(0.2 P))`` of its visible points at random (where a view has fewer, about one in
+  ten, the hidden points nearest its camera fill it up). Noise (low: clip 0.001; high: clip 0.05) is added
+  after the view is taken, as a sensor adds it.
+
+``variant="peers"`` follows DCP / PRNet / RPM-Net instead: angles in [0, 45] degrees and RPM-Net's crop (each
+cloud keeps the 70 % of its points on the far side of a plane through the centre with a random normal).
 
 Splits: ``unseen=False`` uses the shapes as given (the official train/test split); ``unseen=True`` keeps
 labels 0-19 for training and 20-39 for testing, the authors' default.
@@ -25,21 +38,42 @@ the same ones.
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
 from dit_jax.data.shapes import Shapes
 
-SETTINGS: Mapping[str, tuple[float, bool]] = {  # noise clip (0 = no noise), partial
-    "clean": (0.0, False),
-    "low_noise_partial": (0.001, True),
-    "high_noise_partial": (0.05, True),
+class Setting(NamedTuple):
+    """How one data setting makes its pairs."""
+
+    noise_clip: float  # per-coordinate clip of N(0, 0.01^2) noise; 0: no noise
+    crop: str  # "none", "authors" (nearest points to a far anchor; the peers' plane crop) or "scan"
+    independent: bool  # source and target sampled from disjoint points of the shape
+
+
+SETTINGS: Mapping[str, Setting] = {
+    "clean": Setting(0.0, "none", False),
+    "low_noise_partial": Setting(0.001, "authors", False),
+    "high_noise_partial": Setting(0.05, "authors", False),
+    "independent_clean": Setting(0.0, "none", True),
+    "independent_low_noise_partial": Setting(0.001, "authors", True),
+    "independent_high_noise_partial": Setting(0.05, "authors", True),
+    "scan_low_noise": Setting(0.001, "scan", True),
+    "scan_high_noise": Setting(0.05, "scan", True),
 }
+#: The settings of the paper (SPEC.md section 12).
+AUTHORS_SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
 VARIANTS = ("authors", "peers")
 NOISE_STD = 0.01
 #: Distance under which a source point's true counterpart counts as matched (SPEC.md section 11).
 CORRESPONDENCE_RADIUS = 0.04
+#: Scan-like views: the camera's distance from the shape's centre (radii), Katz's gamma, the largest angle
+#: between the two viewpoints (degrees) and the share of the shape's points each view keeps.
+SCAN_DISTANCE = 2.0
+SCAN_GAMMA = 2.0
+SCAN_MAX_VIEW_ANGLE = 60.0
+SCAN_KEEP = 0.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,7 +85,8 @@ class PairConfig:
       train: training pairs (fresh each epoch) rather than fixed test pairs.
       unseen: split by category: labels 0-19 for training, 20-39 for testing.
       variant: "authors" (SPEC.md) or "peers" (angles in [0, 45], RPM-Net plane crop keeping 70 %).
-      n_points: points taken from each shape (its first ones).
+      n_points: points taken from each shape (its first ones); with independent sampling, the most points
+        each cloud takes (see the module docs).
       partial_points: points each cloud keeps in the authors' partial settings (default: 80 % of n_points,
         the authors' 800 of 1000).
       peers_keep: fraction each cloud keeps in the peers' crop.
@@ -81,14 +116,32 @@ class PairConfig:
 
     @property
     def noise_clip(self) -> float:
-        return SETTINGS[self.setting][0]
+        return SETTINGS[self.setting].noise_clip
 
     @property
     def partial(self) -> bool:
-        return SETTINGS[self.setting][1]
+        return SETTINGS[self.setting].crop != "none"
+
+    @property
+    def independent(self) -> bool:
+        return SETTINGS[self.setting].independent
+
+    def cloud_points(self, shape_points: int) -> int:
+        """Points in each cloud of a pair made from shapes of ``shape_points`` points."""
+        if not self.independent:
+            return self.points_per_cloud
+        if SETTINGS[self.setting].crop == "scan":
+            return min(self.n_points, int(round(SCAN_KEEP * shape_points)))
+        half = min(self.n_points, shape_points // 2)
+        if not self.partial:
+            return half
+        if self.variant == "peers":
+            return int(round(self.peers_keep * half))
+        return int(round(0.8 * half)) if self.partial_points is None else min(self.partial_points, half)
 
     @property
     def points_per_cloud(self) -> int:
+        """Points in each cloud of the authors' (shared-point) settings."""
         if not self.partial:
             return self.n_points
         if self.variant == "peers":
@@ -126,7 +179,9 @@ class PairDataset:
     """
 
     def __init__(self, shapes: Shapes, config: PairConfig):
-        if shapes.points.shape[1] < config.n_points:
+        if config.independent and shapes.points.shape[1] < 8:
+            raise ValueError(f"shapes hold {shapes.points.shape[1]} points, too few to sample two clouds from")
+        if not config.independent and shapes.points.shape[1] < config.n_points:
             raise ValueError(f"shapes hold {shapes.points.shape[1]} points, fewer than the {config.n_points} asked")
         rows = np.arange(len(shapes.labels))
         if config.unseen:
@@ -154,6 +209,8 @@ class PairDataset:
         if len(indices) and (indices.min() < -len(self) or indices.max() >= len(self)):
             raise IndexError(f"pair index out of range for {len(self)} pairs")
         indices = indices % max(len(self), 1)
+        if c.independent:
+            return self._independent_batch(indices, epoch)
         b, p = len(indices), c.n_points
         clouds = self.shapes.points[self.rows[indices], :p].astype(np.float64)  # (B, P, 3)
 
@@ -209,7 +266,60 @@ class PairDataset:
             "index": indices,
         }
 
-    def _crop(self, clouds: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    def _independent_batch(self, indices: np.ndarray, epoch: int) -> dict[str, np.ndarray]:
+        """:meth:`batch` for the settings whose two clouds share no point (see the module docs)."""
+        c = self.config
+        shapes = self.shapes.points[self.rows[indices]].astype(np.float64)  # (B, P, 3): all of each shape
+        b, p = shapes.shape[:2]
+        k = c.cloud_points(p)
+        src_idx, tgt_idx = np.empty((b, k), np.int64), np.empty((b, k), np.int64)
+        angles, trans = np.empty((b, 3)), np.empty((b, 3))
+        noise = np.zeros((2, b, k, 3))
+        for i, n in enumerate(indices):
+            rng = self._rng(int(n), epoch)
+            low = 0.0 if c.variant == "peers" else -c.max_angle
+            angles[i] = rng.uniform(low, c.max_angle, 3)
+            trans[i] = rng.uniform(-c.max_translation, c.max_translation, 3)
+            if SETTINGS[c.setting].crop == "scan":
+                src_idx[i], tgt_idx[i] = _scan_views(shapes[i], k, rng)
+            else:
+                order = rng.permutation(p)
+                halves = order[:p // 2], order[p // 2:2 * (p // 2)]
+                half = min(c.n_points, p // 2)
+                picked = [h[:half] for h in halves]
+                if c.partial:
+                    picked = [h[self._crop(shapes[i][h][None], anchor[None], k)[0]] for h, anchor in
+                              zip(picked, self._crop_anchors(rng))]
+                src_idx[i], tgt_idx[i] = picked[0], rng.permutation(picked[1])
+            if c.noise_clip > 0:
+                noise[:, i] = np.clip(rng.normal(0.0, NOISE_STD, (2, k, 3)), -c.noise_clip, c.noise_clip)
+        src_clean = np.take_along_axis(shapes, src_idx[..., None], axis=1)
+        tgt_clean = np.take_along_axis(shapes, tgt_idx[..., None], axis=1)
+        # A source point's counterpart: the nearest target point on the noise-free shape, if near enough.
+        gaps = np.linalg.norm(src_clean[:, :, None] - tgt_clean[:, None], axis=-1)  # (B, K, K)
+        nearest = np.argmin(gaps, axis=2)
+        near = np.take_along_axis(gaps, nearest[..., None], axis=2)[..., 0] < CORRESPONDENCE_RADIUS
+        rot = euler_zyx_to_matrix(angles)
+        tgt = np.einsum("bij,bnj->bni", rot, tgt_clean + noise[1]) + trans[:, None, :]
+        return {
+            "src": (src_clean + noise[0]).astype(np.float32),
+            "tgt": tgt.astype(np.float32),
+            "R": rot.astype(np.float32),
+            "t": trans.astype(np.float32),
+            "euler_zyx": angles.astype(np.float32),
+            "correspondence": np.where(near, nearest, -1).astype(np.int32),
+            "tgt_clean": (np.einsum("bij,bnj->bni", rot, shapes) + trans[:, None, :]).astype(np.float32),
+            "label": self.shapes.labels[self.rows[indices]],
+            "index": indices,
+        }
+
+    def _crop_anchors(self, rng: np.random.Generator) -> np.ndarray:
+        """(2, 3): where the source's and the target's crops are anchored (a direction for the peers)."""
+        if self.config.variant == "peers":
+            return _unit_vectors(rng, 2)
+        return np.stack([rng.random(3) + 1000.0, rng.random(3) - 1000.0])
+
+    def _crop(self, clouds: np.ndarray, anchors: np.ndarray, k: int | None = None) -> np.ndarray:
         """Indices (B, K) of the points each cloud keeps, in their original order."""
         c = self.config
         if c.variant == "peers":
@@ -218,11 +328,93 @@ class PairDataset:
             score = -np.einsum("bnj,bj->bn", centred, anchors)
         else:
             score = np.sum((clouds - anchors[:, None, :]) ** 2, axis=-1)
-        k = c.points_per_cloud
+        k = k or c.points_per_cloud
         nearest = np.argpartition(score, k - 1, axis=1)[:, :k]
         return np.sort(nearest, axis=1)
+
+
+def visible_points(points: np.ndarray, camera: np.ndarray, gamma: float = SCAN_GAMMA) -> np.ndarray:
+    """Which of ``points`` (N, 3) a camera at ``camera`` (3,) sees: hidden-point removal (Katz, Tal and Basri,
+    "Direct visibility of point sets", 2007). Points are flipped about a sphere around the camera of radius
+    ``10 ** gamma`` times the farthest point's distance; those on the convex hull of the flipped points and the
+    camera are visible. Larger ``gamma`` sees more. Returns (N,) bool."""
+    from scipy.spatial import ConvexHull
+
+    rel = np.asarray(points, np.float64) - camera
+    norm = np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-12)
+    radius = norm.max() * 10.0 ** gamma
+    flipped = rel + 2.0 * (radius - norm) * rel / norm
+    hull = ConvexHull(np.vstack([flipped, np.zeros((1, 3))]))
+    seen = np.zeros(len(rel), bool)
+    seen[hull.vertices[hull.vertices < len(rel)]] = True
+    return seen
+
+
+def _scan_views(shape: np.ndarray, k: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (k,) of the source's and the target's points of one shape (P, 3): two scan-like views."""
+    direction = _unit_vectors(rng, 1)[0]
+    axis = rng.normal(size=3)
+    axis -= (axis @ direction) * direction
+    axis /= np.linalg.norm(axis)
+    angle = np.radians(rng.uniform(0.0, SCAN_MAX_VIEW_ANGLE))
+    # Rodrigues: the target's viewing direction, ``angle`` away from the source's.
+    other = direction * np.cos(angle) + np.cross(axis, direction) * np.sin(angle)
+    centre = shape.mean(axis=0)
+    cameras = centre + SCAN_DISTANCE * direction, centre + SCAN_DISTANCE * other
+    seen = [visible_points(shape, camera) for camera in cameras]
+    # A point both views see goes to one of them at random, so the clouds share no point.
+    coin = rng.random(len(shape)) < 0.5
+    owner = np.full(len(shape), -1)
+    owner[seen[0] & (~seen[1] | coin)] = 0
+    owner[seen[1] & (~seen[0] | ~coin)] = 1
+    out = []
+    for view in (0, 1):
+        own = np.flatnonzero(owner == view)
+        if len(own) >= k:
+            out.append(rng.choice(own, k, replace=False))
+            continue
+        # Too few at this density: fill up with the unowned (hidden) points nearest this view's camera.
+        spare = np.flatnonzero(owner == -1)
+        fill = spare[np.argsort(np.linalg.norm(shape[spare] - cameras[view], axis=1))[:k - len(own)]]
+        owner[fill] = view
+        out.append(np.concatenate([own, fill]))
+    return out[0], out[1]
 
 
 def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
     v = rng.normal(size=(n, 3))
     return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+class MixedPairs:
+    """Pairs of several settings over the same shapes, for training on a mix.
+
+    Each batch comes whole from one setting (the clouds of a batch must have one size), chosen at random by
+    the batch's first pair and the epoch, so the mix is the same on every run and a resumed run sees the
+    same batches. ``datasets`` maps each setting to its :class:`PairDataset`; list a setting twice in
+    ``settings`` to draw it twice as often.
+    """
+
+    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...]):
+        if not settings:
+            raise ValueError("MixedPairs needs at least one setting")
+        self.settings = tuple(settings)
+        self.datasets = {s: PairDataset(shapes, dataclasses.replace(config, setting=s)) for s in self.settings}
+        self.config = self.datasets[self.settings[0]].config
+        self.shapes = shapes
+
+    @property
+    def rows(self) -> np.ndarray:
+        return self.datasets[self.settings[0]].rows
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def setting_of(self, indices, epoch: int = 0) -> str:
+        """The setting whose pairs the batch ``indices`` gets."""
+        first = int(np.asarray(indices).reshape(-1)[0])
+        pick = np.random.default_rng([self.config.seed, epoch, first, 0xB1E]).integers(len(self.settings))
+        return self.settings[int(pick)]
+
+    def batch(self, indices, epoch: int = 0) -> dict[str, np.ndarray]:
+        return self.datasets[self.setting_of(indices, epoch)].batch(indices, epoch)

@@ -192,6 +192,19 @@ class PointCloudShapes(tfds.core.GeneratorBasedBuilder):
             yield key, {"points": points, "label": label, "id": shape_id}
 
 
+def source_points(source: str | os.PathLike | None = None) -> int:
+    """How many points each shape of ``source`` (a ModelNet40 h5 directory, or None for the embedded set)
+    holds: what settings that sample the two clouds from disjoint points draw from."""
+    if source is None or str(source) == EMBEDDED:
+        with np.load(EMBEDDED_FILE) as z:
+            return int(z["points"].shape[1])
+    import h5py
+
+    path = check_h5_source(source, 1)
+    with h5py.File(_h5_files(path, "train")[0], "r") as f:
+        return int(f["data"].shape[1])
+
+
 def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None):
     """The TFDS builder of ``source`` (a ModelNet40 h5 directory, or None for the embedded set).
 
