@@ -4,6 +4,12 @@
     python evaluate.py --checkpoint runs/quick-clean/model  # what `python train.py` trained
     python evaluate.py --checkpoint runs/clean/model --data-dir /data/modelnet40_ply_hdf5_2048 \\
         --settings all --unseen --baselines icp fpfh_ransac fgr
+    python evaluate.py --scans ../shared/data/stanford_dragon_stand --baselines fpfh_ransac   # real scans
+
+Settings: the authors' three (clean, low_noise_partial, high_noise_partial; both clouds made of the same
+points) and those whose clouds share no point, as real data (independent_*, scan_*; dit_jax.data.pairs).
+"authors" picks the first three, "all" every one. With --scans, a directory of range scans and a Stanford
+.conf of their poses gives pairs of adjacent scans and of every second one (--skips).
 
 Writes results.md, results.json, success_ratio.png and registrations.png to --out.
 """
@@ -11,16 +17,20 @@ Writes results.md, results.json, success_ratio.png and registrations.png to --ou
 import argparse
 import sys
 
-SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
-
 
 def main(argv=None) -> int:
+    from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
+
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
     parser.add_argument("--checkpoint", default=None,
                         help="a model checkpoint directory (default: the weights that ship with dit-jax)")
     parser.add_argument("--no-dit", action="store_true", help="evaluate the baselines alone")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
-    parser.add_argument("--settings", nargs="+", default=["clean"], choices=SETTINGS + ("all",))
+    parser.add_argument("--settings", nargs="+", default=["clean"], choices=tuple(SETTINGS) + ("authors", "all"))
+    parser.add_argument("--scans", default=None, metavar="DIR",
+                        help="evaluate on real range scans with a Stanford .conf instead of shapes")
+    parser.add_argument("--skips", nargs="+", type=int, default=[1, 2],
+                        help="with --scans: pair scan i with scan i + SKIP (default: 1 2)")
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
     parser.add_argument("--n-points", type=int, default=None,
@@ -34,7 +44,10 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="eval")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    settings = SETTINGS if "all" in args.settings else tuple(dict.fromkeys(args.settings))
+    chosen = []
+    for name in args.settings:
+        chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]
+    settings = tuple(dict.fromkeys(chosen))
 
     from dit_jax import evaluation, registration
     from dit_jax.checkpoint import CheckpointError
@@ -42,6 +55,13 @@ def main(argv=None) -> int:
 
     try:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
+        if args.scans:
+            results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
+                                                baselines=args.baselines, max_pairs=args.max_pairs,
+                                                progress=not args.no_progress)
+            print(results["table"])
+            print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
+            return 0
         results = evaluation.evaluate(checkpoint, args.out, data_dir=args.data_dir, settings=settings,
                                       unseen=args.unseen, variant=args.variant, n_points=args.n_points,
                                       max_pairs=args.max_pairs, n_iters=args.iters,

@@ -50,6 +50,12 @@ class DITConfig:
       gmcce_sharpness: lambda of GMCCE's confidence 2 sigmoid(-lambda E).
       gmcce_threshold: tau; a correspondence is an inlier iff its confidence exceeds it.
       gmcce_min_dist2: squared distance below which a point is no GMCCE triangle vertex of another.
+      gmcce_min_keep: GMCCE also keeps this share of the matches, the most confident ones, whatever the
+        threshold (0: the authors' rule; see :func:`dit_jax.gmcce.weights`).
+      guard_iterations: an iteration after the first keeps its update only if the update lays no less of the
+        source onto the target (:func:`dit_jax.geometry.fitness` within ``fitness_radius`` times the
+        target's point spacing); otherwise the estimate stays as it was. False: the authors' iterations.
+      fitness_radius: the fitness radius in units of the target's median nearest-neighbour spacing.
       temp_factor: the temperature is clamped to [1 / temp_factor, temp_factor].
       pse_heads: attention heads of the PSE token transformers.
       se_reduction: channel reduction of the squeeze-and-excitation block.
@@ -73,6 +79,9 @@ class DITConfig:
     gmcce_sharpness: float = 30.0
     gmcce_threshold: float = 0.99
     gmcce_min_dist2: float = 0.1
+    gmcce_min_keep: float = 0.0
+    guard_iterations: bool = False
+    fitness_radius: float = 2.0
     temp_factor: float = 100.0
     pse_heads: int = 4
     se_reduction: int = 16
@@ -101,6 +110,10 @@ class DITConfig:
             problems.append(f"temp_factor must be >= 1, got {self.temp_factor}")
         if self.compute_dtype not in ("float32", "bfloat16"):
             problems.append(f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+        if not 0.0 <= self.gmcce_min_keep <= 1.0:
+            problems.append(f"gmcce_min_keep must be in [0, 1], got {self.gmcce_min_keep}")
+        if not self.fitness_radius > 0:
+            problems.append(f"fitness_radius must be positive, got {self.fitness_radius}")
         if self.attention_chunk < 0:
             problems.append(f"attention_chunk must be >= 0, got {self.attention_chunk}")
         if problems:

@@ -190,7 +190,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     else:
         params, config, extra = None, None, {}
     n_points = n_points or extra.get("inference_points") or extra.get("n_points") or 1000
-    test_shapes = shapes_lib.load_shapes(data_dir, "test", n_points=n_points, data_dir=prepared_dir)
+    test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir,
+                                         n_points=pairs_lib.shape_points(data_dir, n_points, settings))
     os.makedirs(out_dir, exist_ok=True)
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
                "n_points": n_points, "model_config": config and config.to_dict(), "compute_dtype": compute_dtype,
@@ -239,5 +240,164 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         shown = np.arange(min(3, len(pred["R"])))
         plot_registrations(ds, {k: v[shown] for k, v in pred.items()}, shown,
                            os.path.join(out_dir, "registrations.png"), f"DIT on {results['data']} ({setting})")
+    results["table"] = table
+    return results
+
+
+# ------------------------------------------------------------------------------------------ real scans
+
+#: Rotation thresholds (degrees) of the real-scan tables and curves.
+SCAN_THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
+
+
+def _normalise_pair(src: np.ndarray, tgt: np.ndarray):
+    """Both clouds moved by their shared centroid and scaled into the unit sphere, as DIT's API does:
+    returns ``(src_n, tgt_n, centre, scale)``."""
+    centre = np.concatenate([src, tgt]).mean(axis=0)
+    scale = max(np.linalg.norm(src - centre, axis=1).max(), np.linalg.norm(tgt - centre, axis=1).max())
+    return (src - centre) / scale, (tgt - centre) / scale, centre, scale
+
+
+def register_scan_pair(method: str, src: np.ndarray, tgt: np.ndarray, registrar=None):
+    """``(R, t, seconds)`` of one method on one pair of scans in their own units (``tgt ~ src @ R.T + t``).
+
+    DIT is the user's path, :meth:`dit_jax.registration.Registrar.register` on the raw clouds (sampling
+    included in the time); a baseline gets the same pair in the unit sphere it is tuned for, every point."""
+    started = time.perf_counter()
+    if method == METHOD_DIT:
+        result = registrar.register(src, tgt)
+        return result.rotation, result.translation, time.perf_counter() - started, result
+    src_n, tgt_n, centre, scale = _normalise_pair(src, tgt)
+    rotation, translation = baselines_lib.get(method)(src_n, tgt_n)
+    rotation = np.asarray(rotation, np.float64)
+    translation = scale * np.asarray(translation, np.float64) + centre - rotation @ centre
+    return rotation, translation, time.perf_counter() - started, None
+
+
+def _rotation_error_deg(rotation: np.ndarray, truth: np.ndarray) -> float:
+    cos = (np.trace(rotation.T @ truth) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def summarise_scans(rows: list[dict]) -> dict:
+    """Median rotation error, shares within :data:`SCAN_THRESHOLDS`, median relative translation error and
+    mean seconds of one method's rows (each with ``rot_err``, ``trans_err_rel``, ``seconds``)."""
+    rot = np.array([r["rot_err"] for r in rows])
+    out = {"pairs": len(rows), "rot_median": float(np.median(rot)), "rot_mean": float(np.mean(rot)),
+           "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
+           "seconds_per_pair": float(np.mean([r["seconds"] for r in rows]))}
+    out.update({f"within_{t:g}": int(np.sum(rot <= t)) for t in SCAN_THRESHOLDS})
+    return out
+
+
+def scan_tables(results: dict) -> str:
+    lines = []
+    for pair_set, methods in results["pair_sets"].items():
+        info = results["pair_set_info"][pair_set]
+        lines += [f"### {pair_set} ({info['pairs']} pairs, about {info['angle']:.0f} degrees apart)", "",
+                  "| method | median rotation error (deg) | " + " | ".join(f"within {t:g} deg" for t in SCAN_THRESHOLDS)
+                  + " | median translation error / extent | s / pair |",
+                  "|---|---|" + "---|" * len(SCAN_THRESHOLDS) + "---|---|"]
+        for name, r in methods.items():
+            s = r["summary"]
+            within = " | ".join(f"{s[f'within_{t:g}']} of {s['pairs']}" for t in SCAN_THRESHOLDS)
+            lines.append(f"| {name} | {s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
+                         f"{s['seconds_per_pair']:.2f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot_scan_success(results: dict, path: str) -> None:
+    """Share of pairs within a rotation threshold against the threshold, one panel per pair set."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    thresholds = np.logspace(-1, np.log10(180), 60)
+    sets = list(results["pair_sets"])
+    fig, axes = plt.subplots(1, len(sets), figsize=(5 * len(sets), 4), squeeze=False)
+    for ax, pair_set in zip(axes[0], sets):
+        for name, r in results["pair_sets"][pair_set].items():
+            errors = np.array([row["rot_err"] for row in r["rows"]])
+            ax.plot(thresholds, [(errors <= t).mean() for t in thresholds], label=name)
+        ax.set_xscale("log")
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("rotation error threshold (deg)")
+        ax.set_ylabel("share of pairs within")
+        ax.set_title(f"{pair_set} ({results['pair_set_info'][pair_set]['angle']:.0f} deg apart)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
+                   baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
+                   registrar_options: dict | None = None) -> dict:
+    """DIT (and baselines) on pairs of real range scans with known poses (:mod:`dit_jax.data.scans`).
+
+    Pairs: scan i with scan i + ``skip`` for each skip (1: adjacent, 2: every second one). Writes
+    ``results.md``, ``results.json`` (every pair's errors, the verdicts) and ``success_ratio.png`` to
+    ``out_dir``. Errors: isotropic rotation error in degrees, and translation error over the target's
+    bounding-box diagonal.
+    """
+    from dit_jax import registration
+    from dit_jax.data import scans as scans_lib
+
+    if checkpoint_dir is None and not baselines:
+        raise ValueError("nothing to evaluate: give a checkpoint or baselines")
+    all_scans = scans_lib.load_scans(scans_dir)
+    registrar = None
+    methods = list(baselines)
+    if checkpoint_dir is not None:
+        registrar = registration.load(checkpoint_dir, **(registrar_options or {}))
+        methods.insert(0, METHOD_DIT)
+    pair_sets = {f"skip{k}": scans_lib.scan_pairs(all_scans, k)[:max_pairs] for k in skips}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=sum(map(len, pair_sets.values())) * len(methods), desc="evaluate scans", unit="pair",
+                   dynamic_ncols=True)
+    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
+               "pair_sets": {}, "pair_set_info": {}}
+    if registrar is not None:
+        first = pair_sets[next(iter(pair_sets))][0]
+        registrar.register(first.source, first.target)  # compile outside the timings
+    for set_name, set_pairs in pair_sets.items():
+        results["pair_set_info"][set_name] = {
+            "pairs": len(set_pairs),
+            "angle": float(np.mean([_rotation_error_deg(p.rotation, np.eye(3)) for p in set_pairs]))}
+        results["pair_sets"][set_name] = {}
+        for method in methods:
+            rows = []
+            for pair in set_pairs:
+                if bar is not None:
+                    bar.set_postfix_str(f"{set_name}: {method}")
+                rotation, translation, seconds, result = register_scan_pair(method, pair.source, pair.target,
+                                                                            registrar)
+                extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
+                row = {"pair": pair.name, "rot_err": _rotation_error_deg(rotation, pair.rotation),
+                       "trans_err_rel": float(np.linalg.norm(translation - pair.translation)) / extent,
+                       "seconds": seconds, "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist()}
+                if result is not None:
+                    row.update(inlier_ratio=result.inlier_ratio, fitness=result.fitness)
+                    if getattr(result, "verdict", None) is not None:
+                        row["verdict"] = result.verdict
+                rows.append(row)
+                if bar is not None:
+                    bar.update(1)
+            results["pair_sets"][set_name][method] = {"summary": summarise_scans(rows), "rows": rows}
+    if bar is not None:
+        bar.close()
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "results.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    table = scan_tables(results)
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(table)
+    plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
     results["table"] = table
     return results

@@ -54,6 +54,25 @@ def knn(points: jax.Array, k: int) -> jax.Array:
     return idx.astype(jnp.int32)
 
 
+def nearest_distances(x: jax.Array, y: jax.Array) -> jax.Array:
+    """Distance from each point of ``x`` (N, 3) to its nearest point of ``y`` (M, 3). Returns (N,)."""
+    return jnp.sqrt(jnp.min(pairwise_sq_dist(x, y), axis=1))
+
+
+def spacing(points: jax.Array) -> jax.Array:
+    """The cloud's sampling scale: the median distance from a point of ``points`` (N, 3), N >= 2, to its
+    nearest other point. Returns ()."""
+    dist = pairwise_sq_dist(points, points)
+    dist = jnp.where(jnp.eye(points.shape[0], dtype=bool), jnp.inf, dist)
+    return jnp.median(jnp.sqrt(jnp.min(dist, axis=1)))
+
+
+def fitness(src: jax.Array, tgt: jax.Array, radius: jax.Array | float) -> jax.Array:
+    """The share of ``src`` (N, 3) points with a ``tgt`` (M, 3) point within ``radius``: how much of the
+    source a pose lays onto the target (Open3D's ICP "fitness"). Returns () in [0, 1]."""
+    return jnp.mean((nearest_distances(src, tgt) < radius).astype(src.dtype))
+
+
 def gather_neighbours(features: jax.Array, idx: jax.Array) -> jax.Array:
     """Features of each point's neighbours.
 

@@ -7,6 +7,7 @@ lengths in the target: rigid motions preserve them, wrong matches do not. Acts o
 from __future__ import annotations
 
 import itertools
+import math
 
 import chex
 import jax
@@ -115,7 +116,18 @@ def confidence(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float 
 
 
 def weights(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0, threshold: float = 0.99,
-            min_dist2: float = 0.1) -> jax.Array:
-    """GMCCE's inlier weights: 1.0 where :func:`confidence` exceeds ``threshold``, else 0.0. Shape (N,)."""
+            min_dist2: float = 0.1, min_keep: float = 0.0) -> jax.Array:
+    """GMCCE's inlier weights: 1.0 where :func:`confidence` exceeds ``threshold``, else 0.0. Shape (N,).
+
+    ``min_keep`` > 0 also keeps the ``ceil(min_keep N)`` most confident correspondences, however low their
+    confidence: where no triangle keeps its sides exactly (clouds sampled independently, noise), the
+    authors' fixed threshold can keep a handful of matches, too few for a pose; ranking by confidence still
+    holds there. 0 is the authors' rule.
+    """
     conf = confidence(src, tgt, k=k, sharpness=sharpness, min_dist2=min_dist2)
-    return (conf > threshold).astype(src.dtype)
+    inliers = conf > threshold
+    if min_keep > 0:
+        n_keep = min(src.shape[0], max(1, math.ceil(min_keep * src.shape[0])))
+        kth = jax.lax.top_k(conf, n_keep)[0][-1]
+        inliers = inliers | (conf >= kth)
+    return inliers.astype(src.dtype)

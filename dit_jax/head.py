@@ -98,7 +98,8 @@ def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Arr
     tgt_soft = jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST)
     if use_gmcce:
         inliers = gmcce.weights(src, tgt_soft, k=config.gmcce_k, sharpness=config.gmcce_sharpness,
-                                threshold=config.gmcce_threshold, min_dist2=config.gmcce_min_dist2)
+                                threshold=config.gmcce_threshold, min_dist2=config.gmcce_min_dist2,
+                                min_keep=config.gmcce_min_keep)
         fallback = jnp.sum(inliers) == 0
         weights = jnp.where(fallback, soft_weights, inliers)
     else:

@@ -169,31 +169,41 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
     """
     tgt_embedding = embed(params, tgt, config, encode=True)
     src_knn = geometry.knn(src, config.k)
+    radius = config.fitness_radius * geometry.spacing(tgt)
 
     def iteration(carry, index):
-        rotation, translation, moved = carry
+        rotation, translation, moved, fit, last = carry
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn)
         run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce)
         out = jax.lax.cond(index >= 1, lambda: run_head(True), lambda: run_head(False))
-        rotation, translation = geometry.compose(out.rotation, out.translation, rotation, translation)
-        moved = geometry.apply_transform(out.rotation, out.translation, moved)
-        record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.correspondences,
-                  out.weights, out.soft_weights)
-        return (rotation, translation, moved), record
+        new_moved = geometry.apply_transform(out.rotation, out.translation, moved)
+        new_fit = geometry.fitness(new_moved, tgt, radius)
+        accept = (index == 0) | (new_fit >= fit) if config.guard_iterations else jnp.asarray(True)
+        new_rotation, new_translation = geometry.compose(out.rotation, out.translation, rotation, translation)
+        keep = lambda new, old: jnp.where(accept, new, old)
+        matches = (out.correspondences, out.weights)
+        carry = (keep(new_rotation, rotation), keep(new_translation, translation), keep(new_moved, moved),
+                 keep(new_fit, fit), jax.tree.map(keep, matches, last))
+        record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.soft_weights, accept)
+        return carry, record
 
-    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src)
+    n_src = src.shape[0]
+    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src, jnp.asarray(-1.0, src.dtype),
+             (jnp.zeros(n_src, jnp.int32), jnp.zeros(n_src, src.dtype)))
     carry, records = jax.lax.scan(iteration, start, jnp.arange(config.n_iters))
-    rotation, translation, _ = carry
-    step_r, step_t, temperature, fallback, correspondences, weights, soft_weights = records
+    rotation, translation, _, fit, (correspondences, weights) = carry
+    step_r, step_t, temperature, fallback, soft_weights, accepted = records
     extras = {
         "step_rotation": step_r,  # (n_iters, 3, 3), each iteration's own increment
         "step_translation": step_t,  # (n_iters, 3)
         "temperature": temperature,  # (n_iters,)
         "gmcce_fallback": fallback,  # (n_iters,) bool
-        "correspondences": correspondences[-1],  # (N,) final iteration's matches into tgt
-        "weights": weights[-1],  # (N,) final iteration's Procrustes weights
-        "inlier_ratio": jnp.mean((weights[-1] > 0.5).astype(src.dtype)) if config.n_iters > 1
+        "accepted": accepted,  # (n_iters,) bool: the iteration's update was kept (see guard_iterations)
+        "correspondences": correspondences,  # (N,) the last kept iteration's matches into tgt
+        "weights": weights,  # (N,) its Procrustes weights
+        "inlier_ratio": jnp.mean((weights > 0.5).astype(src.dtype)) if config.n_iters > 1
         else jnp.mean(soft_weights[-1]),
+        "fitness": fit,  # () share of the moved source within fitness_radius spacings of the target
     }
     return rotation, translation, extras
 
@@ -222,7 +232,9 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
       ``(R, t, extras)`` with R (B, 3, 3), t (B, 3) such that ``tgt ~ src @ R^T + t``, and ``extras``: a dict of
       per-pair arrays ``step_rotation`` (B, n_iters, 3, 3), ``step_translation`` (B, n_iters, 3),
       ``temperature`` (B, n_iters), ``gmcce_fallback`` (B, n_iters) bool, ``correspondences`` (B, N) int32,
-      ``weights`` (B, N) and ``inlier_ratio`` (B,) (the fraction of GMCCE inliers in the last iteration).
+      ``weights`` (B, N) and ``inlier_ratio`` (B,) (the fraction of GMCCE inliers in the last kept iteration),
+      ``accepted`` (B, n_iters) bool (every iteration, unless ``guard_iterations`` refused it) and
+      ``fitness`` (B,) (:func:`dit_jax.geometry.fitness` of the final estimate).
     """
     _check_inputs(src, tgt, config)
     chex.assert_rank([src, tgt], 3)

@@ -54,7 +54,9 @@ class Result:
       source_indices: (n,) rows of the caller's source cloud the model saw.
       correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
       confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
-      inlier_ratio: share of the sampled source points GMCCE accepted in the last iteration.
+      inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
+      fitness: share of the sampled source points the estimate lays within ``fitness_radius`` point spacings
+        of the target (see :func:`dit_jax.geometry.fitness`).
       seconds: wall time of the network call (excluding sampling and a first call's compilation).
     """
 
@@ -65,6 +67,7 @@ class Result:
     correspondences: np.ndarray
     confidence: np.ndarray
     inlier_ratio: float
+    fitness: float
     seconds: float
 
     def apply(self, points: np.ndarray) -> np.ndarray:
@@ -74,6 +77,7 @@ class Result:
     def to_json(self) -> dict:
         return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
                 "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
+                "fitness": self.fitness,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds}
 
@@ -181,7 +185,8 @@ class Registrar:
         return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
                       correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
                       confidence=np.asarray(extras["weights"][0], np.float64),
-                      inlier_ratio=float(extras["inlier_ratio"][0]), seconds=seconds)
+                      inlier_ratio=float(extras["inlier_ratio"][0]), fitness=float(extras["fitness"][0]),
+                      seconds=seconds)
 
 
 def shipped_weights() -> str:

@@ -246,20 +246,12 @@ def _split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shape
     return take(train), take(val)
 
 
-def shape_points(data_dir: str | None, n_points: int, settings) -> int:
-    """Points to load per shape: ``n_points``, or all the source holds where a setting samples the two clouds
-    from disjoint points (they draw from the whole shape)."""
-    if any(pairs_lib.SETTINGS[s].independent for s in settings):
-        return max(n_points, shapes_lib.source_points(data_dir))
-    return n_points
-
-
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     """(training pairs, validation pairs) from the training split of the chosen source: two
     :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
     ``config.settings``."""
     settings = config.settings or (config.setting,)
-    n_shape = shape_points(config.data_dir, config.n_points, settings)
+    n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
     shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir)
     train_shapes, val_shapes = _split_validation(shapes, config.val_fraction)
     common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)

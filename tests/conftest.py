@@ -13,6 +13,7 @@ SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
 REFERENCE_FILE = SHARED / "reference" / "dit_reference_a.npz"
 MODELNET_DIR = SHARED / "data" / "modelnet40_ply_hdf5_1024"
 TEST_DATA = ROOT / "tests" / "data"
+DRAGON_DIR = SHARED / "data" / "stanford_dragon_stand"
 
 
 @pytest.fixture(scope="session")
@@ -37,6 +38,13 @@ def modelnet_shapes() -> np.ndarray:
         pytest.skip(f"ModelNet40 is not here ({MODELNET_DIR}); it ships with ../shared")
     with h5py.File(path, "r") as f:
         return np.asarray(f["data"][:64], dtype=np.float32)
+
+
+@pytest.fixture(scope="session")
+def dragon_dir() -> pathlib.Path:
+    if not (DRAGON_DIR / "dragonStandRight.conf").exists():
+        pytest.skip(f"the Stanford Dragon scans are not here ({DRAGON_DIR}); they ship with ../shared")
+    return DRAGON_DIR
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

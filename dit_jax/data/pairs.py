@@ -42,6 +42,7 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
+from dit_jax.data import shapes as shapes_lib
 from dit_jax.data.shapes import Shapes
 
 class Setting(NamedTuple):
@@ -147,6 +148,15 @@ class PairConfig:
         if self.variant == "peers":
             return int(round(self.peers_keep * self.n_points))
         return self.partial_points or int(round(0.8 * self.n_points))
+
+
+def shape_points(source, n_points: int, settings) -> int:
+    """Points to load per shape of ``source`` (see :func:`dit_jax.data.shapes.load_shapes`) for pairs of
+    ``settings``: ``n_points``, or all the source holds where a setting samples its two clouds from disjoint
+    points (they draw from the whole shape)."""
+    if any(SETTINGS[s].independent for s in settings):
+        return max(n_points, shapes_lib.source_points(source))
+    return n_points
 
 
 def euler_zyx_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
