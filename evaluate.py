@@ -36,8 +36,10 @@ def main(argv=None) -> int:
     parser.add_argument("--n-points", type=int, default=None,
                         help="default: the checkpoint's inference point count, else its training one, else 1000")
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
-    parser.add_argument("--iters", type=int, default=3)
-    parser.add_argument("--gmcce-threshold", type=float, default=None, help="default: per setting, as the authors")
+    parser.add_argument("--iters", type=int, default=None, help="default: the model's")
+    parser.add_argument("--gmcce-threshold", default=None, metavar="TAU|authors",
+                        help="default: the model's own inference settings, the same for every input; 'authors': "
+                             "the authors' threshold per setting; or a number")
     parser.add_argument("--baselines", nargs="*", default=[], choices=["icp", "fpfh_ransac", "fgr"])
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
@@ -48,6 +50,11 @@ def main(argv=None) -> int:
     for name in args.settings:
         chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]
     settings = tuple(dict.fromkeys(chosen))
+    if args.gmcce_threshold not in (None, "authors"):
+        try:
+            float(args.gmcce_threshold)
+        except ValueError:
+            parser.error(f"--gmcce-threshold: expected a number or 'authors', got {args.gmcce_threshold!r}")
 
     from dit_jax import evaluation, registration
     from dit_jax.checkpoint import CheckpointError

@@ -8,6 +8,10 @@ Bad input (a missing, unreadable or malformed file, an unknown format, NaN or In
 three coordinates per point, all points identical) ends with one line on stderr naming the file and the
 problem, exit status 2, and no output file. Clouds above ``--max-points`` are read as a random subset of that
 many points (say ``--no-downsample`` to refuse them instead).
+
+Every result carries a verdict from the model's own evidence: the share of the sampled source points the
+estimate lays onto the target (fitness). Below the model's threshold the transform is still printed and
+written, a one-line warning goes to stderr, and the exit status is 3 (``--no-verdict-status`` keeps it 0).
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ import numpy as np
 
 PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
+#: Exit status when the verdict says the result is probably wrong.
+EXIT_SUSPECT = 3
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -41,6 +47,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-downsample", action="store_true",
                         help="refuse clouds above --max-points instead of reading a random subset")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
+    parser.add_argument("--no-verdict-status", action="store_true",
+                        help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
     return parser
 
 
@@ -108,10 +116,15 @@ def main(argv: list[str] | None = None) -> int:
         angle = np.degrees(np.arccos(np.clip((np.trace(result.rotation) - 1) / 2, -1, 1)))
         print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} "
               f"(units of the input)")
-        print(f"inlier ratio {result.inlier_ratio:.3f}, mean confidence {result.confidence.mean():.3f}, "
+        print(f"fitness {result.fitness:.3f} ({'trusted' if result.verdict else 'suspect'}: threshold "
+              f"{result.min_fitness:.2f}), inlier ratio {result.inlier_ratio:.3f}, "
               f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s")
         if args.out is not None:
             print(f"wrote {args.out}")
+    if not result.verdict:
+        print(f"{PROG}: warning: the result is probably wrong: only {100 * result.fitness:.0f} % of the sampled "
+              f"source points land on the target (trusted from {100 * result.min_fitness:.0f} %)", file=sys.stderr)
+        return 0 if args.no_verdict_status else EXIT_SUSPECT
     return 0
 
 

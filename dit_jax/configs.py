@@ -52,10 +52,11 @@ class DITConfig:
       gmcce_min_dist2: squared distance below which a point is no GMCCE triangle vertex of another.
       gmcce_min_keep: GMCCE also keeps this share of the matches, the most confident ones, whatever the
         threshold (0: the authors' rule; see :func:`dit_jax.gmcce.weights`).
-      guard_iterations: an iteration after the first keeps its update only if the update lays no less of the
-        source onto the target (:func:`dit_jax.geometry.fitness` within ``fitness_radius`` times the
-        target's point spacing); otherwise the estimate stays as it was. False: the authors' iterations.
-      fitness_radius: the fitness radius in units of the target's median nearest-neighbour spacing.
+      guard_iterations: an iteration after the first keeps its update only if the update brings the source no
+        farther from the target (:func:`dit_jax.geometry.alignment_cost` within ``fitness_radius``);
+        otherwise the estimate stays as it was. False: the authors' iterations.
+      fitness_radius: the radius of the fitness (:func:`dit_jax.geometry.fitness`, which the verdict uses)
+        and of the guard's cost, in units of the target's median nearest-neighbour spacing.
       temp_factor: the temperature is clamped to [1 / temp_factor, temp_factor].
       pse_heads: attention heads of the PSE token transformers.
       se_reduction: channel reduction of the squeeze-and-excitation block.

@@ -23,6 +23,7 @@ import numpy as np
 
 from dit_jax import baselines as baselines_lib
 from dit_jax import checkpoint, metrics, model
+from dit_jax.registration import DEFAULT_MIN_FITNESS
 from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
@@ -35,7 +36,7 @@ def predict_dit(params, config, dataset: pairs_lib.PairDataset, indices: np.ndar
     """DIT's estimates for pairs ``indices``: ``R`` (P, 3, 3), ``t`` (P, 3) and ``seconds`` per pair (the
     first batch, which compiles, is timed again after compiling). A short last batch is padded with repeats of
     its last pair, so one compiled program serves every batch and no compile lands in the timings."""
-    rotations, translations, seconds = [], [], []
+    rotations, translations, seconds, fitness = [], [], [], []
     for start in range(0, len(indices), batch_size):
         chunk = indices[start:start + batch_size]
         n_real = len(chunk)
@@ -44,14 +45,28 @@ def predict_dit(params, config, dataset: pairs_lib.PairDataset, indices: np.ndar
         if start == 0:
             model.register(params, src, tgt, config)[0].block_until_ready()  # compile outside the timing
         t0 = time.perf_counter()
-        rotation, translation, _ = model.register(params, src, tgt, config)
+        rotation, translation, extras = model.register(params, src, tgt, config)
         rotation.block_until_ready()
         seconds.append(np.full(n_real, (time.perf_counter() - t0) / batch_size))
+        fitness.append(np.asarray(extras["fitness"])[:n_real])
         rotations.append(np.asarray(rotation)[:n_real])
         translations.append(np.asarray(translation)[:n_real])
         if bar is not None:
             bar.update(n_real)
-    return {"R": np.concatenate(rotations), "t": np.concatenate(translations), "seconds": np.concatenate(seconds)}
+    return {"R": np.concatenate(rotations), "t": np.concatenate(translations), "seconds": np.concatenate(seconds),
+            "fitness": np.concatenate(fitness)}
+
+
+def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, right_deg: float = 5.0) -> dict:
+    """How well a verdict separates results: errors (P,) in degrees, verdicts (P,) True = trusted.
+
+    ``failures_caught``: of the results more than ``right_deg`` off, the share flagged; ``passed_right``: of
+    the results trusted, the share within ``right_deg`` (NaN where there are none)."""
+    wrong = errors > right_deg
+    caught = float(np.mean(~verdicts[wrong])) if wrong.any() else float("nan")
+    right = float(np.mean(~wrong[verdicts])) if verdicts.any() else float("nan")
+    return {"failures": int(wrong.sum()), "failures_caught": caught, "passed": int(verdicts.sum()),
+            "passed_right": right, "right_deg": right_deg}
 
 
 def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None):
@@ -70,7 +85,8 @@ def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndar
     return {"R": np.stack(rotations), "t": np.stack(translations), "seconds": np.asarray(seconds)}
 
 
-def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str]) -> dict:
+def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
+          min_fitness: float | None = None) -> dict:
     """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
     distance, time per pair and the per-category breakdown."""
     truth = dataset.batch(indices)
@@ -85,6 +101,10 @@ def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape
         chamfer.append(metrics.chamfer_distance(src_moved, truth["tgt"][sl], src_clean_moved, truth["tgt_clean"][sl]))
     result["chamfer"] = float(np.mean(np.concatenate(chamfer)))
     result["seconds_per_pair"] = float(np.mean(pred["seconds"]))
+    if "fitness" in pred and min_fitness is not None:
+        errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(pred["R"]), jnp.asarray(truth["R"])))
+        result["verdict"] = verdict_summary(errors, pred["fitness"] >= min_fitness)
+        result["verdict"]["min_fitness"] = min_fitness
     by_category = {}
     for label in np.unique(truth["label"]):
         rows = truth["label"] == label
@@ -93,6 +113,10 @@ def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape
         by_category[name] = {k: s[k] for k in ("pairs", "rot_mae", "trans_mae", "rot_iso", "success")}
     result["by_category"] = by_category
     return result
+
+
+def _share(x: float) -> str:
+    return "-" if x != x else f"{100 * x:.1f} %"
 
 
 def markdown_tables(results: dict) -> str:
@@ -107,6 +131,13 @@ def markdown_tables(results: dict) -> str:
             lines.append(f"| {name} | {r['rot_rmse']:.4f} | {r['rot_mae']:.4f} | {r['trans_rmse']:.5f} | "
                          f"{r['trans_mae']:.5f} | {r['rot_iso']:.4f} | {r['trans_iso']:.5f} | {r['chamfer']:.6f} | "
                          f"{100 * r['success']:.1f} % | {r['seconds_per_pair']:.3f} |")
+        for name, r in methods.items():
+            v = r.get("verdict")
+            if v:
+                lines.append("")
+                lines.append(f"{name}'s verdict (fitness >= {v['min_fitness']:.2f}): flags {_share(v['failures_caught'])} "
+                             f"of its {v['failures']} results more than {v['right_deg']:g} deg off; of the "
+                             f"{v['passed']} it trusts, {_share(v['passed_right'])} are within {v['right_deg']:g} deg.")
         lines.append("")
     return "\n".join(lines)
 
@@ -168,8 +199,8 @@ def plot_registrations(dataset: pairs_lib.PairDataset, pred: dict, indices: np.n
 
 def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
              settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
-             n_points: int | None = None, max_pairs: int | None = None, n_iters: int = 3,
-             gmcce_threshold: float | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
+             n_points: int | None = None, max_pairs: int | None = None, n_iters: int | None = None,
+             gmcce_threshold: float | str | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
              prepared_dir: str | None = None, progress: bool = True, compute_dtype: str = "float32") -> dict:
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
@@ -179,7 +210,9 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
       n_points: points per shape; default what the checkpoint records for inference (``inference_points``),
         else its training point count, else 1000.
       max_pairs: evaluate only the first pairs of each setting (all by default).
-      gmcce_threshold: overrides the authors' per-setting threshold.
+      gmcce_threshold: None runs the model as it ships (its own inference settings, the same for every
+        input); "authors" uses the authors' threshold for each setting (:data:`GMCCE_THRESHOLDS`); a number
+        uses that threshold everywhere.
       compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
     """
     if checkpoint_dir is None and not baselines:
@@ -210,21 +243,29 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                    unit="pair", dynamic_ncols=True)
     first_dit = None
     for setting, (ds, indices) in datasets.items():
-        threshold = gmcce_threshold if gmcce_threshold is not None else GMCCE_THRESHOLDS[setting]
+        if gmcce_threshold is None:
+            threshold = config.gmcce_threshold if config is not None else None
+        elif gmcce_threshold == "authors":
+            threshold = GMCCE_THRESHOLDS[setting]
+        else:
+            threshold = float(gmcce_threshold)
         preds = {}
         if params is not None:
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: DIT")
-            run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters, compute_dtype=compute_dtype)
+            run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters or config.n_iters,
+                                        compute_dtype=compute_dtype)
             preds[METHOD_DIT] = predict_dit(params, run_config, ds, indices, batch_size, bar)
         for name in baselines:
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar)
-        results["settings"][setting] = {name: score(p, ds, indices, test_shapes.shape_names)
+        min_fitness = extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS)
+        results["settings"][setting] = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness)
                                         for name, p in preds.items()}
         results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
-                                            "variant": variant, "gmcce_threshold": threshold, "n_iters": n_iters}
+                                            "variant": variant, "gmcce_threshold": threshold,
+                                            "n_iters": n_iters or (config.n_iters if config else None)}
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
     if bar is not None:
@@ -399,5 +440,91 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     with open(os.path.join(out_dir, "results.md"), "w") as f:
         f.write(table)
     plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
+    results["table"] = table
+    return results
+
+
+# ------------------------------------------------------------------------------------------ rotation range
+
+
+def axis_angle_matrix(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    """The rotation (3, 3) by ``angle_deg`` about the unit ``axis`` (3,) (Rodrigues)."""
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    a = np.radians(angle_deg)
+    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
+
+
+def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
+                setting: str = "independent_clean", unseen: bool = True, angles: Sequence[float] = tuple(range(0, 181, 15)),
+                pairs_per_angle: int = 24, n_points: int | None = None, progress: bool = True) -> dict:
+    """DIT's error against the rotation angle: test pairs of ``setting`` re-posed to rotations of exactly each
+    angle about random axes (translations as drawn). Writes ``angle_sweep.md``, ``.json`` and ``.png``."""
+    from dit_jax import registration
+
+    registrar = registration.load(checkpoint_dir, **({"n_points": n_points} if n_points else {}))
+    test_shapes = shapes_lib.load_shapes(data_dir, "test",
+                                         n_points=pairs_lib.shape_points(data_dir, registrar.n_points, [setting]))
+    ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen,
+                                                                   n_points=registrar.n_points))
+    # Pairs spread over the whole split (every category), the same ones for every angle.
+    indices = np.linspace(0, len(ds) - 1, pairs_per_angle).astype(int)
+    batch = ds.batch(indices)
+    rng = np.random.default_rng(20261126)
+    axes = rng.normal(size=(len(indices), 3))
+    rows = {}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(angles) * len(indices), desc="angle sweep", unit="pair", dynamic_ncols=True)
+    for angle in angles:
+        errors = []
+        for i in range(len(indices)):
+            # Back to the shape's frame, then the new rotation; the translation stays as drawn.
+            in_shape_frame = (batch["tgt"][i] - batch["t"][i]) @ batch["R"][i]
+            rotation = axis_angle_matrix(axes[i], angle)
+            result = registrar.register(batch["src"][i], in_shape_frame @ rotation.T + batch["t"][i])
+            errors.append(_rotation_error_deg(result.rotation, rotation))
+            if bar is not None:
+                bar.update(1)
+        errors = np.asarray(errors)
+        rows[float(angle)] = {"median": float(np.median(errors)), "within_5": float(np.mean(errors <= 5)),
+                              "within_10": float(np.mean(errors <= 10)), "errors": errors.tolist()}
+    if bar is not None:
+        bar.close()
+    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
+               "setting": setting, "unseen": unseen, "pairs_per_angle": len(indices), "angles": rows}
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "angle_sweep.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    lines = [f"DIT on {len(indices)} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
+             f"{results['data']}) per angle, random axes", "",
+             "| rotation (deg) | median error (deg) | within 5 deg | within 10 deg |", "|---|---|---|---|"]
+    lines += [f"| {a:g} | {r['median']:.2f} | {100 * r['within_5']:.0f} % | {100 * r['within_10']:.0f} % |"
+              for a, r in rows.items()]
+    table = "\n".join(lines) + "\n"
+    with open(os.path.join(out_dir, "angle_sweep.md"), "w") as f:
+        f.write(table)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    xs = list(rows)
+    ax.plot(xs, [rows[a]["within_5"] for a in xs], marker="o", label="within 5 deg")
+    ax.plot(xs, [rows[a]["within_10"] for a in xs], marker="o", label="within 10 deg")
+    # Euler angles up to 45 degrees each: rotations up to 86 degrees, 90 % of them below 58.
+    ax.axvspan(0, 58, color="tab:green", alpha=0.08, label="90 % of training rotations")
+    ax.set_xlabel("rotation angle (deg)")
+    ax.set_ylabel("share of pairs")
+    ax.set_ylim(0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"DIT against rotation angle ({setting})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out_dir, "angle_sweep.png"), dpi=110)
+    plt.close(fig)
     results["table"] = table
     return results

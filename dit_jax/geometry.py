@@ -73,6 +73,13 @@ def fitness(src: jax.Array, tgt: jax.Array, radius: jax.Array | float) -> jax.Ar
     return jnp.mean((nearest_distances(src, tgt) < radius).astype(src.dtype))
 
 
+def alignment_cost(src: jax.Array, tgt: jax.Array, radius: jax.Array | float) -> jax.Array:
+    """The mean distance from ``src`` (N, 3) points to their nearest ``tgt`` (M, 3) point, each capped at
+    ``radius``, over ``radius``: 0 where every source point lies on a target point, 1 where none is within
+    ``radius``. Unlike :func:`fitness` it keeps falling as a good pose gets better. Returns () in [0, 1]."""
+    return jnp.mean(jnp.minimum(nearest_distances(src, tgt), radius)) / radius
+
+
 def gather_neighbours(features: jax.Array, idx: jax.Array) -> jax.Array:
     """Features of each point's neighbours.
 

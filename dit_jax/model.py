@@ -172,26 +172,26 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
     radius = config.fitness_radius * geometry.spacing(tgt)
 
     def iteration(carry, index):
-        rotation, translation, moved, fit, last = carry
+        rotation, translation, moved, cost, last = carry
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn)
         run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce)
         out = jax.lax.cond(index >= 1, lambda: run_head(True), lambda: run_head(False))
         new_moved = geometry.apply_transform(out.rotation, out.translation, moved)
-        new_fit = geometry.fitness(new_moved, tgt, radius)
-        accept = (index == 0) | (new_fit >= fit) if config.guard_iterations else jnp.asarray(True)
+        new_cost = geometry.alignment_cost(new_moved, tgt, radius)
+        accept = (index == 0) | (new_cost <= cost) if config.guard_iterations else jnp.asarray(True)
         new_rotation, new_translation = geometry.compose(out.rotation, out.translation, rotation, translation)
         keep = lambda new, old: jnp.where(accept, new, old)
         matches = (out.correspondences, out.weights)
         carry = (keep(new_rotation, rotation), keep(new_translation, translation), keep(new_moved, moved),
-                 keep(new_fit, fit), jax.tree.map(keep, matches, last))
+                 keep(new_cost, cost), jax.tree.map(keep, matches, last))
         record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.soft_weights, accept)
         return carry, record
 
     n_src = src.shape[0]
-    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src, jnp.asarray(-1.0, src.dtype),
+    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src, jnp.asarray(2.0, src.dtype),
              (jnp.zeros(n_src, jnp.int32), jnp.zeros(n_src, src.dtype)))
     carry, records = jax.lax.scan(iteration, start, jnp.arange(config.n_iters))
-    rotation, translation, _, fit, (correspondences, weights) = carry
+    rotation, translation, moved, _, (correspondences, weights) = carry
     step_r, step_t, temperature, fallback, soft_weights, accepted = records
     extras = {
         "step_rotation": step_r,  # (n_iters, 3, 3), each iteration's own increment
@@ -203,7 +203,7 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
         "weights": weights,  # (N,) its Procrustes weights
         "inlier_ratio": jnp.mean((weights > 0.5).astype(src.dtype)) if config.n_iters > 1
         else jnp.mean(soft_weights[-1]),
-        "fitness": fit,  # () share of the moved source within fitness_radius spacings of the target
+        "fitness": geometry.fitness(moved, tgt, radius),  # () share of the moved source within fitness_radius spacings of the target
     }
     return rotation, translation, extras
 

@@ -37,6 +37,10 @@ from dit_jax.configs import DITConfig
 
 #: Where the weights that ship with the package live (see README, "Shipped weights").
 SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
+#: The verdict's default: a result is trusted when at least this share of the sampled source points lands
+#: within ``fitness_radius`` point spacings of the target (a checkpoint may record its own, measured, as
+#: ``verdict_min_fitness``; see README, "Is the result right?").
+DEFAULT_MIN_FITNESS = 0.5
 
 
 class InputError(ValueError):
@@ -58,6 +62,9 @@ class Result:
       fitness: share of the sampled source points the estimate lays within ``fitness_radius`` point spacings
         of the target (see :func:`dit_jax.geometry.fitness`).
       seconds: wall time of the network call (excluding sampling and a first call's compilation).
+      verdict: True where the model's own evidence supports the result (``fitness >= min_fitness``), False
+        where it is probably wrong; see :class:`Registrar`.
+      min_fitness: the verdict's threshold.
     """
 
     rotation: np.ndarray
@@ -69,6 +76,8 @@ class Result:
     inlier_ratio: float
     fitness: float
     seconds: float
+    verdict: bool = True
+    min_fitness: float = DEFAULT_MIN_FITNESS
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -78,6 +87,7 @@ class Result:
         return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
                 "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
                 "fitness": self.fitness,
+                "verdict": "trusted" if self.verdict else "suspect", "min_fitness": self.min_fitness,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds}
 
@@ -143,10 +153,13 @@ class Registrar:
       centring: "shared" moves both clouds by the centroid of the two together (the clouds keep their offset,
         as in training, where targets sit up to 0.5 radii away); "separate" moves each to its own centroid,
         for clouds that lie far apart (more than about half their size) in the caller's frame.
+      min_fitness: a result whose fitness (the share of sampled source points it lays onto the target) is
+        below this gets ``verdict=False``.
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
-                 seed: int = 0, fps_pool: int = 50_000, centring: str = "shared"):
+                 seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
+                 min_fitness: float = DEFAULT_MIN_FITNESS):
         if centring not in ("shared", "separate"):
             raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
         self.centring = centring
@@ -155,6 +168,7 @@ class Registrar:
         self.n_points = int(n_points)
         self.seed = seed
         self.fps_pool = fps_pool
+        self.min_fitness = float(min_fitness)
         if self.n_points < model_lib.min_points(self.config):
             raise ValueError(f"n_points={n_points} is below the model's minimum {model_lib.min_points(self.config)}")
 
@@ -186,7 +200,8 @@ class Registrar:
                       correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
                       confidence=np.asarray(extras["weights"][0], np.float64),
                       inlier_ratio=float(extras["inlier_ratio"][0]), fitness=float(extras["fitness"][0]),
-                      seconds=seconds)
+                      seconds=seconds, verdict=bool(extras["fitness"][0] >= self.min_fitness),
+                      min_fitness=self.min_fitness)
 
 
 def shipped_weights() -> str:
@@ -212,4 +227,5 @@ def load(checkpoint: str | os.PathLike | None = None, **kwargs) -> Registrar:
         params, config = ckpt_lib.restore(path)
         extra = ckpt_lib.read_extra(path)
     kwargs.setdefault("n_points", extra.get("inference_points") or 1000)
+    kwargs.setdefault("min_fitness", extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS))
     return Registrar(params, config, **kwargs)

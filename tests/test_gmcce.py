@@ -64,3 +64,19 @@ def test_degenerate_clouds_give_finite_weights():
     ]:
         conf = np.asarray(gmcce.confidence(jnp.asarray(src), jnp.asarray(tgt)))
         assert np.isfinite(conf).all() and conf.max() == 1.0
+
+
+def test_min_keep_keeps_the_most_confident_share(modelnet_shapes):
+    """Where noise leaves no triangle exact, the fixed threshold keeps almost nothing; ``min_keep`` keeps the
+    most confident share, and those are mostly the true matches."""
+    src = modelnet_shapes[3]
+    tgt, rng = _moved(src, 3)
+    tgt = tgt + rng.normal(0, 0.02, tgt.shape).astype(np.float32)
+    outliers = rng.choice(len(src), 400, replace=False)
+    tgt[outliers] = tgt[rng.permutation(outliers)]
+    strict = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99))
+    kept = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99, min_keep=0.2))
+    assert strict.sum() < 0.05 * len(src)
+    assert kept.sum() >= np.ceil(0.2 * len(src)) and kept.sum() < 0.25 * len(src)
+    assert (kept >= strict).all(), "never fewer than the threshold keeps"
+    assert kept[outliers].sum() < 0.15 * kept.sum()

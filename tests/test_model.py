@@ -142,3 +142,50 @@ def test_attention_in_blocks_changes_nothing(params):
     _, f_blocked = model.features(params, src[0], tgt[0], blocked)
     np.testing.assert_allclose(np.asarray(f_blocked.scores), np.asarray(f_whole.scores), atol=1e-5)
 
+
+
+def test_guarded_iterations_never_lower_the_fitness(params):
+    """With ``guard_iterations`` an iteration's update is kept only where it brings the source no farther from
+    the target; the final alignment cost is then at most the first iteration's, and refused updates are
+    reported."""
+    from dit_jax import geometry
+
+    src, tgt = _pair(5, n=64, m=64, batch=4)
+    guarded = CONFIG.replace(guard_iterations=True, n_iters=3)
+    rot, trans, extras = model.register(params, src, tgt, guarded)
+    first_r, first_t, _ = model.register(params, src, tgt, CONFIG.replace(n_iters=1))
+
+    def cost(r, t, b):
+        moved = geometry.apply_transform(r[b], t[b], src[b])
+        return float(geometry.alignment_cost(moved, tgt[b], CONFIG.fitness_radius * geometry.spacing(tgt[b])))
+
+    for b in range(4):
+        assert cost(rot, trans, b) <= cost(first_r, first_t, b) + 1e-6
+    accepted = np.asarray(extras["accepted"])
+    assert accepted.shape == (4, 3) and accepted[:, 0].all()
+    # The estimate is the composition of the accepted steps only.
+    for b in range(4):
+        total_r, total_t = np.eye(3), np.zeros(3)
+        for ok, r_i, t_i in zip(accepted[b], np.asarray(extras["step_rotation"][b]),
+                                np.asarray(extras["step_translation"][b])):
+            if ok:
+                total_r, total_t = r_i @ total_r, r_i @ total_t + t_i
+        np.testing.assert_allclose(np.asarray(rot[b]), total_r, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(trans[b]), total_t, atol=1e-5)
+
+
+
+def test_fitness_measures_how_much_of_the_source_lands_on_the_target():
+    from dit_jax import geometry
+
+    src, _ = _pair(6, n=200, batch=1)
+    src = src[0]
+    radius = 2 * geometry.spacing(src)
+    assert float(geometry.fitness(src, src, radius)) == 1.0
+    assert float(geometry.fitness(src, src + 100.0, radius)) == 0.0
+    assert float(geometry.alignment_cost(src, src, radius)) == 0.0
+    assert float(geometry.alignment_cost(src, src + 100.0, radius)) == pytest.approx(1.0, abs=1e-6)
+    nearer = float(geometry.alignment_cost(src, src + 0.1 * radius, radius))
+    assert 0.0 < nearer < float(geometry.alignment_cost(src, src + 0.5 * radius, radius)) < 1.0
+    half = src[src[:, 0] > 0]
+    assert 0.35 < float(geometry.fitness(src, half, radius)) < 0.75, "half the source has a target nearby"
