@@ -77,3 +77,19 @@ def modelnet_train(prepared_dir, modelnet_test):
     from dit_jax.data import shapes
 
     return shapes.load_shapes(MODELNET_DIR, "train", n_points=1000, data_dir=prepared_dir)
+
+
+def write_scan_series(directory, poses, rng, n_points: int = 50):
+    """A tiny turntable series: one random cloud seen in several frames, with a .conf of their poses."""
+    cloud = rng.normal(size=(n_points, 3))
+    lines = ["camera 0 0 0 0 0 0 1", "mesh not_a_scan 0 0 0 0 0 0 1"]
+    for i, (rotation, t) in enumerate(poses):
+        # pose: p_common = R^T p + t, so the scan holds p = R (p_common - t).
+        local = (cloud - t) @ rotation.T
+        np.savetxt(directory / f"s{i}.xyz", local)
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(rotation).as_quat()
+        lines.append(f"bmesh s{i}.xyz {t[0]} {t[1]} {t[2]} {q[0]} {q[1]} {q[2]} {q[3]}")
+    (directory / "series.conf").write_text("\n".join(lines) + "\n")
+    return cloud

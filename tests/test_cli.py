@@ -19,8 +19,9 @@ from dit_jax.data.pairs import euler_zyx_to_matrix
 def tiny_checkpoint(tmp_path_factory) -> str:
     config = configs.tiny()
     path = tmp_path_factory.mktemp("ckpt") / "tiny"
+    # An untrained network: its verdict would be "suspect"; these tests are about everything else.
     return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128})
+                           extra={"inference_points": 128, "verdict_min_fitness": 0.0})
 
 
 @pytest.fixture(scope="module")
@@ -131,3 +132,25 @@ def test_console_script_exit_status(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"dit-register: error: {tmp_path / 'a.ply'}: no such file"
+
+
+@pytest.mark.parametrize("min_fitness,expected", [(1.01, 3), (0.0, 0)])
+def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_path, pair, min_fitness, expected):
+    """The verdict's threshold comes with the checkpoint; below it the transform is printed and written, one
+    warning line goes to stderr and the status is 3 (0 with --no-verdict-status)."""
+    config = configs.tiny()
+    ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
+                           extra={"inference_points": 128, "verdict_min_fitness": min_fitness})
+    folder, _, _ = pair
+    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
+                         "--out", tmp_path / "moved.ply", "--json")
+    report = json.loads(out)
+    assert code == expected and report["verdict"] == ("suspect" if expected else "trusted")
+    assert report["min_fitness"] == min_fitness and 0.0 <= report["fitness"] <= 1.0
+    assert (tmp_path / "moved.ply").exists()
+    if expected:
+        assert err.count("\n") == 1 and err.startswith("dit-register: warning: the result is probably wrong")
+        code, _, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--no-verdict-status")
+        assert code == 0
+    else:
+        assert err == ""

@@ -1,25 +1,9 @@
 import numpy as np
 import pytest
 
-from conftest import random_rotation
+from conftest import random_rotation, write_scan_series
 from dit_jax.data import scans
 from dit_jax.data.shapes import DataError
-
-
-def _write_series(directory, poses, rng):
-    """A tiny turntable series: one random cloud seen in several frames, with a .conf of their poses."""
-    cloud = rng.normal(size=(50, 3))
-    lines = ["camera 0 0 0 0 0 0 1", "mesh not_a_scan 0 0 0 0 0 0 1"]
-    for i, (rotation, t) in enumerate(poses):
-        # pose: p_common = R^T p + t, so the scan holds p = R (p_common - t).
-        local = (cloud - t) @ rotation.T
-        np.savetxt(directory / f"s{i}.xyz", local)
-        from scipy.spatial.transform import Rotation
-
-        q = Rotation.from_matrix(rotation).as_quat()
-        lines.append(f"bmesh s{i}.xyz {t[0]} {t[1]} {t[2]} {q[0]} {q[1]} {q[2]} {q[3]}")
-    (directory / "series.conf").write_text("\n".join(lines) + "\n")
-    return cloud
 
 
 def test_quaternion_matrix_matches_scipy():
@@ -32,7 +16,7 @@ def test_quaternion_matrix_matches_scipy():
 def test_pairs_carry_the_motion_between_scans(tmp_path):
     rng = np.random.default_rng(0)
     poses = [(random_rotation(rng), rng.normal(size=3)) for _ in range(4)]
-    _write_series(tmp_path, poses, rng)
+    write_scan_series(tmp_path, poses, rng)
     series = scans.load_scans(tmp_path)
     assert [s.name for s in series] == ["s0", "s1", "s2", "s3"], "bmesh lines only, in order"
     for skip in (1, 2):

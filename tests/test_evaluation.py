@@ -20,7 +20,8 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     names = ["icp"] if __import__("dit_jax.baselines").baselines.available() else []
     out = tmp_path / "eval"
     results = evaluation.evaluate(tiny_checkpoint, str(out), settings=("clean", "high_noise_partial"),
-                                  max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False)
+                                  max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
+                                  gmcce_threshold="authors")
     assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png"]
     saved = json.loads((out / "results.json").read_text())
     assert saved["n_points"] == 128, "the training run's point count is the default"
@@ -32,6 +33,39 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert set(saved["settings"][setting]) == {"DIT", *names}
     assert "| DIT |" in (out / "results.md").read_text()
     assert (out / "success_ratio.png").stat().st_size > 10_000
+    assert "verdict" in saved["settings"]["clean"]["DIT"] and "verdict (fitness" in (out / "results.md").read_text()
+
+
+def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path):
+    """By default one inference setting for every data setting (the checkpoint's own); settings whose clouds
+    share no point read every point of the shapes."""
+    results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean", "scan_high_noise"),
+                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False)
+    for setting in ("independent_clean", "scan_high_noise"):
+        assert results["setting_info"][setting]["gmcce_threshold"] == configs.tiny().gmcce_threshold
+        assert results["settings"][setting]["DIT"]["pairs"] == 3
+
+
+def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
+    from conftest import random_rotation, write_scan_series
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    write_scan_series(tmp_path, [(random_rotation(rng), rng.normal(size=3)) for _ in range(3)], rng, n_points=300)
+    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path), str(tmp_path / "out"), skips=(1,),
+                                        progress=False)
+    rows = results["pair_sets"]["skip1"]["DIT"]["rows"]
+    assert [r["pair"] for r in rows] == ["s0->s1", "s1->s2", "s2->s0"]
+    assert all(0 <= r["rot_err"] <= 180 and 0 <= r["fitness"] <= 1 for r in rows)
+    assert sorted(os.listdir(tmp_path / "out")) == ["results.json", "results.md", "success_ratio.png"]
+    assert "| DIT |" in results["table"] and "3 pairs" in results["table"]
+
+
+def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
+    results = evaluation.angle_sweep(tiny_checkpoint, str(tmp_path), angles=(0, 90), pairs_per_angle=2,
+                                     unseen=False, progress=False)
+    assert set(results["angles"]) == {0.0, 90.0} and all(len(r["errors"]) == 2 for r in results["angles"].values())
+    assert (tmp_path / "angle_sweep.png").exists() and "| 90 |" in results["table"]
 
 
 def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
