@@ -44,6 +44,8 @@ def main(argv=None) -> int:
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
+    parser.add_argument("--reuse", default=None, metavar="DIR",
+                        help="take baselines scored on the same pairs from an earlier --out instead of rerunning them")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     chosen = []
@@ -74,7 +76,8 @@ def main(argv=None) -> int:
                                       max_pairs=args.max_pairs, n_iters=args.iters,
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
                                       batch_size=args.batch_size, progress=not args.no_progress,
-                                      compute_dtype="bfloat16" if args.bfloat16 else "float32")
+                                      compute_dtype="bfloat16" if args.bfloat16 else "float32",
+                                      reuse=args.reuse)
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -197,11 +197,29 @@ def plot_registrations(dataset: pairs_lib.PairDataset, pred: dict, indices: np.n
     plt.close(fig)
 
 
+def _reusable(reuse: str | None, data_dir, unseen: bool, variant: str, n_points: int) -> dict:
+    """The per-setting method scores of an earlier ``results.json`` made on the same pairs, else {}."""
+    if not reuse:
+        return {}
+    path = os.path.join(reuse, "results.json")
+    if not os.path.exists(path):
+        raise ValueError(f"--reuse {reuse}: no results.json there")
+    with open(path) as f:
+        old = json.load(f)
+    info = next(iter(old.get("setting_info", {}).values()), {})
+    same = (old.get("data") == (data_dir or "embedded") and old.get("n_points") == n_points
+            and info.get("split") == ("unseen" if unseen else "seen") and info.get("variant") == variant)
+    if not same:
+        raise ValueError(f"--reuse {reuse}: made on other pairs (data, split, variant or point count differ)")
+    return old["settings"]
+
+
 def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
              settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
              n_points: int | None = None, max_pairs: int | None = None, n_iters: int | None = None,
              gmcce_threshold: float | str | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
-             prepared_dir: str | None = None, progress: bool = True, compute_dtype: str = "float32") -> dict:
+             prepared_dir: str | None = None, progress: bool = True, compute_dtype: str = "float32",
+             reuse: str | None = None) -> dict:
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
     Args:
@@ -214,6 +232,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         input); "authors" uses the authors' threshold for each setting (:data:`GMCCE_THRESHOLDS`); a number
         uses that threshold everywhere.
       compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
+      reuse: an earlier output directory of this function: baselines it scored on the same pairs (same data,
+        split, variant, point count and pair count) are taken from its ``results.json`` instead of rerun.
     """
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
@@ -241,6 +261,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         methods = len(baselines) + (params is not None)
         bar = tqdm(total=sum(len(ix) for _, ix in datasets.values()) * methods, desc="evaluate",
                    unit="pair", dynamic_ncols=True)
+    earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
     first_dit = None
     for setting, (ds, indices) in datasets.items():
         if gmcce_threshold is None:
@@ -256,13 +277,21 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
             run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters or config.n_iters,
                                         compute_dtype=compute_dtype)
             preds[METHOD_DIT] = predict_dit(params, run_config, ds, indices, batch_size, bar)
+        reused = {}
         for name in baselines:
+            old = earlier.get(setting, {}).get(name)
+            if old is not None and old["pairs"] == len(indices):
+                reused[name] = old
+                if bar is not None:
+                    bar.update(len(indices))
+                continue
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar)
         min_fitness = extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS)
-        results["settings"][setting] = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness)
-                                        for name, p in preds.items()}
+        scored = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness) for name, p in preds.items()}
+        order = ([METHOD_DIT] if METHOD_DIT in scored else []) + list(baselines)
+        results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
         results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
                                             "variant": variant, "gmcce_threshold": threshold,
                                             "n_iters": n_iters or (config.n_iters if config else None)}

@@ -86,3 +86,20 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     assert saved["checkpoint"] == os.path.abspath(registration.shipped_weights())
     extra = checkpoint.read_extra(registration.shipped_weights())
     assert saved["n_points"] == (extra.get("inference_points") or extra.get("n_points") or 1000)
+
+
+def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch):
+    pytest.importorskip("open3d", reason="the baselines need Open3D")
+    first = evaluation.evaluate(None, str(tmp_path / "a"), settings=("clean",), max_pairs=3, baselines=["icp"],
+                                prepared_dir=str(tmp_path / "p"), progress=False)
+
+    def never(*args, **kwargs):
+        raise AssertionError("a reused baseline was run again")
+
+    monkeypatch.setattr(evaluation, "predict_baseline", never)
+    again = evaluation.evaluate(None, str(tmp_path / "b"), settings=("clean",), max_pairs=3, baselines=["icp"],
+                                prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"))
+    assert again["settings"]["clean"]["icp"] == json.loads(json.dumps(first["settings"]["clean"]["icp"]))
+    with pytest.raises(ValueError, match="made on other pairs"):
+        evaluation.evaluate(None, str(tmp_path / "c"), settings=("clean",), max_pairs=3, baselines=["icp"],
+                            prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"), unseen=True)
