@@ -1,11 +1,15 @@
 """Exports a training run's best params as the weights that ship with dit-jax (dit_jax/weights/...).
 
     python scripts/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
+    python scripts/ship_weights.py runs/mix --command "..." --choice runs/mix/inference_choice.json
 
 Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and ``inference_points`` (1000, the authors' test
-protocol), which the registration API and evaluate.py use by default.
+protocol), which the registration API and evaluate.py use by default. ``--choice`` (the output of
+scripts/choose_inference.py) sets the inference settings in the shipped config and the verdict threshold
+(``verdict_min_fitness``). A run that started from other weights (``init_from``) keeps their record under
+``trained_from``, so the whole history travels with the weights.
 """
 
 import argparse
@@ -23,6 +27,8 @@ def main() -> None:
     parser.add_argument("--out", default=registration.shipped_weights())
     parser.add_argument("--inference-points", type=int, default=1000)
     parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
+    parser.add_argument("--choice", default=None, help="inference settings and verdict threshold to ship "
+                                                       "(scripts/choose_inference.py's output)")
     args = parser.parse_args()
 
     records = [json.loads(line) for line in open(os.path.join(args.workdir, "metrics.jsonl"))]
@@ -46,6 +52,16 @@ def main() -> None:
         "note": args.note,
     })
     params, config = checkpoint.restore(path)
+    init_from = extra.get("train_config", {}).get("init_from")
+    if init_from and os.path.isdir(init_from):
+        extra["trained_from"] = checkpoint.read_extra(init_from)
+    if args.choice:
+        choice = json.load(open(args.choice))
+        config = config.replace(**choice["chosen"])
+        extra["verdict_min_fitness"] = choice["verdict_min_fitness"]
+        extra["inference_choice"] = {k: choice[k] for k in ("chosen", "verdict_min_fitness", "settings",
+                                                            "pairs_per_setting") if k in choice}
+        extra["inference_choice"]["verdict_on_validation"] = choice.get("verdict_on_validation")
     shutil.rmtree(staging)
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
