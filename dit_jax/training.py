@@ -401,7 +401,8 @@ def plot_curves(runs: Mapping[str, str], path: str, title: str | None = None) ->
     """One figure of the training curves of several runs (``{label: workdir}``), written to ``path``.
 
     Panels, against the step: validation rotation error of the network alone and of full inference
-    (degrees, log scale), held-out match accuracy of the network, and the training loss.
+    (degrees, log scale), held-out match accuracy of the network, and the training loss; for a run trained on
+    a mix of settings, one more: the network alone's error on each setting (of the first such run).
     """
     import matplotlib
 
@@ -412,14 +413,31 @@ def plot_curves(runs: Mapping[str, str], path: str, title: str | None = None) ->
               ("rotation_error", "val", "full inference: rotation error (deg)", True),
               ("network_match_accuracy", "val", "network alone: held-out match accuracy", False),
               ("loss", "train", "training loss", True))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6))
+    records_of = {label: read_metrics(workdir) for label, workdir in runs.items()}
+    mixed = next((label for label, r in records_of.items()
+                  if any("/" in k for v in r["val"] for k in v)), None)
+    n_panels = len(panels) + (mixed is not None)
+    fig, axes = plt.subplots(1, n_panels, figsize=(4.2 * n_panels, 3.6))
+    if mixed is not None:
+        ax = axes[-1]
+        rows = records_of[mixed]["val"]
+        names = sorted({k.split("/")[0] for v in rows for k in v if k.endswith("/network_rotation_error")})
+        for name in names:
+            key = f"{name}/network_rotation_error"
+            kept = [r for r in rows if key in r]
+            ax.plot([r["step"] for r in kept], [r[key] for r in kept], marker="o", markersize=3, label=name)
+        ax.set_yscale("log")
+        ax.set_title(f"network alone by setting ({mixed})", fontsize=9)
+        ax.set_xlabel("step")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=6)
     for label, workdir in runs.items():
         records = read_metrics(workdir)
         for ax, (key, split, _, _) in zip(axes, panels):
             rows = [r for r in records[split] if key in r]
             ax.plot([r["step"] for r in rows], [r[key] for r in rows], marker="o" if split == "val" else None,
                     markersize=3, label=label)
-    for ax, (_, _, name, log) in zip(axes, panels):
+    for ax, (_, _, name, log) in zip(axes[:len(panels)], panels):
         if log:
             ax.set_yscale("log")
         ax.set_title(name, fontsize=9)
