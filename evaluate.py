@@ -5,6 +5,7 @@
     python evaluate.py --checkpoint runs/clean/model --data-dir /data/modelnet40_ply_hdf5_2048 \\
         --settings all --unseen --baselines icp fpfh_ransac fgr
     python evaluate.py --scans ../shared/data/stanford_dragon_stand --baselines fpfh_ransac   # real scans
+    python evaluate.py --data-dir /data/modelnet40_ply_hdf5_2048 --unseen --angle-sweep   # error vs angle
 
 Settings: the authors' three (clean, low_noise_partial, high_noise_partial; both clouds made of the same
 points) and those whose clouds share no point, as real data (independent_*, scan_*; dit_jax.data.pairs).
@@ -29,6 +30,9 @@ def main(argv=None) -> int:
     parser.add_argument("--settings", nargs="+", default=["clean"], choices=tuple(SETTINGS) + ("authors", "all"))
     parser.add_argument("--scans", default=None, metavar="DIR",
                         help="evaluate on real range scans with a Stanford .conf instead of shapes")
+    parser.add_argument("--angle-sweep", action="store_true",
+                        help="DIT's error against rotation angles 0-180 degrees on the first --settings setting "
+                             "(default independent_clean) instead of the tables")
     parser.add_argument("--skips", nargs="+", type=int, default=[1, 2],
                         help="with --scans: pair scan i with scan i + SKIP (default: 1 2)")
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
@@ -64,6 +68,14 @@ def main(argv=None) -> int:
 
     try:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
+        if args.angle_sweep:
+            setting = settings[0] if args.settings != ["clean"] else "independent_clean"
+            results = evaluation.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
+                                             unseen=args.unseen, pairs_per_angle=args.max_pairs or 24,
+                                             n_points=args.n_points, progress=not args.no_progress)
+            print(results["table"])
+            print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
+            return 0
         if args.scans:
             results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
                                                 baselines=args.baselines, max_pairs=args.max_pairs,
