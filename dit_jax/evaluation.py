@@ -382,6 +382,12 @@ def scan_tables(results: dict) -> str:
             within = " | ".join(f"{s[f'within_{t:g}']} of {s['pairs']}" for t in SCAN_THRESHOLDS)
             lines.append(f"| {name} | {s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
                          f"{s['seconds_per_pair']:.2f} |")
+        for name, r in methods.items():
+            v = r["summary"].get("verdict")
+            if v:
+                lines += ["", f"{name}'s verdict (fitness >= {v['min_fitness']:.2f}): flags {_share(v['failures_caught'])} "
+                              f"of its {v['failures']} results more than {v['right_deg']:g} deg off; of the "
+                              f"{v['passed']} it trusts, {_share(v['passed_right'])} are within {v['right_deg']:g} deg."]
         lines.append("")
     return "\n".join(lines)
 
@@ -468,7 +474,12 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 rows.append(row)
                 if bar is not None:
                     bar.update(1)
-            results["pair_sets"][set_name][method] = {"summary": summarise_scans(rows), "rows": rows}
+            summary = summarise_scans(rows)
+            if rows and "verdict" in rows[0]:
+                summary["verdict"] = verdict_summary(np.array([r["rot_err"] for r in rows]),
+                                                     np.array([r["verdict"] for r in rows]))
+                summary["verdict"]["min_fitness"] = registrar.min_fitness
+            results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
     if bar is not None:
         bar.close()
     os.makedirs(out_dir, exist_ok=True)

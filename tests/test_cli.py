@@ -154,3 +154,24 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
         assert code == 0
     else:
         assert err == ""
+
+
+def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
+    """The shipped weights on two pairs of real Stanford Dragon scans 24 degrees apart (measured in
+    docs/eval_stanford_dragon): 0 -> 24 registers within 5 degrees and is trusted; 48 -> 72 is wrong and the
+    verdict says so with status 3 (the transform is still printed)."""
+    from dit_jax.data import scans
+
+    series = {s.name: s for s in scans.load_scans(dragon_dir)}
+    for source, target, expected in (("dragonStandRight_0", "dragonStandRight_24", 0),
+                                     ("dragonStandRight_48", "dragonStandRight_72", 3)):
+        code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json")
+        report = json.loads(out)
+        truth, _ = scans.relative_motion(series[source], series[target])
+        rotation = np.asarray(report["matrix"])[:3, :3]
+        error = np.degrees(np.arccos(np.clip((np.trace(rotation.T @ truth) - 1) / 2, -1, 1)))
+        assert code == expected, (source, error, report["fitness"], err)
+        if expected == 0:
+            assert error < 5 and err == ""
+        else:
+            assert error > 5 and "probably wrong" in err
