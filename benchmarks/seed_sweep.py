@@ -67,7 +67,7 @@ def main() -> None:
                                    np.array([r[0] for r in rows]), shapes._shape_names(shapes.EMBEDDED))
     else:
         all_shapes = shapes.load_shapes(None, "train", n_points=base.n_points)
-    train_shapes, val_shapes = training._split_validation(all_shapes, base.val_fraction)
+    train_shapes, val_shapes = training.split_validation(all_shapes, base.val_fraction)
     common = dict(setting=base.setting, variant=base.variant, n_points=base.n_points)
     val_ds = pairs.PairDataset(val_shapes, pairs.PairConfig(train=False, **common))
     steps_per_epoch = len(train_shapes.labels) // base.batch_size

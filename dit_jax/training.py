@@ -236,7 +236,7 @@ def replicate(tree, mesh: Mesh):
 # ------------------------------------------------------------------------------------------ data
 
 
-def _split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shapes_lib.Shapes, shapes_lib.Shapes]:
+def split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shapes_lib.Shapes, shapes_lib.Shapes]:
     """Training and validation shapes: a fixed share of the training split, the same for every seed."""
     order = np.random.default_rng(20261122).permutation(len(shapes.labels))
     n_val = max(1, int(round(fraction * len(order)))) if fraction > 0 else 0
@@ -253,7 +253,7 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     settings = config.settings or (config.setting,)
     n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
     shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir)
-    train_shapes, val_shapes = _split_validation(shapes, config.val_fraction)
+    train_shapes, val_shapes = split_validation(shapes, config.val_fraction)
     common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
     train_config = pairs_lib.PairConfig(train=True, seed=config.seed, unseen=config.unseen, **common)
     # Validation pairs are fixed (seeded by index) test-style pairs of held-out training shapes; with the

@@ -39,7 +39,7 @@ def main() -> None:
     params, config = checkpoint.restore(args.checkpoint)
     shapes = shapes_lib.load_shapes(args.data_dir, "train",
                                     n_points=pairs_lib.shape_points(args.data_dir, args.n_points, SETTINGS))
-    _, val_shapes = training._split_validation(shapes, training.TrainConfig().val_fraction)
+    _, val_shapes = training.split_validation(shapes, training.TrainConfig().val_fraction)
     batches = {}
     for setting in SETTINGS:
         ds = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(setting=setting, n_points=args.n_points))
