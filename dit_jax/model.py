@@ -177,8 +177,11 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
         run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce)
         out = jax.lax.cond(index >= 1, lambda: run_head(True), lambda: run_head(False))
         new_moved = geometry.apply_transform(out.rotation, out.translation, moved)
-        new_cost = geometry.alignment_cost(new_moved, tgt, radius)
-        accept = (index == 0) | (new_cost <= cost) if config.guard_iterations else jnp.asarray(True)
+        if config.guard_iterations:
+            new_cost = geometry.alignment_cost(new_moved, tgt, radius)
+            accept = (index == 0) | (new_cost <= cost)
+        else:  # the authors' iterations: every update kept, no cost to compute
+            new_cost, accept = cost, jnp.asarray(True)
         new_rotation, new_translation = geometry.compose(out.rotation, out.translation, rotation, translation)
         keep = lambda new, old: jnp.where(accept, new, old)
         matches = (out.correspondences, out.weights)
