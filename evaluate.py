@@ -3,7 +3,7 @@
     python evaluate.py                                    # the shipped weights, embedded set
     python evaluate.py --checkpoint runs/quick-clean/model  # what `python train.py` trained
     python evaluate.py --checkpoint runs/clean/model --data-dir /data/modelnet40_ply_hdf5_2048 \\
-        --settings all --unseen --baselines icp fpfh_ransac fgr
+        --settings all --unseen --baselines icp fpfh_ransac fgr fpfh_ransac_icp fgr_icp
     python evaluate.py --scans ../shared/data/stanford_dragon_stand --baselines fpfh_ransac   # real scans
     python evaluate.py --data-dir /data/modelnet40_ply_hdf5_2048 --unseen --angle-sweep   # error vs angle
 
@@ -12,7 +12,11 @@ points) and those whose clouds share no point, as real data (independent_*, scan
 "authors" picks the first three, "all" every one. With --scans, a directory of range scans and a Stanford
 .conf of their poses gives pairs of adjacent scans and of every second one (--skips).
 
-Writes results.md, results.json, success_ratio.png and registrations.png to --out.
+Methods: DIT as it ships, DIT refined by ICP (the DIT+ICP row; --refine none drops it) and the --baselines,
+each at the options tuned for the setting on validation pairs (docs/baselines_tuning.md).
+
+Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
+worst pair) to --out.
 """
 
 import argparse
@@ -20,6 +24,7 @@ import sys
 
 
 def main(argv=None) -> int:
+    from dit_jax.baselines import NAMES as BASELINES
     from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
@@ -44,7 +49,9 @@ def main(argv=None) -> int:
     parser.add_argument("--gmcce-threshold", default=None, metavar="TAU|authors",
                         help="default: the model's own inference settings, the same for every input; 'authors': "
                              "the authors' threshold per setting; or a number")
-    parser.add_argument("--baselines", nargs="*", default=[], choices=["icp", "fpfh_ransac", "fgr"])
+    parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
+    parser.add_argument("--refine", choices=["icp", "none"], default="icp",
+                        help="icp (default): add DIT refined by ICP as the DIT+ICP row")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
@@ -79,7 +86,7 @@ def main(argv=None) -> int:
         if args.scans:
             results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
                                                 baselines=args.baselines, max_pairs=args.max_pairs,
-                                                progress=not args.no_progress)
+                                                progress=not args.no_progress, refine=args.refine == "icp")
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
             return 0
@@ -89,15 +96,14 @@ def main(argv=None) -> int:
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
                                       batch_size=args.batch_size, progress=not args.no_progress,
                                       compute_dtype="bfloat16" if args.bfloat16 else "float32",
-                                      reuse=args.reuse)
+                                      reuse=args.reuse, refine=args.refine == "icp")
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(results["table"])
     import os
 
-    written = [f for f in ("results.md", "results.json", "success_ratio.png", "registrations.png")
-               if os.path.exists(os.path.join(args.out, f))]
+    written = sorted(f for f in os.listdir(args.out) if f.endswith((".md", ".json", ".png")))
     print(f"wrote {', '.join(os.path.join(args.out, f) for f in written)}")
     return 0
 

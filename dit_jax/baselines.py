@@ -1,25 +1,87 @@
 """Classical registration baselines through Open3D (the ``baselines`` extra), on the same pairs as DIT.
 
-Each baseline maps ``(src (N, 3), tgt (M, 3))`` to ``(R (3, 3), t (3,))`` with ``tgt ~ R src + t``. Parameters
-(for unit-sphere shapes, as in ModelNet40 and the embedded set):
+Each baseline maps ``(src (N, 3), tgt (M, 3))`` to ``(R (3, 3), t (3,))`` with ``tgt ~ R src + t``, for clouds
+in the unit sphere (as ModelNet40 and the embedded set are; evaluate.py scales real scans into it):
 
-* ``icp``: point-to-point ICP from the identity, max correspondence distance 0.2, at most 100 iterations.
-* ``fpfh_ransac``: voxel 0.05 downsampling, normals from 30 neighbours within 0.1, FPFH (radius 0.25, 100
-  neighbours), RANSAC on mutual feature matches with 3 points, distance 0.075, edge-length check 0.9,
-  100,000 iterations at confidence 0.999.
-* ``fgr``: fast global registration on the same FPFH features, max correspondence distance 0.075.
+* ``icp``: point-to-point ICP from the identity (Open3D).
+* ``fpfh_ransac``: FPFH features (normals from neighbours within ``normal_radius``, features from those within
+  ``feature_radius``), RANSAC on mutual feature matches (3 points, edge-length check 0.9, inlier distance
+  ``distance``), optionally on a voxel-downsampled cloud.
+* ``fgr``: fast global registration (Zhou et al. 2016) on the same features.
+* ``fpfh_ransac_icp`` / ``fgr_icp``: the global estimate refined by :func:`dit_jax.icp.icp` (the same ICP that
+  refines DIT), every point of both clouds; their time includes both stages.
 
-The random parts of RANSAC are seeded (``open3d.utility.random.seed(0)``) so the figures repeat.
+Every option is an :class:`Options` field. The defaults are tuned on validation pairs of training shapes
+(``scripts/tune_baselines.py``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
+:func:`get` with ``setting=`` gives that setting's choice, without one the choice that scores best over all
+settings together (for clouds of unknown origin, such as real scans). Clouds far denser than the tuning data
+(more than :data:`DENSE_POINTS` points) are voxel-downsampled at :data:`DENSE_VOXEL` before features, as
+Open3D's examples do, so FPFH sees the spacing it was tuned for. RANSAC's random parts are seeded
+(``open3d.utility.random.seed(0)``) so the figures repeat.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import importlib.resources
+import json
 from typing import Callable
 
 import numpy as np
 
-VOXEL = 0.05
-NAMES = ("icp", "fpfh_ransac", "fgr")
+from dit_jax import icp as icp_lib
+
+NAMES = ("icp", "fpfh_ransac", "fgr", "fpfh_ransac_icp", "fgr_icp")
+#: Above this many points a cloud is voxel-downsampled at DENSE_VOXEL (unit-sphere units) for features; the
+#: tuning clouds have 205-1024 points, about 0.04 apart.
+DENSE_POINTS = 5000
+DENSE_VOXEL = 0.025
+TUNED_FILE = "baselines_tuned.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Every knob of the baselines (unit-sphere units).
+
+    Attributes:
+      voxel: voxel size of the downsampling before features; None uses every point.
+      normal_radius, normal_neighbours: normals from at most this many neighbours within the radius.
+      feature_radius, feature_neighbours: FPFH from at most this many neighbours within the radius.
+      distance: RANSAC's inlier distance and FGR's largest correspondence distance.
+      ransac_iterations, ransac_confidence: RANSAC's stopping rule.
+      icp_distances: the refinement's pairing distances, coarse to fine (see :func:`dit_jax.icp.icp`), and
+        the plain ``icp`` baseline's distance (its first).
+      icp_iterations: per refinement stage, and for the plain ``icp`` baseline.
+      icp_method: the refinement's "point_to_point" or "point_to_plane".
+      fgr_tuple_scale: FGR's tuple test (similarity of the triangles of three matches).
+    """
+
+    voxel: float | None = None
+    normal_radius: float = 0.1
+    normal_neighbours: int = 30
+    feature_radius: float = 0.25
+    feature_neighbours: int = 100
+    distance: float = 0.05
+    ransac_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    icp_distances: tuple[float, ...] = (0.1, 0.05)
+    icp_iterations: int = 100
+    icp_method: str = "point_to_point"
+    fgr_tuple_scale: float = 0.95
+
+    def replace(self, **changes) -> "Options":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "Options":
+        values = dict(values)
+        if "icp_distances" in values:
+            values["icp_distances"] = tuple(values["icp_distances"])
+        return cls(**values)
 
 
 def _o3d():
@@ -40,53 +102,113 @@ def _cloud(points: np.ndarray):
 
 def _split(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     transform = np.asarray(transform)
-    return transform[:3, :3].astype(np.float32), transform[:3, 3].astype(np.float32)
+    return transform[:3, :3].astype(np.float64), transform[:3, 3].astype(np.float64)
 
 
-def icp(src: np.ndarray, tgt: np.ndarray, max_distance: float = 0.2, max_iterations: int = 100):
+def features(points: np.ndarray, options: Options):
+    """(Open3D cloud, FPFH features) of points (N, 3): downsampled as ``options`` (and :data:`DENSE_POINTS`)
+    say, normals and FPFH at the options' radii."""
     o3d = _o3d()
-    reg = o3d.pipelines.registration
-    result = reg.registration_icp(_cloud(src), _cloud(tgt), max_distance, np.eye(4),
-                                  reg.TransformationEstimationPointToPoint(),
-                                  reg.ICPConvergenceCriteria(max_iteration=max_iterations))
-    return _split(result.transformation)
-
-
-def _features(points: np.ndarray, voxel: float = VOXEL):
-    o3d = _o3d()
-    down = _cloud(points).voxel_down_sample(voxel)
-    down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    cloud = _cloud(points)
+    voxel = options.voxel
+    if voxel is None and len(points) > DENSE_POINTS:
+        voxel = DENSE_VOXEL
+    if voxel:
+        cloud = cloud.voxel_down_sample(voxel)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius,
+                                                                max_nn=options.normal_neighbours))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
-    return down, fpfh
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=options.feature_radius, max_nn=options.feature_neighbours))
+    return cloud, fpfh
 
 
-def fpfh_ransac(src: np.ndarray, tgt: np.ndarray, voxel: float = VOXEL):
+def ransac_on_features(src_features, tgt_features, options: Options):
+    """FPFH + RANSAC on precomputed :func:`features` of both clouds: (R, t)."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(0)
-    (s, sf), (t, tf) = _features(src, voxel), _features(tgt, voxel)
-    distance = 1.5 * voxel
+    (s, sf), (t, tf) = src_features, tgt_features
     result = reg.registration_ransac_based_on_feature_matching(
-        s, t, sf, tf, True, distance, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        reg.RANSACConvergenceCriteria(100000, 0.999))
+        s, t, sf, tf, True, options.distance, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(options.distance)],
+        reg.RANSACConvergenceCriteria(options.ransac_iterations, options.ransac_confidence))
     return _split(result.transformation)
 
 
-def fgr(src: np.ndarray, tgt: np.ndarray, voxel: float = VOXEL):
+def fgr_on_features(src_features, tgt_features, options: Options):
+    """Fast global registration on precomputed :func:`features` of both clouds: (R, t)."""
+    reg = _o3d().pipelines.registration
+    (s, sf), (t, tf) = src_features, tgt_features
+    result = reg.registration_fgr_based_on_feature_matching(
+        s, t, sf, tf, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=options.distance,
+                                                         tuple_scale=options.fgr_tuple_scale))
+    return _split(result.transformation)
+
+
+def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, options: Options):
+    """A global estimate refined by ICP over every point: (R, t)."""
+    result = icp_lib.icp(src, tgt, rotation, translation, distances=options.icp_distances,
+                         method=options.icp_method, max_iterations=options.icp_iterations)
+    return result.rotation, result.translation
+
+
+def icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
+    """Point-to-point ICP from the identity (Open3D), at ``options.icp_distances[0]``."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
-    (s, sf), (t, tf) = _features(src, voxel), _features(tgt, voxel)
-    result = reg.registration_fgr_based_on_feature_matching(
-        s, t, sf, tf, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=1.5 * voxel))
+    result = reg.registration_icp(_cloud(src), _cloud(tgt), options.icp_distances[0], np.eye(4),
+                                  reg.TransformationEstimationPointToPoint(),
+                                  reg.ICPConvergenceCriteria(max_iteration=options.icp_iterations))
     return _split(result.transformation)
 
 
-def get(name: str) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def fpfh_ransac(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
+    return ransac_on_features(features(src, options), features(tgt, options), options)
+
+
+def fgr(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
+    return fgr_on_features(features(src, options), features(tgt, options), options)
+
+
+def fpfh_ransac_icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
+    return refine(src, tgt, *fpfh_ransac(src, tgt, options), options)
+
+
+def fgr_icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
+    return refine(src, tgt, *fgr(src, tgt, options), options)
+
+
+_METHODS = {"icp": icp, "fpfh_ransac": fpfh_ransac, "fgr": fgr, "fpfh_ransac_icp": fpfh_ransac_icp,
+            "fgr_icp": fgr_icp}
+
+
+@functools.lru_cache(maxsize=1)
+def tuned() -> dict:
+    """The tuned choices shipped with the package: ``{method: {setting or "any": options dict}}`` (empty
+    where the file is missing, which leaves every method at :class:`Options` defaults)."""
+    path = importlib.resources.files("dit_jax") / TUNED_FILE
+    if not path.is_file():
+        return {}
+    return json.loads(path.read_text())["choice"]
+
+
+def tuned_options(name: str, setting: str | None = None) -> Options:
+    """The options ``name`` runs with: the tuned choice for ``setting`` (None or an untuned setting: the
+    choice over all settings)."""
     if name not in NAMES:
         raise ValueError(f"unknown baseline {name!r}; choose from {', '.join(NAMES)}")
-    return {"icp": icp, "fpfh_ransac": fpfh_ransac, "fgr": fgr}[name]
+    choices = tuned().get(name, {})
+    chosen = choices.get(setting) if setting is not None else None
+    chosen = chosen or choices.get("any")
+    return Options.from_dict(chosen) if chosen else Options()
+
+
+def get(name: str, setting: str | None = None, options: Options | None = None
+        ) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The baseline ``name`` as ``(src, tgt) -> (R, t)``, with ``options`` or else its tuned options for
+    ``setting`` (see :func:`tuned_options`)."""
+    options = options or tuned_options(name, setting)
+    return functools.partial(_METHODS[name], options=options)
 
 
 def available() -> bool:

@@ -3,6 +3,7 @@
     dit-register scan_a.ply scan_b.pcd                    # the shipped weights
     dit-register a.xyz b.npy --checkpoint runs/x/model --out a_aligned.ply
     dit-register a.ply b.ply --json > result.json
+    dit-register scan_a.ply scan_b.ply --refine icp --plot check.png   # ICP after the network; a picture
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical) ends with one line on stderr naming the file and the
@@ -53,6 +54,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-downsample", action="store_true",
                         help="refuse clouds above --max-points instead of reading a random subset")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
+    parser.add_argument("--refine", choices=("none", "icp"), default="none",
+                        help="icp: refine the network's estimate by ICP on every point (default: none)")
+    parser.add_argument("--plot", default=None, metavar="FILE.png",
+                        help="draw both clouds before and after the registration, from two viewpoints")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
     return parser
@@ -87,6 +92,11 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(str(err))
         if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
             return _fail(f"{args.out}: its folder does not exist")
+    if args.plot is not None:
+        if not args.plot.lower().endswith(".png"):
+            return _fail(f"--plot {args.plot}: expected a .png file name")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(args.plot))):
+            return _fail(f"{args.plot}: its folder does not exist")
     if args.max_points < 1:
         return _fail(f"--max-points must be positive, got {args.max_points}")
 
@@ -104,17 +114,19 @@ def main(argv: list[str] | None = None) -> int:
             kwargs["n_iters"] = args.iters
         model = registration.load(args.checkpoint, **kwargs)
         try:
-            result = model.register(src, tgt)
+            result = model.register(src, tgt, refine=args.refine)
         except registration.InputError as err:  # name the files, not "source"/"target"
             message = str(err).replace("source:", f"{args.src}:", 1).replace("target:", f"{args.tgt}:", 1)
             return _fail(message)
         if args.out is not None:
             io.write(args.out, result.apply(src))
+        if args.plot is not None:
+            result.plot(args.plot, src, tgt, title=f"{os.path.basename(args.src)} onto {os.path.basename(args.tgt)}")
     except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
         return _fail(str(err))
 
     if args.json:
-        report = result.to_json() | {"src": args.src, "tgt": args.tgt, "out": args.out}
+        report = result.to_json() | {"src": args.src, "tgt": args.tgt, "out": args.out, "plot": args.plot}
         print(json.dumps(report, indent=2))
     else:
         with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
@@ -124,9 +136,11 @@ def main(argv: list[str] | None = None) -> int:
               f"(units of the input)")
         print(f"fitness {result.fitness:.3f} ({'trusted' if result.verdict else 'suspect'}: threshold "
               f"{result.min_fitness:.2f}), inlier ratio {result.inlier_ratio:.3f}, "
-              f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s")
-        if args.out is not None:
-            print(f"wrote {args.out}")
+              f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
+              + (f" + {result.refine_seconds:.2f} s of ICP" if result.refinement else ""))
+        for written in (args.out, args.plot):
+            if written is not None:
+                print(f"wrote {written}")
     if not result.verdict:
         print(f"{PROG}: warning: the result is probably wrong: only {100 * result.fitness:.0f} % of the sampled "
               f"source points land on the target (trusted from {100 * result.min_fitness:.0f} %)", file=sys.stderr)

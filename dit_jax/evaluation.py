@@ -1,15 +1,19 @@
 """Evaluation: DIT and classical baselines on the same test pairs, the paper's tables and figures.
 
 :func:`evaluate` is the job behind ``python evaluate.py``. For each data setting it makes the deterministic
-test pairs (:mod:`dit_jax.data.pairs`), registers them with DIT (``register``, the setting's GMCCE threshold,
-3 iterations unless overridden) and with the chosen Open3D baselines, and writes to ``out_dir``:
+test pairs (:mod:`dit_jax.data.pairs`), registers them with DIT (``register``, the model as it ships unless
+overridden), with DIT refined by ICP (``DIT+ICP``, :mod:`dit_jax.icp`, as ``register(refine="icp")``) and with
+the chosen Open3D baselines at their tuned options for that setting (:func:`dit_jax.baselines.tuned_options`),
+and writes to ``out_dir``:
 
 * ``results.md`` -- tables shaped like the paper's (RMSE / MAE of Euler angles and of translation), plus
   isotropic errors, RPM-Net's Chamfer distance, success ratio (the paper's criterion), the share within 5
   degrees and 0.05 (a criterion that independently sampled clouds can meet) and time per pair;
 * ``results.json`` -- every number, with per-category breakdowns and the success-ratio sweeps;
 * ``success_ratio.png`` -- success ratio against a sweep of thresholds, one panel per setting;
-* ``registrations.png`` -- a few pairs before and after DIT's registration.
+* ``registrations.png`` -- a few pairs before and after DIT's registration;
+* ``worst_<setting>.png`` -- each method's worst pair of each setting, before and after, so a reader sees
+  how the methods fail.
 """
 
 from __future__ import annotations
@@ -23,13 +27,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from dit_jax import baselines as baselines_lib
-from dit_jax import checkpoint, metrics, model
+from dit_jax import checkpoint, icp as icp_lib, metrics, model, plotting
 from dit_jax.registration import DEFAULT_MIN_FITNESS
 from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 
 METHOD_DIT = "DIT"
+METHOD_DIT_ICP = "DIT+ICP"
 
 
 def predict_dit(params, config, dataset: pairs_lib.PairDataset, indices: np.ndarray, batch_size: int = 8,
@@ -70,9 +75,51 @@ def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, right_deg: float =
             "passed_right": right, "right_deg": right_deg}
 
 
-def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None):
-    """A baseline's estimates for pairs ``indices``, as :func:`predict_dit`."""
-    method = baselines_lib.get(name)
+def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None) -> dict:
+    """DIT's estimates (from :func:`predict_dit`) refined by ICP on every point of each pair, as
+    ``register(refine="icp")`` does; ``seconds`` counts both stages."""
+    rotations, translations, seconds = [], [], []
+    for row, n in enumerate(indices):
+        pair = dataset[int(n)]
+        t0 = time.perf_counter()
+        result = icp_lib.icp(pair["src"], pair["tgt"], dit["R"][row], dit["t"][row],
+                             distances=icp_lib.REFINE_DISTANCES, method=icp_lib.REFINE_METHOD)
+        seconds.append(dit["seconds"][row] + time.perf_counter() - t0)
+        rotations.append(result.rotation)
+        translations.append(result.translation)
+        if bar is not None:
+            bar.update(1)
+    return {"R": np.stack(rotations), "t": np.stack(translations), "seconds": np.asarray(seconds)}
+
+
+def refinement_summary(before: np.ndarray, after: np.ndarray, good_deg: float = 10.0, goal_deg: float = 1.0) -> dict:
+    """What ICP did to DIT's estimates: rotation errors (P,) in degrees before and after. Of the pairs DIT
+    alone had within ``good_deg``, how many end within ``goal_deg`` (and the worst of them); the mean change
+    over those pairs and over all."""
+    good = before <= good_deg
+    return {"good_deg": good_deg, "goal_deg": goal_deg, "good": int(good.sum()),
+            "good_within_goal": int(np.sum(after[good] <= goal_deg)),
+            "good_worst_after": float(after[good].max()) if good.any() else float("nan"),
+            "good_mean_before": float(before[good].mean()) if good.any() else float("nan"),
+            "good_mean_after": float(after[good].mean()) if good.any() else float("nan"),
+            "mean_before": float(before.mean()), "mean_after": float(after.mean()), "pairs": int(len(before))}
+
+
+def refinement_line(r: dict) -> str:
+    if not r["good"]:
+        return (f"DIT+ICP: no pair had DIT alone within {r['good_deg']:g} deg; mean rotation error "
+                f"{r['mean_before']:.3g} -> {r['mean_after']:.3g} deg over all {r['pairs']}.")
+    return (f"DIT+ICP: of the {r['good']} pairs DIT alone had within {r['good_deg']:g} deg, {r['good_within_goal']} end "
+            f"within {r['goal_deg']:g} deg (worst {r['good_worst_after']:.3g}; mean {r['good_mean_before']:.3g} -> "
+            f"{r['good_mean_after']:.3g}); over all {r['pairs']} pairs the mean goes {r['mean_before']:.3g} -> "
+            f"{r['mean_after']:.3g} deg.")
+
+
+def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None,
+                     setting: str | None = None):
+    """A baseline's estimates for pairs ``indices``, as :func:`predict_dit`, with its options tuned for
+    ``setting`` (:func:`dit_jax.baselines.tuned_options`)."""
+    method = baselines_lib.get(name, setting)
     rotations, translations, seconds = [], [], []
     for n in indices:
         pair = dataset[int(n)]
@@ -140,6 +187,8 @@ def markdown_tables(results: dict) -> str:
             lines.append(f"| {name} | {r['rot_rmse']:.4f} | {r['rot_mae']:.4f} | {r['trans_rmse']:.5f} | "
                          f"{r['trans_mae']:.5f} | {r['rot_iso']:.4f} | {r['trans_iso']:.5f} | {r['chamfer']:.6f} | "
                          f"{100 * r['success']:.1f} % | {100 * within(r, 5.0):.1f} % | {r['seconds_per_pair']:.3f} |")
+        if METHOD_DIT_ICP in methods and "refinement" in methods[METHOD_DIT_ICP]:
+            lines += ["", refinement_line(methods[METHOD_DIT_ICP]["refinement"])]
         for name, r in methods.items():
             v = r.get("verdict")
             if v:
@@ -152,10 +201,7 @@ def markdown_tables(results: dict) -> str:
 
 
 def plot_success(results: dict, path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plotting.pyplot()
 
     settings = list(results["settings"])
     fig, axes = plt.subplots(1, len(settings), figsize=(5 * len(settings), 4), squeeze=False)
@@ -181,10 +227,7 @@ def plot_success(results: dict, path: str) -> None:
 
 def plot_registrations(dataset: pairs_lib.PairDataset, pred: dict, indices: np.ndarray, path: str,
                        title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plotting.pyplot()
 
     n = len(indices)
     fig = plt.figure(figsize=(8, 3.6 * n))
@@ -204,6 +247,35 @@ def plot_registrations(dataset: pairs_lib.PairDataset, pred: dict, indices: np.n
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def plot_worst(path: str, title: str, worst: Sequence[dict]) -> None:
+    """One row per method: its worst pair, before and after its estimate, from two viewpoints
+    (:func:`dit_jax.plotting.draw_registration`). ``worst``: dicts with ``method``, ``pair`` (a label),
+    ``src`` (N, 3), ``tgt`` (M, 3), ``R``, ``t`` (the estimate) and ``truth`` ((R, t))."""
+    plt = plotting.pyplot()
+    fig = plt.figure(figsize=(13, 3.4 * len(worst)))
+    panels = fig.subfigures(len(worst), 1, squeeze=False)[:, 0]
+    for panel, w in zip(panels, worst):
+        plotting.draw_registration(panel, 0, 1, w["src"], w["tgt"], w["R"], w["t"], w["method"])
+        panel.suptitle(f"{w['method']}, pair {w['pair']}: " + plotting.describe(w["R"], w["t"], truth=w["truth"]),
+                       fontsize=9)
+    fig.suptitle(title, y=1.0 + 0.1 / len(worst))
+    fig.savefig(path, dpi=80, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_worst_pairs(dataset: pairs_lib.PairDataset, indices: np.ndarray, preds: dict, path: str,
+                     title: str) -> None:
+    """:func:`plot_worst` of each method's pair with the largest rotation error among ``indices``."""
+    worst = []
+    for name, pred in preds.items():
+        errors = [plotting.rotation_angle_deg(r.T @ dataset[int(n)]["R"]) for r, n in zip(pred["R"], indices)]
+        row = int(np.argmax(errors))
+        pair = dataset[int(indices[row])]
+        worst.append({"method": name, "pair": int(indices[row]), "src": pair["src"], "tgt": pair["tgt"],
+                      "R": pred["R"][row], "t": pred["t"][row], "truth": (pair["R"], pair["t"])})
+    plot_worst(path, title, worst)
 
 
 def _reusable(reuse: str | None, data_dir, unseen: bool, variant: str, n_points: int) -> dict:
@@ -228,7 +300,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
              n_points: int | None = None, max_pairs: int | None = None, n_iters: int | None = None,
              gmcce_threshold: float | str | None = None, baselines: Sequence[str] = (), batch_size: int = 8,
              prepared_dir: str | None = None, progress: bool = True, compute_dtype: str = "float32",
-             reuse: str | None = None) -> dict:
+             reuse: str | None = None, refine: bool = True, worst_pairs: bool = True) -> dict:
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
     Args:
@@ -242,7 +314,10 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         uses that threshold everywhere.
       compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
       reuse: an earlier output directory of this function: baselines it scored on the same pairs (same data,
-        split, variant, point count and pair count) are taken from its ``results.json`` instead of rerun.
+        split, variant, point count and pair count) with the same options are taken from its ``results.json``
+        instead of rerun.
+      refine: add the ``DIT+ICP`` row.
+      worst_pairs: draw each method's worst pair of each setting (``worst_<setting>.png``).
     """
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
@@ -267,7 +342,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     if progress:
         from tqdm.auto import tqdm
 
-        methods = len(baselines) + (params is not None)
+        methods = len(baselines) + (params is not None) * (1 + refine)
         bar = tqdm(total=sum(len(ix) for _, ix in datasets.values()) * methods, desc="evaluate",
                    unit="pair", dynamic_ncols=True)
     earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
@@ -286,26 +361,43 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
             run_config = config.replace(gmcce_threshold=threshold, n_iters=n_iters or config.n_iters,
                                         compute_dtype=compute_dtype)
             preds[METHOD_DIT] = predict_dit(params, run_config, ds, indices, batch_size, bar)
+            if refine:
+                if bar is not None:
+                    bar.set_postfix_str(f"{setting}: DIT+ICP")
+                preds[METHOD_DIT_ICP] = refine_dit(preds[METHOD_DIT], ds, indices, bar)
         reused = {}
         for name in baselines:
             old = earlier.get(setting, {}).get(name)
-            if old is not None and old["pairs"] == len(indices):
+            options = baselines_lib.tuned_options(name, setting).to_dict()
+            if old is not None and old["pairs"] == len(indices) and old.get("options") == options:
                 reused[name] = old
                 if bar is not None:
                     bar.update(len(indices))
                 continue
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
-            preds[name] = predict_baseline(name, ds, indices, bar)
+            preds[name] = predict_baseline(name, ds, indices, bar, setting)
         min_fitness = extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS)
         scored = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness) for name, p in preds.items()}
-        order = ([METHOD_DIT] if METHOD_DIT in scored else []) + list(baselines)
+        for name in baselines:
+            if name in scored:
+                scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
+        order = [m for m in (METHOD_DIT, METHOD_DIT_ICP) if m in scored] + list(baselines)
+        if METHOD_DIT_ICP in scored:
+            truth_r = jnp.asarray(ds.batch(indices)["R"])
+            errors = {m: np.asarray(metrics.rotation_error_deg(jnp.asarray(preds[m]["R"], jnp.float32), truth_r))
+                      for m in (METHOD_DIT, METHOD_DIT_ICP)}
+            scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(errors[METHOD_DIT], errors[METHOD_DIT_ICP])
         results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
         results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
                                             "variant": variant, "gmcce_threshold": threshold,
                                             "n_iters": n_iters or (config.n_iters if config else None)}
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
+        if worst_pairs and preds:
+            plot_worst_pairs(ds, indices, preds, os.path.join(out_dir, f"worst_{setting}.png"),
+                             f"worst pair of each method: {setting} ({results['data']}, "
+                             f"{'unseen' if unseen else 'seen'} split)")
     if bar is not None:
         bar.close()
     with open(os.path.join(out_dir, "results.json"), "w") as f:
@@ -343,8 +435,8 @@ def register_scan_pair(method: str, src: np.ndarray, tgt: np.ndarray, registrar=
     DIT is the user's path, :meth:`dit_jax.registration.Registrar.register` on the raw clouds (sampling
     included in the time); a baseline gets the same pair in the unit sphere it is tuned for, every point."""
     started = time.perf_counter()
-    if method == METHOD_DIT:
-        result = registrar.register(src, tgt)
+    if method in (METHOD_DIT, METHOD_DIT_ICP):
+        result = registrar.register(src, tgt, refine="icp" if method == METHOD_DIT_ICP else "none")
         return result.rotation, result.translation, time.perf_counter() - started, result
     src_n, tgt_n, centre, scale = _normalise_pair(src, tgt)
     rotation, translation = baselines_lib.get(method)(src_n, tgt_n)
@@ -382,6 +474,8 @@ def scan_tables(results: dict) -> str:
             within = " | ".join(f"{s[f'within_{t:g}']} of {s['pairs']}" for t in SCAN_THRESHOLDS)
             lines.append(f"| {name} | {s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
                          f"{s['seconds_per_pair']:.2f} |")
+        if METHOD_DIT_ICP in methods:
+            lines += ["", refinement_line(methods[METHOD_DIT_ICP]["summary"]["refinement"])]
         for name, r in methods.items():
             v = r["summary"].get("verdict")
             if v:
@@ -394,10 +488,7 @@ def scan_tables(results: dict) -> str:
 
 def plot_scan_success(results: dict, path: str) -> None:
     """Share of pairs within a rotation threshold against the threshold, one panel per pair set."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = plotting.pyplot()
 
     thresholds = np.logspace(-1, np.log10(180), 60)
     sets = list(results["pair_sets"])
@@ -420,12 +511,13 @@ def plot_scan_success(results: dict, path: str) -> None:
 
 def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
                    baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
-                   registrar_options: dict | None = None) -> dict:
+                   registrar_options: dict | None = None, refine: bool = True, worst_pairs: bool = True) -> dict:
     """DIT (and baselines) on pairs of real range scans with known poses (:mod:`dit_jax.data.scans`).
 
     Pairs: scan i with scan i + ``skip`` for each skip (1: adjacent, 2: every second one). Writes
-    ``results.md``, ``results.json`` (every pair's errors, the verdicts) and ``success_ratio.png`` to
-    ``out_dir``. Errors: isotropic rotation error in degrees, and translation error over the target's
+    ``results.md``, ``results.json`` (every pair's errors, the verdicts), ``success_ratio.png`` and
+    ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT, DIT+ICP (with
+    ``refine``) and ``baselines`` (their tuned options for any setting). Errors: isotropic rotation error in degrees, and translation error over the target's
     bounding-box diagonal.
     """
     from dit_jax import registration
@@ -438,7 +530,7 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     methods = list(baselines)
     if checkpoint_dir is not None:
         registrar = registration.load(checkpoint_dir, **(registrar_options or {}))
-        methods.insert(0, METHOD_DIT)
+        methods[:0] = [METHOD_DIT, METHOD_DIT_ICP] if refine else [METHOD_DIT]
     pair_sets = {f"skip{k}": scans_lib.scan_pairs(all_scans, k)[:max_pairs] for k in skips}
     bar = None
     if progress:
@@ -480,6 +572,22 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                                                      np.array([r["verdict"] for r in rows]))
                 summary["verdict"]["min_fitness"] = registrar.min_fitness
             results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
+        done = results["pair_sets"][set_name]
+        if METHOD_DIT_ICP in done:
+            done[METHOD_DIT_ICP]["summary"]["refinement"] = refinement_summary(
+                np.array([r["rot_err"] for r in done[METHOD_DIT]["rows"]]),
+                np.array([r["rot_err"] for r in done[METHOD_DIT_ICP]["rows"]]))
+        if worst_pairs:
+            by_name = {p.name: p for p in set_pairs}
+            worst = []
+            for method, r in results["pair_sets"][set_name].items():
+                row = max(r["rows"], key=lambda x: x["rot_err"])
+                pair, matrix = by_name[row["pair"]], np.asarray(row["matrix"])
+                worst.append({"method": method, "pair": row["pair"], "src": pair.source, "tgt": pair.target,
+                              "R": matrix[:3, :3], "t": matrix[:3, 3], "truth": (pair.rotation, pair.translation)})
+            os.makedirs(out_dir, exist_ok=True)
+            plot_worst(os.path.join(out_dir, f"worst_{set_name}.png"), f"worst pair of each method: {set_name} "
+                       f"({os.path.basename(os.path.normpath(scans_dir))})", worst)
     if bar is not None:
         bar.close()
     os.makedirs(out_dir, exist_ok=True)
@@ -555,11 +663,7 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     table = "\n".join(lines) + "\n"
     with open(os.path.join(out_dir, "angle_sweep.md"), "w") as f:
         f.write(table)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = plotting.pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     xs = list(rows)
     ax.plot(xs, [rows[a]["within_5"] for a in xs], marker="o", label="within 5 deg")

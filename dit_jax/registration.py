@@ -18,7 +18,10 @@ What :meth:`Registrar.register` does to a pair, in order:
 4. runs the jitted :func:`dit_jax.model.register` (one compilation per pair of cloud sizes: with both clouds
    at least the model's point count, every call after the first reuses the same program);
 5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
-   ``y = R x + s t' + c_y - R c_x``.
+   ``y = R x + s t' + c_y - R c_x``;
+6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds (:mod:`dit_jax.icp`;
+   pairing distances :data:`dit_jax.icp.REFINE_DISTANCES` times ``s``, chosen on validation pairs), and
+   recomputes the fitness, and with it the verdict, for the refined motion.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dit_jax import geometry, icp as icp_lib
 from dit_jax import model as model_lib
 from dit_jax.configs import DITConfig
 
@@ -41,6 +45,8 @@ SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
 #: within ``fitness_radius`` point spacings of the target (a checkpoint may record its own, measured, as
 #: ``verdict_min_fitness``; see README, "Is the result right?").
 DEFAULT_MIN_FITNESS = 0.5
+#: What :meth:`Registrar.register` can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
+REFINEMENTS = ("none", "icp")
 
 
 class InputError(ValueError):
@@ -62,6 +68,8 @@ class Result:
       fitness: share of the sampled source points the estimate lays within ``fitness_radius`` point spacings
         of the target (see :func:`dit_jax.geometry.fitness`).
       seconds: wall time of the network call (excluding sampling and a first call's compilation).
+      refinement: "icp" where ICP refined the network's estimate, else None.
+      refine_seconds: wall time of the refinement (0 without one).
       verdict: True where the model's own evidence supports the result (``fitness >= min_fitness``), False
         where it is probably wrong; see :class:`Registrar`.
       min_fitness: the verdict's threshold.
@@ -78,6 +86,8 @@ class Result:
     seconds: float
     verdict: bool = True
     min_fitness: float = DEFAULT_MIN_FITNESS
+    refinement: str | None = None
+    refine_seconds: float = 0.0
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -89,7 +99,17 @@ class Result:
                 "fitness": self.fitness,
                 "verdict": "trusted" if self.verdict else "suspect", "min_fitness": self.min_fitness,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
-                "seconds": self.seconds}
+                "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds}
+
+    def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
+        """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
+        after the motion from two viewpoints, with the motion, inlier ratio and fitness in the title (and the
+        error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
+        from dit_jax import plotting
+
+        return plotting.plot_registration(path, np.asarray(src), np.asarray(tgt), self.rotation, self.translation,
+                                          title=title, inlier_ratio=self.inlier_ratio, fitness=self.fitness,
+                                          truth=truth, label="DIT + ICP" if self.refinement else "DIT")
 
 
 def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: int | None = None) -> np.ndarray:
@@ -155,11 +175,14 @@ class Registrar:
         for clouds that lie far apart (more than about half their size) in the caller's frame.
       min_fitness: a result whose fitness (the share of sampled source points it lays onto the target) is
         below this gets ``verdict=False``.
+      refine: the default of :meth:`register`'s ``refine``: "none" or "icp".
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
-                 min_fitness: float = DEFAULT_MIN_FITNESS):
+                 min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "none"):
+        _check_refine(refine)
+        self.refine = refine
         if centring not in ("shared", "separate"):
             raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
         self.centring = centring
@@ -172,8 +195,13 @@ class Registrar:
         if self.n_points < model_lib.min_points(self.config):
             raise ValueError(f"n_points={n_points} is below the model's minimum {model_lib.min_points(self.config)}")
 
-    def register(self, src, tgt) -> Result:
-        """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units; see the module docs."""
+    def register(self, src, tgt, *, refine: str | None = None) -> Result:
+        """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units; see the module docs.
+
+        ``refine``: "icp" refines the network's estimate by ICP on every point (step 6), "none" does not;
+        None: the Registrar's ``refine``."""
+        refine = self.refine if refine is None else refine
+        _check_refine(refine)
         need = model_lib.min_points(self.config)
         src = check_cloud("source", src, need)
         tgt = check_cloud("target", tgt, need)
@@ -194,14 +222,33 @@ class Registrar:
         seconds = time.perf_counter() - started
         rotation = np.asarray(rotation[0], np.float64)
         translation = scale * np.asarray(translation[0], np.float64) + tgt_centre - rotation @ src_centre
+        fitness = float(extras["fitness"][0])
+        refine_seconds = 0.0
+        if refine == "icp":
+            started = time.perf_counter()
+            refined = icp_lib.icp(src, tgt, rotation, translation, distances=scale * np.asarray(icp_lib.REFINE_DISTANCES),
+                                  method=icp_lib.REFINE_METHOD, seed=self.seed)
+            rotation, translation = refined.rotation, refined.translation
+            # The verdict's fitness, as the model measures it, for the refined motion.
+            moved = ((src_s @ rotation.T + translation) - tgt_centre) / scale
+            tgt_j = jnp.asarray(tgt_n[0])
+            fitness = float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
+                                             self.config.fitness_radius * geometry.spacing(tgt_j)))
+            refine_seconds = time.perf_counter() - started
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = rotation, translation
         return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
                       correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
                       confidence=np.asarray(extras["weights"][0], np.float64),
-                      inlier_ratio=float(extras["inlier_ratio"][0]), fitness=float(extras["fitness"][0]),
-                      seconds=seconds, verdict=bool(extras["fitness"][0] >= self.min_fitness),
-                      min_fitness=self.min_fitness)
+                      inlier_ratio=float(extras["inlier_ratio"][0]), fitness=fitness,
+                      seconds=seconds, verdict=bool(fitness >= self.min_fitness),
+                      min_fitness=self.min_fitness, refinement=None if refine == "none" else refine,
+                      refine_seconds=refine_seconds)
+
+
+def _check_refine(refine) -> None:
+    if refine not in REFINEMENTS:
+        raise ValueError(f"refine must be one of {', '.join(map(repr, REFINEMENTS))}, got {refine!r}")
 
 
 def shipped_weights() -> str:

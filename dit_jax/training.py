@@ -246,6 +246,24 @@ def split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shapes
     return take(train), take(val)
 
 
+
+def validation_batches(data_dir: str | None, settings, *, count: int = 24, n_points: int = 1000,
+                       unseen: bool = True, prepared_dir: str | None = None) -> dict[str, dict]:
+    """Fixed validation pairs for choosing settings outside training (inference options, baselines' knobs):
+    ``count`` pairs per setting from the training split's held-out shapes (:func:`split_validation`; only
+    categories 0-19 with ``unseen``), spread over all of them. Returns ``{setting: batch}`` (see
+    :meth:`dit_jax.data.pairs.PairDataset.batch`); never a test pair."""
+    shapes = shapes_lib.load_shapes(data_dir, "train", data_dir=prepared_dir,
+                                    n_points=pairs_lib.shape_points(data_dir, n_points, settings))
+    _, val_shapes = split_validation(shapes, TrainConfig().val_fraction)
+    batches = {}
+    for setting in settings:
+        ds = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(setting=setting, n_points=n_points))
+        if unseen:
+            ds.rows = ds.rows[val_shapes.labels[ds.rows] < 20]
+        batches[setting] = ds.batch(np.linspace(0, len(ds) - 1, count).astype(int))
+    return batches
+
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     """(training pairs, validation pairs) from the training split of the chosen source: two
     :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with

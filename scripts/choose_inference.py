@@ -19,8 +19,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dit_jax import checkpoint, metrics, model, training
-from dit_jax.data import pairs as pairs_lib
-from dit_jax.data import shapes as shapes_lib
 
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
@@ -37,15 +35,8 @@ def main() -> None:
     args = parser.parse_args()
 
     params, config = checkpoint.restore(args.checkpoint)
-    shapes = shapes_lib.load_shapes(args.data_dir, "train",
-                                    n_points=pairs_lib.shape_points(args.data_dir, args.n_points, SETTINGS))
-    _, val_shapes = training.split_validation(shapes, training.TrainConfig().val_fraction)
-    batches = {}
-    for setting in SETTINGS:
-        ds = pairs_lib.PairDataset(val_shapes, pairs_lib.PairConfig(setting=setting, n_points=args.n_points))
-        if args.unseen:
-            ds.rows = ds.rows[val_shapes.labels[ds.rows] < 20]
-        batches[setting] = ds.batch(np.linspace(0, len(ds) - 1, args.pairs).astype(int))
+    batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs, n_points=args.n_points,
+                                          unseen=args.unseen)
 
     variants = []
     for values in itertools.product(*GRID.values()):

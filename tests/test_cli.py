@@ -175,3 +175,30 @@ def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
             assert error < 5 and err == ""
         else:
             assert error > 5 and "probably wrong" in err
+
+
+def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
+    """The README's example (two scan-like views of a chair sampled independently, true motion in
+    examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone, and --plot
+    writes a PNG."""
+    from dit_jax.plotting import rotation_angle_deg
+
+    examples = os.path.join(os.path.dirname(__file__), "..", "examples")
+    truth = np.loadtxt(os.path.join(examples, "chair_truth.txt"))
+    errors = {}
+    for refine in ("none", "icp"):
+        code, out, err = run(capsys, os.path.join(examples, "chair_src.ply"), os.path.join(examples, "chair_tgt.pcd"),
+                             "--refine", refine, "--plot", tmp_path / f"{refine}.png", "--json", "--no-verdict-status")
+        assert code == 0, err
+        report = json.loads(out)
+        errors[refine] = rotation_angle_deg(np.asarray(report["matrix"])[:3, :3].T @ truth[:3, :3])
+        assert report["refinement"] == (None if refine == "none" else "icp")
+        assert (tmp_path / f"{refine}.png").read_bytes()[:4] == b"\x89PNG"
+    assert errors["icp"] < errors["none"] and errors["icp"] < 2.0, errors
+
+
+def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
+    folder, _, _ = pair
+    for bad, fragment in ((tmp_path / "x.jpg", "expected a .png"), (tmp_path / "no" / "x.png", "does not exist")):
+        code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--plot", bad)
+        assert code == 2 and fragment in err and not os.path.exists(bad)

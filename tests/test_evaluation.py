@@ -22,7 +22,8 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     results = evaluation.evaluate(tiny_checkpoint, str(out), settings=("clean", "high_noise_partial"),
                                   max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
                                   gmcce_threshold="authors")
-    assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png"]
+    assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png",
+                                       "worst_clean.png", "worst_high_noise_partial.png"]
     saved = json.loads((out / "results.json").read_text())
     assert saved["n_points"] == 128, "the training run's point count is the default"
     for setting in ("clean", "high_noise_partial"):
@@ -30,7 +31,8 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert dit["pairs"] == 4 and dit["seconds_per_pair"] > 0 and dit["chamfer"] >= 0
         assert saved["setting_info"][setting]["gmcce_threshold"] == configs.GMCCE_THRESHOLDS[setting]
         assert sum(c["pairs"] for c in dit["by_category"].values()) == 4
-        assert set(saved["settings"][setting]) == {"DIT", *names}
+        assert list(saved["settings"][setting]) == ["DIT", "DIT+ICP", *names]
+        assert saved["settings"][setting]["DIT+ICP"]["seconds_per_pair"] > dit["seconds_per_pair"]
     assert "| DIT |" in (out / "results.md").read_text()
     assert (out / "success_ratio.png").stat().st_size > 10_000
     assert "verdict" in saved["settings"]["clean"]["DIT"] and "verdict (fitness" in (out / "results.md").read_text()
@@ -57,8 +59,8 @@ def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
     rows = results["pair_sets"]["skip1"]["DIT"]["rows"]
     assert [r["pair"] for r in rows] == ["s0->s1", "s1->s2", "s2->s0"]
     assert all(0 <= r["rot_err"] <= 180 and 0 <= r["fitness"] <= 1 for r in rows)
-    assert sorted(os.listdir(tmp_path / "out")) == ["results.json", "results.md", "success_ratio.png"]
-    assert "| DIT |" in results["table"] and "3 pairs" in results["table"]
+    assert sorted(os.listdir(tmp_path / "out")) == ["results.json", "results.md", "success_ratio.png", "worst_skip1.png"]
+    assert "| DIT |" in results["table"] and "| DIT+ICP |" in results["table"] and "3 pairs" in results["table"]
 
 
 def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
@@ -103,3 +105,26 @@ def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="made on other pairs"):
         evaluation.evaluate(None, str(tmp_path / "c"), settings=("clean",), max_pairs=3, baselines=["icp"],
                             prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"), unseen=True)
+
+
+def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tiny_checkpoint, tmp_path):
+    """An untrained network's estimates are poor; ICP after them must not make the clean pairs worse on
+    average, and every baseline row records the options it ran with (the tuned ones for the setting)."""
+    baselines = __import__("dit_jax.baselines").baselines
+    names = ["fpfh_ransac_icp"] if baselines.available() else []
+    results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("clean",), max_pairs=4,
+                                  baselines=names, prepared_dir=str(tmp_path / "p"), progress=False, worst_pairs=False)
+    rows = results["settings"]["clean"]
+    assert rows["DIT+ICP"]["rot_iso"] <= rows["DIT"]["rot_iso"] + 1e-6
+    for name in names:
+        assert rows[name]["options"] == baselines.tuned_options(name, "clean").to_dict()
+        assert rows[name]["success"] == 1.0
+    assert not any(f.startswith("worst_") for f in os.listdir(tmp_path / "e"))
+
+
+def test_refinement_summary_counts_the_pairs_dit_had_close():
+    summary = evaluation.refinement_summary(__import__("numpy").array([2.0, 20.0, 8.0]),
+                                            __import__("numpy").array([0.5, 30.0, 1.5]))
+    assert (summary["good"], summary["good_within_goal"], summary["good_worst_after"]) == (2, 1, 1.5)
+    assert summary["mean_before"] == 10.0 and "2 pairs DIT alone had within 10 deg, 1 end" in \
+        evaluation.refinement_line(summary)
