@@ -82,8 +82,7 @@ def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, b
     for row, n in enumerate(indices):
         pair = dataset[int(n)]
         t0 = time.perf_counter()
-        result = icp_lib.icp(pair["src"], pair["tgt"], dit["R"][row], dit["t"][row],
-                             distances=icp_lib.REFINE_DISTANCES, method=icp_lib.REFINE_METHOD)
+        result = icp_lib.refine(pair["src"], pair["tgt"], dit["R"][row], dit["t"][row])
         seconds.append(dit["seconds"][row] + time.perf_counter() - t0)
         rotations.append(result.rotation)
         translations.append(result.translation)

@@ -19,9 +19,10 @@ What :meth:`Registrar.register` does to a pair, in order:
    at least the model's point count, every call after the first reuses the same program);
 5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
    ``y = R x + s t' + c_y - R c_x``;
-6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds (:mod:`dit_jax.icp`;
-   pairing distances :data:`dit_jax.icp.REFINE_DISTANCES` times ``s``, chosen on validation pairs), and
-   recomputes the fitness, and with it the verdict, for the refined motion.
+6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds
+   (:func:`dit_jax.icp.refine`: point-to-plane at pairing distances :data:`dit_jax.icp.REFINE_DISTANCES`
+   times ``s``, chosen on validation pairs), and recomputes the fitness, and with it the verdict, for the
+   refined motion.
 """
 
 from __future__ import annotations
@@ -226,8 +227,7 @@ class Registrar:
         refine_seconds = 0.0
         if refine == "icp":
             started = time.perf_counter()
-            refined = icp_lib.icp(src, tgt, rotation, translation, distances=scale * np.asarray(icp_lib.REFINE_DISTANCES),
-                                  method=icp_lib.REFINE_METHOD, seed=self.seed)
+            refined = icp_lib.refine(src, tgt, rotation, translation, scale=scale, seed=self.seed)
             rotation, translation = refined.rotation, refined.translation
             # The verdict's fitness, as the model measures it, for the refined motion.
             moved = ((src_s @ rotation.T + translation) - tgt_centre) / scale

@@ -54,6 +54,17 @@ def score(estimates: list, batch: dict) -> dict:
             "score": s["success"] + within}
 
 
+def rounded(value):
+    """``value`` with every float rounded to 4 decimals (the report stays small)."""
+    if isinstance(value, float):
+        return round(value, 4)
+    if isinstance(value, dict):
+        return {k: rounded(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [rounded(v) for v in value]
+    return value
+
+
 def rank_key(row: dict):
     return (round(row["score"], 9), -row["median"])
 
@@ -203,7 +214,7 @@ def main() -> None:
     report["seconds"] = time.time() - started
     os.makedirs(os.path.dirname(args.report) or ".", exist_ok=True)
     with open(args.report + ".json", "w") as f:
-        json.dump(report, f, indent=1)
+        json.dump(rounded(report), f, separators=(",", ":"))
     shipped = {"date": report["date"], "command": report["command"], "report": args.report + ".md",
                "choice": {m: {t: c["options"] for t, c in per.items()} for m, per in report["choice"].items()}}
     with open(args.out_json, "w") as f:

@@ -110,21 +110,24 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
         assert unit_r < 1.0  # the shipped model registers these clean pairs in the first place
 
 
-def test_icp_refinement_improves_an_independently_sampled_pair_and_updates_the_verdict(modelnet_shapes):
-    """Two disjoint halves of a shape (no point shared), metres and an offset: the shipped network lands a
-    few degrees off; refine="icp" brings it within 1 degree, and the fitness it reports is the refined one."""
-    shape = modelnet_shapes[5].astype(np.float64)
-    src, tgt_local = shape[0::2] * 2.0, shape[1::2] * 2.0
+def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict(modelnet_shapes):
+    """Two disjoint halves of a shape (no point shared), in metres with an offset: the shipped network lands
+    15-50 degrees off on these six shapes; refine="icp" improves every one, to a median under 2 degrees
+    (measured 2026-11-26: 0.3-3.0), and reports the refined fitness."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
-    tgt = tgt_local @ truth.T + [5.0, -3.0, 1.0]
     model_ = registration.load(n_points=512)
-    plain = model_.register(src, tgt)
-    refined = model_.register(src, tgt, refine="icp")
-    assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
-    assert _rotation_error_deg(refined.rotation, truth) < 1.0
-    assert _rotation_error_deg(refined.rotation, truth) < _rotation_error_deg(plain.rotation, truth)
-    assert refined.fitness >= plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
-    np.testing.assert_allclose(refined.apply(src[:3]), src[:3] @ refined.rotation.T + refined.translation)
+    plain_errors, refined_errors = [], []
+    for index in range(6):
+        shape = modelnet_shapes[index].astype(np.float64)
+        src, tgt = shape[0::2] * 2.0, (shape[1::2] * 2.0) @ truth.T + [5.0, -3.0, 1.0]
+        plain = model_.register(src, tgt)
+        refined = model_.register(src, tgt, refine="icp")
+        assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
+        assert refined.fitness > plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
+        plain_errors.append(_rotation_error_deg(plain.rotation, truth))
+        refined_errors.append(_rotation_error_deg(refined.rotation, truth))
+    assert all(r < p for r, p in zip(refined_errors, plain_errors)), (plain_errors, refined_errors)
+    assert np.median(refined_errors) < 2.0, refined_errors
     with pytest.raises(ValueError, match="refine"):
         model_.register(src, tgt, refine="ransac")
 
