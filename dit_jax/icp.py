@@ -33,6 +33,11 @@ REFINE_METHOD = "point_to_plane"
 #: to its nearest target point is below this share of the target's point spacing (0.0-0.1 on the authors'
 #: low-noise pairs, 0.8 and above on independently sampled ones; scripts/check_refinement.py).
 SHARED_POINTS_GAP = 0.3
+#: :func:`refine` keeps the estimate it was given where ICP would move the source points by more than this
+#: share of the clouds' radius on average (None: no limit). On validation pairs, 0.5 keeps as many pairs
+#: within 5 degrees as no limit and lowers the mean error on scan-like pairs; 0.3 or less loses pairs ICP
+#: would have brought in (docs/refinement_check.md).
+MAX_SHIFT = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,26 +176,54 @@ def spacing(points: np.ndarray, tree=None, max_points: int = 5_000, seed: int = 
     return float(np.median(tree.query(points, k=2)[0][:, 1]))
 
 
+def _median_gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int) -> float:
+    """Median distance from (up to 5,000 of) the moved source points to their nearest target point."""
+    if len(src) > 5_000:
+        src = src[np.random.default_rng(seed).choice(len(src), 5_000, replace=False)]
+    return float(np.median(tree.query(src @ rotation.T + translation)[0]))
+
+
+def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
+               translation_b: np.ndarray) -> float:
+    """How far two motions place the points of src (N, 3) apart, on average (the clouds' units)."""
+    return float(np.mean(np.linalg.norm(src @ (rotation_a - rotation_b).T + (translation_a - translation_b), axis=1)))
+
+
 def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
-           scale: float = 1.0, seed: int = 0) -> ICPResult:
-    """DIT's refinement of a global estimate: point-to-plane ICP at :data:`REFINE_DISTANCES` times ``scale``
-    (the clouds' radius), which slides independently sampled surfaces onto each other; then, where the clouds
-    turn out to share their points (:data:`SHARED_POINTS_GAP`), a last point-to-point stage at half the last
-    distance, which pairs identical points exactly (point-to-plane alone drifts along the surface there:
-    0.13 degrees median instead of 0.01 on the authors' low-noise partial pairs).
+           scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT) -> ICPResult:
+    """DIT's refinement of a global estimate.
+
+    Where the clouds share their points and the estimate already lays them onto each other (the median gap
+    from a source point to the target is below :data:`SHARED_POINTS_GAP` point spacings), point-to-point ICP
+    at half the last of :data:`REFINE_DISTANCES`, which pairs identical points exactly. Otherwise
+    point-to-plane ICP at :data:`REFINE_DISTANCES` (times ``scale``, the clouds' radius), which slides
+    independently sampled surfaces onto each other, and the same point-to-point stage after it where the
+    clouds then turn out to share their points. Point-to-plane alone drifts along the surface on shared
+    points (0.13 degrees median instead of 0.01 on the authors' low-noise partial pairs,
+    docs/refinement_check.md).
+
+    A refinement that moves the source points by more than ``max_shift`` times ``scale`` on average is
+    refused (the estimate comes back unchanged, ``iterations`` 0): ICP from a start that far off slides
+    partial views into each other rather than correcting them.
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`. Returns :class:`ICPResult`."""
     from scipy.spatial import cKDTree
 
-    distances = tuple(scale * d for d in REFINE_DISTANCES)
-    result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed)
+    src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
+    distances = tuple(scale * d for d in REFINE_DISTANCES)
     tree = cKDTree(tgt)
-    sample = np.asarray(src, np.float64)
-    if len(sample) > 5_000:
-        sample = sample[np.random.default_rng(seed).choice(len(sample), 5_000, replace=False)]
-    gap = float(np.median(tree.query(sample @ result.rotation.T + result.translation)[0]))
-    if gap < SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed):
-        last = icp(src, tgt, result.rotation, result.translation, distances=distances[-1] / 2, seed=seed)
-        result = dataclasses.replace(last, iterations=result.iterations + last.iterations)
+    shared = SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed)
+    point_stage = lambda r, t: icp(src, tgt, r, t, distances=distances[-1] / 2, seed=seed)
+    if _median_gap(src, tree, rotation, translation, seed) < shared:
+        result = point_stage(rotation, translation)
+    else:
+        result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed)
+        if _median_gap(src, tree, result.rotation, result.translation, seed) < shared:
+            last = point_stage(result.rotation, result.translation)
+            result = dataclasses.replace(last, iterations=result.iterations + last.iterations)
+    if max_shift is not None and mean_shift(src, result.rotation, result.translation, rotation,
+                                            translation) > max_shift * scale:
+        start = icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0)
+        return dataclasses.replace(start, iterations=0)
     return result

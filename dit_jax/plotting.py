@@ -60,19 +60,20 @@ def draw_registration(fig, row: int, rows: int, src: np.ndarray, tgt: np.ndarray
     src = _subset(np.asarray(src, np.float64), 0)
     tgt = _subset(np.asarray(tgt, np.float64), 1)
     moved = src @ np.asarray(rotation).T + np.asarray(translation)
+    # Percentiles, not extremes: a few stray points of a scan would otherwise shrink the shape to a dot.
     everything = np.concatenate([src, tgt, moved])
-    low, high = everything.min(axis=0), everything.max(axis=0)
+    low, high = np.percentile(everything, 1, axis=0), np.percentile(everything, 99, axis=0)
     centre, half = (low + high) / 2, (high - low).max() / 2
     size = max(0.3, 4000.0 / max(len(src), len(tgt)))
     for col, ((elev, azim), (moving, stage)) in enumerate(
             [(v, m) for m in ((src, "before"), (moved, f"after ({label})")) for v in VIEWS]):
         ax = fig.add_subplot(rows, 4, 4 * row + col + 1, projection="3d")
-        ax.scatter(*tgt.T, s=size, c="tab:blue", label="target", depthshade=False)
+        ax.scatter(*tgt.T, s=size, c="tab:blue", alpha=0.5, label="target", depthshade=False)
         ax.scatter(*moving.T, s=size, c="tab:red" if stage == "before" else "tab:green", label="source",
                    depthshade=False)
         ax.view_init(elev=elev, azim=azim)
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
-            setter(c - half, c + half)
+            setter(c - 1.1 * half, c + 1.1 * half)
         ax.set_axis_off()
         ax.set_title(f"{stage}, view {col % 2 + 1}", fontsize=8)
         if col == 0:

@@ -4,10 +4,11 @@ training shapes, per setting: what the shared-points switch (:data:`dit_jax.icp.
     python scripts/check_refinement.py --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen \
         --out docs/refinement_check.md
 
-Rows per setting: mean / median rotation error (degrees) of DIT alone (the shipped weights as they ship),
-point-to-plane ICP at REFINE_DISTANCES, point-to-point at (0.1, 0.05, 0.025), point-to-plane followed by a
-point-to-point stage, and ``refine`` (the last stage only where the clouds share their points); and the
-median gap after point-to-plane over the target's spacing, which tells shared points from independent ones.
+Rows per setting: mean / median rotation error (degrees) and the share within 5 degrees of DIT alone (the
+shipped weights as they ship), point-to-plane ICP at REFINE_DISTANCES, point-to-point at (0.1, 0.05, 0.025),
+and ``refine`` (point-to-point where the clouds share their points) with each limit on how far it may move
+the points (:data:`SHIFTS`; the shipped one is MAX_SHIFT); and the median gap after point-to-plane over the
+target's spacing, which tells shared points from independent ones.
 """
 
 import argparse
@@ -22,6 +23,8 @@ from dit_jax import icp, model, registration, training
 from dit_jax.data.pairs import SETTINGS
 from dit_jax.plotting import rotation_angle_deg
 
+SHIFTS = (None, 0.3, 0.5)
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -33,12 +36,13 @@ def main() -> None:
     args = parser.parse_args()
     batches = training.validation_batches(args.data_dir, list(SETTINGS), count=args.pairs, unseen=args.unseen)
     registrar = registration.load(args.checkpoint)
-    columns = ("DIT alone", "point-to-plane", "point-to-point x3", "plane then point", "refine (shipped)")
+    columns = ("DIT alone", "point-to-plane", "point-to-point x3") + tuple(
+        f"refine, shift <= {v}" + (" (shipped)" if v == icp.MAX_SHIFT else "") for v in SHIFTS)
     lines = [f"DIT's ICP refinement on {args.pairs} validation pairs per setting (training shapes"
              + (", categories 0-19" if args.unseen else "") + f"), {datetime.date.today().isoformat()}: "
              f"`python {' '.join(sys.argv)}`", "",
-             "mean / median rotation error (deg); gap: median distance to the nearest target point after "
-             "point-to-plane over the target's point spacing", "",
+             "mean / median rotation error (deg) / share within 5 deg; gap: median distance to the nearest "
+             "target point after point-to-plane over the target's point spacing", "",
              "| setting | " + " | ".join(columns) + " | gap |", "|---|" + "---|" * (len(columns) + 1)]
     for setting, b in batches.items():
         rotations, translations, _ = model.register(registrar.params, jnp.asarray(b["src"]), jnp.asarray(b["tgt"]),
@@ -50,13 +54,13 @@ def main() -> None:
             r0, t0 = np.asarray(rotations[i], np.float64), np.asarray(translations[i], np.float64)
             plane = icp.icp(src, tgt, r0, t0, distances=icp.REFINE_DISTANCES, method="point_to_plane")
             point = icp.icp(src, tgt, r0, t0, distances=(0.1, 0.05, 0.025))
-            both = icp.icp(src, tgt, plane.rotation, plane.translation, distances=icp.REFINE_DISTANCES[-1] / 2)
-            shipped = icp.refine(src, tgt, r0, t0)
-            for column, rotation in zip(columns, (r0, plane.rotation, point.rotation, both.rotation, shipped.rotation)):
+            refined = [icp.refine(src, tgt, r0, t0, max_shift=v).rotation for v in SHIFTS]
+            for column, rotation in zip(columns, (r0, plane.rotation, point.rotation, *refined)):
                 errors[column].append(rotation_angle_deg(rotation.T @ b["R"][i]))
             tree = cKDTree(tgt)
             gaps.append(np.median(tree.query(src @ plane.rotation.T + plane.translation)[0]) / icp.spacing(tgt, tree))
-        cells = " | ".join(f"{np.mean(v):.3f} / {np.median(v):.3f}" for v in errors.values())
+        cells = " | ".join(f"{np.mean(v):.2f} / {np.median(v):.3f} / {np.mean(np.array(v) <= 5):.2f}"
+                           for v in errors.values())
         lines.append(f"| {setting} | {cells} | {np.median(gaps):.2f} |")
         print(lines[-1], flush=True)
     table = "\n".join(lines) + "\n"

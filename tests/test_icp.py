@@ -83,3 +83,35 @@ def test_procrustes_is_a_proper_rotation_even_for_reflected_points():
 def test_unknown_method_is_refused():
     with pytest.raises(ValueError, match="point_to_point"):
         icp.icp(_surface(10), _surface(10), method="plane")
+
+
+def test_refine_pairs_shared_points_exactly_from_a_close_start():
+    """The authors' pairs share their points: from an estimate 0.05 degrees off, refine ends on the truth
+    (point-to-plane alone would drift along the surface)."""
+    src = _surface(800) * [1.0, 0.7, 0.45]
+    truth = euler_zyx_to_matrix([10.0, 20.0, -5.0])
+    tgt = src[::-1] @ truth.T + 0.2
+    start = euler_zyx_to_matrix([0.03, -0.02, 0.03]) @ truth
+    result = icp.refine(src, tgt, start, np.full(3, 0.2))
+    assert rotation_angle_deg(result.rotation.T @ truth) < 1e-4 and result.iterations > 0
+
+
+def test_refine_slides_independent_samples_onto_each_other():
+    points = _surface(4000, seed=1) * [1.0, 0.7, 0.45]
+    truth = euler_zyx_to_matrix([-15.0, 25.0, 5.0])
+    start = euler_zyx_to_matrix([6.0, -4.0, 3.0]) @ truth
+    result = icp.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3))
+    assert rotation_angle_deg(result.rotation.T @ truth) < 0.1
+
+
+def test_refine_refuses_to_move_points_further_than_max_shift():
+    points = _surface(4000, seed=1) * [1.0, 0.7, 0.45]
+    truth = euler_zyx_to_matrix([-15.0, 25.0, 5.0])
+    start = euler_zyx_to_matrix([6.0, -4.0, 3.0]) @ truth
+    moved = icp.mean_shift(points[:2000], start, np.zeros(3), truth, np.zeros(3))
+    kept = icp.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3), max_shift=moved / 2)
+    np.testing.assert_array_equal(kept.rotation, start)
+    assert kept.iterations == 0 and np.isfinite(kept.rmse)
+    scaled = icp.refine(points[:2000] * 10, (points[2000:] @ truth.T) * 10, start, np.zeros(3), scale=10.0,
+                        max_shift=2 * moved)  # the limit is in radii: 10x larger clouds, same decision
+    assert rotation_angle_deg(scaled.rotation.T @ truth) < 0.1
