@@ -79,7 +79,8 @@ def main(argv=None) -> int:
             setting = settings[0] if args.settings != ["clean"] else "independent_clean"
             results = evaluation.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
                                              unseen=args.unseen, pairs_per_angle=args.max_pairs or 24,
-                                             n_points=args.n_points, progress=not args.no_progress)
+                                             n_points=args.n_points, progress=not args.no_progress,
+                                             refine=args.refine == "icp")
             print(results["table"])
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
             return 0

@@ -67,7 +67,8 @@ def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
     results = evaluation.angle_sweep(tiny_checkpoint, str(tmp_path), angles=(0, 90), pairs_per_angle=2,
                                      unseen=False, progress=False)
     assert set(results["angles"]) == {0.0, 90.0} and all(len(r["errors"]) == 2 for r in results["angles"].values())
-    assert (tmp_path / "angle_sweep.png").exists() and "| 90 |" in results["table"]
+    assert all(len(r["icp"]["errors"]) == 2 for r in results["angles"].values())
+    assert (tmp_path / "angle_sweep.png").exists() and "| 90 |" in results["table"] and "DIT+ICP" in results["table"]
 
 
 def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
