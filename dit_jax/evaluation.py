@@ -445,8 +445,7 @@ def register_scan_pair(method: str, src: np.ndarray, tgt: np.ndarray, registrar=
 
 
 def _rotation_error_deg(rotation: np.ndarray, truth: np.ndarray) -> float:
-    cos = (np.trace(rotation.T @ truth) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return plotting.rotation_angle_deg(np.asarray(rotation, np.float64).T @ truth)
 
 
 def summarise_scans(rows: list[dict]) -> dict:

@@ -29,8 +29,8 @@ METHODS = ("point_to_point", "point_to_plane")
 #: pairs of training shapes (scripts/tune_baselines.py, docs/baselines_tuning.md).
 REFINE_DISTANCES = (0.1, 0.05)
 REFINE_METHOD = "point_to_plane"
-#: Clouds "share their points" when, after the point-to-plane stages, the median distance from a source point
-#: to its nearest target point is below this share of the target's point spacing (0.0-0.1 on the authors'
+#: Clouds "share their points" when, after point-to-point ICP, the median distance from a source point to its
+#: nearest target point is below this share of the target's point spacing (about 0.1 or less on the authors'
 #: low-noise pairs, 0.8 and above on independently sampled ones; scripts/check_refinement.py).
 SHARED_POINTS_GAP = 0.3
 #: :func:`refine` keeps the estimate it was given where ICP would move the source points by more than this
@@ -176,11 +176,13 @@ def spacing(points: np.ndarray, tree=None, max_points: int = 5_000, seed: int = 
     return float(np.median(tree.query(points, k=2)[0][:, 1]))
 
 
-def _median_gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int) -> float:
-    """Median distance from (up to 5,000 of) the moved source points to their nearest target point."""
+def _median_gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int,
+                quantile: float = 0.5) -> float:
+    """A quantile (the median by default) of the distances from (up to 5,000 of) the moved source points to
+    their nearest target point."""
     if len(src) > 5_000:
         src = src[np.random.default_rng(seed).choice(len(src), 5_000, replace=False)]
-    return float(np.median(tree.query(src @ rotation.T + translation)[0]))
+    return float(np.quantile(tree.query(src @ rotation.T + translation)[0], quantile))
 
 
 def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
@@ -193,18 +195,20 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
            scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT) -> ICPResult:
     """DIT's refinement of a global estimate.
 
-    Where the clouds share their points and the estimate already lays them onto each other (the median gap
-    from a source point to the target is below :data:`SHARED_POINTS_GAP` point spacings), point-to-point ICP
-    at half the last of :data:`REFINE_DISTANCES`, which pairs identical points exactly. Otherwise
-    point-to-plane ICP at :data:`REFINE_DISTANCES` (times ``scale``, the clouds' radius), which slides
-    independently sampled surfaces onto each other, and the same point-to-point stage after it where the
-    clouds then turn out to share their points. Point-to-plane alone drifts along the surface on shared
-    points (0.13 degrees median instead of 0.01 on the authors' low-noise partial pairs,
-    docs/refinement_check.md).
+    First point-to-point ICP at :data:`REFINE_DISTANCES` (times ``scale``, the clouds' radius). Where that lays
+    the clouds onto each other closer than :data:`SHARED_POINTS_GAP` point spacings (median distance from a
+    source point to the target), they share their points (the authors' synthetic pairs): a last
+    point-to-point stage pairs only points within four such median gaps, which leaves out the points one
+    cloud has and the other lacks, and the result is exact up to noise. Otherwise (independently sampled
+    clouds, as real scans are) point-to-plane ICP from the given estimate at the same distances, which slides
+    the surfaces onto each other instead of snagging on their samples (docs/refinement_check.md).
 
-    A refinement that moves the source points by more than ``max_shift`` times ``scale`` on average is
-    refused (the estimate comes back unchanged, ``iterations`` 0): ICP from a start that far off slides
-    partial views into each other rather than correcting them.
+    The estimate comes back unchanged (``iterations`` 0) where the refinement would move the source points
+    by more than ``max_shift`` times ``scale`` on average (ICP from a start that far off slides partial views
+    into each other rather than correcting them), and where the estimate already lays the source closer onto
+    the target than the refinement does (the distance to the nearest target point that a quarter of the
+    source points are within) (ICP can slide a
+    near-exact start off the points the clouds share, pulled by those one cloud lacks).
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`. Returns :class:`ICPResult`."""
     from scipy.spatial import cKDTree
@@ -214,16 +218,23 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     distances = tuple(scale * d for d in REFINE_DISTANCES)
     tree = cKDTree(tgt)
     shared = SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed)
-    point_stage = lambda r, t: icp(src, tgt, r, t, distances=distances[-1] / 2, seed=seed)
-    if _median_gap(src, tree, rotation, translation, seed) < shared:
-        result = point_stage(rotation, translation)
+    kept = dataclasses.replace(icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0),
+                               iterations=0)
+    point = icp(src, tgt, rotation, translation, distances=distances, seed=seed)
+    gap = _median_gap(src, tree, point.rotation, point.translation, seed)
+    if gap < shared:
+        tight = max(4.0 * gap, 1e-9 * scale)
+        last = icp(src, tgt, point.rotation, point.translation, distances=tight, seed=seed)
+        result = dataclasses.replace(last, iterations=point.iterations + last.iterations)
     else:
         result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed)
-        if _median_gap(src, tree, result.rotation, result.translation, seed) < shared:
-            last = point_stage(result.rotation, result.translation)
-            result = dataclasses.replace(last, iterations=result.iterations + last.iterations)
     if max_shift is not None and mean_shift(src, result.rotation, result.translation, rotation,
                                             translation) > max_shift * scale:
-        start = icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0)
-        return dataclasses.replace(start, iterations=0)
+        return kept
+    # ICP can slide a near-exact start (DIT's matches of identical points) off the points the clouds share,
+    # pulled by those one cloud lacks: the closer fit of the two wins.
+    # The closest quarter of the points decides: where the clouds share points, those lie on each other.
+    closest = lambda r, t: _median_gap(src, tree, r, t, seed, quantile=0.25)
+    if closest(rotation, translation) < closest(result.rotation, result.translation):
+        return kept
     return result
