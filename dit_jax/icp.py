@@ -102,7 +102,7 @@ def _point_to_plane_step(src: np.ndarray, tgt: np.ndarray, normals: np.ndarray):
 def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
         translation: np.ndarray | None = None, *, distances: float | Sequence[float] = 0.05,
         method: str = "point_to_point", max_iterations: int = 50, tolerance: float = 1e-7,
-        max_points: int | None = 5_000, normal_neighbours: int = 20, seed: int = 0) -> ICPResult:
+        max_points: int | None = 5_000, normal_neighbours: int = 20, seed: int = 0, tree=None) -> ICPResult:
     """Refines the motion moving ``src`` onto ``tgt``, starting from ``(rotation, translation)``.
 
     Args:
@@ -115,6 +115,7 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
       tolerance: a stage ends when the motion's update moves no point by more than this times ``distance``.
       max_points: the source is thinned at random (seeded) to this many points; the target is used whole.
       normal_neighbours: neighbours per target normal (point-to-plane only).
+      tree: a ``scipy.spatial.cKDTree`` of ``tgt`` to reuse (built here otherwise).
 
     Returns:
       :class:`ICPResult`, in float64.
@@ -130,7 +131,7 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
     stages = [float(distances)] if np.ndim(distances) == 0 else [float(d) for d in distances]
     if max_points and len(src) > max_points:
         src = src[np.random.default_rng(seed).choice(len(src), max_points, replace=False)]
-    tree = cKDTree(tgt)
+    tree = tree if tree is not None else cKDTree(tgt)
     normals = estimate_normals(tgt, normal_neighbours, tree) if method == "point_to_plane" else None
     extent = float(np.linalg.norm(np.ptp(src, axis=0))) or 1.0
     iterations = 0
@@ -176,7 +177,7 @@ def spacing(points: np.ndarray, tree=None, max_points: int = 5_000, seed: int = 
     return float(np.median(tree.query(points, k=2)[0][:, 1]))
 
 
-def _median_gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int,
+def _gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int,
                 quantile: float = 0.5) -> float:
     """A quantile (the median by default) of the distances from (up to 5,000 of) the moved source points to
     their nearest target point."""
@@ -205,10 +206,9 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
 
     The estimate comes back unchanged (``iterations`` 0) where the refinement would move the source points
     by more than ``max_shift`` times ``scale`` on average (ICP from a start that far off slides partial views
-    into each other rather than correcting them), and where the estimate already lays the source closer onto
-    the target than the refinement does (the distance to the nearest target point that a quarter of the
-    source points are within) (ICP can slide a
-    near-exact start off the points the clouds share, pulled by those one cloud lacks).
+    into each other rather than correcting them), and where the estimate already lays the closest quarter of
+    the source points closer onto the target than the refinement does (ICP can slide a near-exact start off
+    the points the clouds share, pulled by those one cloud lacks).
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`. Returns :class:`ICPResult`."""
     from scipy.spatial import cKDTree
@@ -218,23 +218,21 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     distances = tuple(scale * d for d in REFINE_DISTANCES)
     tree = cKDTree(tgt)
     shared = SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed)
-    kept = dataclasses.replace(icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0),
-                               iterations=0)
-    point = icp(src, tgt, rotation, translation, distances=distances, seed=seed)
-    gap = _median_gap(src, tree, point.rotation, point.translation, seed)
+    kept = icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0, tree=tree)
+    point = icp(src, tgt, rotation, translation, distances=distances, seed=seed, tree=tree)
+    gap = _gap(src, tree, point.rotation, point.translation, seed)
     if gap < shared:
         tight = max(4.0 * gap, 1e-9 * scale)
-        last = icp(src, tgt, point.rotation, point.translation, distances=tight, seed=seed)
+        last = icp(src, tgt, point.rotation, point.translation, distances=tight, seed=seed, tree=tree)
         result = dataclasses.replace(last, iterations=point.iterations + last.iterations)
     else:
-        result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed)
+        result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed,
+                     tree=tree)
     if max_shift is not None and mean_shift(src, result.rotation, result.translation, rotation,
                                             translation) > max_shift * scale:
         return kept
-    # ICP can slide a near-exact start (DIT's matches of identical points) off the points the clouds share,
-    # pulled by those one cloud lacks: the closer fit of the two wins.
     # The closest quarter of the points decides: where the clouds share points, those lie on each other.
-    closest = lambda r, t: _median_gap(src, tree, r, t, seed, quantile=0.25)
+    closest = lambda r, t: _gap(src, tree, r, t, seed, quantile=0.25)
     if closest(rotation, translation) < closest(result.rotation, result.translation):
         return kept
     return result
