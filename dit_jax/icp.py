@@ -24,9 +24,10 @@ from typing import Sequence
 import numpy as np
 
 METHODS = ("point_to_point", "point_to_plane")
-#: DIT's refinement (:func:`refine`; ``register(refine="icp")``, evaluate.py's ``DIT+ICP``): point-to-plane
-#: stages at these pairing distances, in units of the unit sphere the network works in; chosen on validation
-#: pairs of training shapes (scripts/tune_baselines.py, docs/baselines_tuning.md).
+#: DIT's refinement (:func:`refine`; ``register(refine="icp")``, evaluate.py's ``DIT+ICP``): its stages'
+#: pairing distances, in units of the unit sphere the network works in, and the method it uses where the
+#: clouds share no points; chosen on validation pairs of training shapes (scripts/tune_baselines.py,
+#: docs/baselines_tuning.md).
 REFINE_DISTANCES = (0.1, 0.05)
 REFINE_METHOD = "point_to_plane"
 #: Clouds "share their points" when, after point-to-point ICP, the median distance from a source point to its
@@ -218,7 +219,8 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     distances = tuple(scale * d for d in REFINE_DISTANCES)
     tree = cKDTree(tgt)
     shared = SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed)
-    kept = icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0, tree=tree)
+    # The estimate as handed in, with its fitness and rmse: what comes back where the refinement is refused.
+    kept = lambda: icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0, tree=tree)
     point = icp(src, tgt, rotation, translation, distances=distances, seed=seed, tree=tree)
     gap = _gap(src, tree, point.rotation, point.translation, seed)
     if gap < shared:
@@ -230,9 +232,9 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
                      tree=tree)
     if max_shift is not None and mean_shift(src, result.rotation, result.translation, rotation,
                                             translation) > max_shift * scale:
-        return kept
+        return kept()
     # The closest quarter of the points decides: where the clouds share points, those lie on each other.
     closest = lambda r, t: _gap(src, tree, r, t, seed, quantile=0.25)
     if closest(rotation, translation) < closest(result.rotation, result.translation):
-        return kept
+        return kept()
     return result
