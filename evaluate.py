@@ -24,6 +24,7 @@ import sys
 
 
 def main(argv=None) -> int:
+    from dit_jax import compile_cache
     from dit_jax.baselines import NAMES as BASELINES
     from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
 
@@ -58,6 +59,7 @@ def main(argv=None) -> int:
     parser.add_argument("--reuse", default=None, metavar="DIR",
                         help="take baselines scored on the same pairs from an earlier --out instead of rerunning them")
     parser.add_argument("--no-progress", action="store_true")
+    compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
     chosen = []
     for name in args.settings:
@@ -69,6 +71,7 @@ def main(argv=None) -> int:
         except ValueError:
             parser.error(f"--gmcce-threshold: expected a number or 'authors', got {args.gmcce_threshold!r}")
 
+    compile_cache.from_args(args)
     from dit_jax import evaluation, registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.data.shapes import DataError

@@ -29,7 +29,7 @@ def _value(text: str):
 
 
 def parse(argv=None):
-    from dit_jax import training
+    from dit_jax import compile_cache, training
 
     parser = argparse.ArgumentParser(description="Train DIT (see the module docstring for examples).")
     parser.add_argument("--preset", default=None, choices=sorted(training.PRESETS),
@@ -51,6 +51,7 @@ def parse(argv=None):
     parser.add_argument("--prepared-dir", default=None, help="where TFDS keeps prepared data")
     parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first")
     parser.add_argument("--no-progress", action="store_true")
+    compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
 
     preset = args.preset or "quick"
@@ -97,7 +98,9 @@ def main(argv=None) -> int:
         import jax
 
         jax.distributed.initialize()
-    from dit_jax import training
+    from dit_jax import compile_cache, training
+
+    compile_cache.from_args(args)
     from dit_jax.data.shapes import DataError
 
     try:

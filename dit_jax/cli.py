@@ -30,6 +30,8 @@ import sys
 
 import numpy as np
 
+from dit_jax import compile_cache
+
 PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
 #: Exit status when the verdict says the result is probably wrong.
@@ -61,6 +63,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="draw both clouds before and after the registration, from two viewpoints")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
+    compile_cache.add_arguments(parser)
     return parser
 
 
@@ -101,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_points < 1:
         return _fail(f"--max-points must be positive, got {args.max_points}")
 
+    compile_cache.from_args(args)
     from dit_jax import registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.convert import ConversionError

@@ -30,6 +30,10 @@ GMCCE_THRESHOLDS: Mapping[str, float] = {
     "scan_high_noise": 0.6,
 }
 
+#: The settings of :attr:`DITConfig.precision`, the network's matrix products
+#: (:func:`dit_jax.layers.dot_precision` turns one into what ``jax.lax.dot_general`` takes).
+PRECISIONS = ("highest", "tf32", "bfloat16")
+
 #: Number of token-transformer layers in PSE; the embedding width is this many tokens wide.
 PSE_LAYERS = 8
 
@@ -67,6 +71,14 @@ class DITConfig:
         result, memory linear in N; see :func:`dit_jax.layers.attention`); 0 never splits.
       compute_dtype: "float32" (the default, the authors' numbers) or "bfloat16": PFT's matrix products in
         bfloat16 with float32 parameters, logits, softmax, norms and residuals (accuracy: docs/BENCHMARKS.md).
+      precision: how every matrix product of the network (PSE, PFT, SE, temperature net, similarity) is
+        computed, in inference and training alike, whatever JAX's global ``jax_default_matmul_precision``
+        says: "highest" (the default: float32 products on every backend, the numbers reference_check
+        verifies), or the explicit opt-ins "tf32" (``lax.Precision.HIGH``: TensorFloat-32 on NVIDIA GPUs,
+        three bfloat16 passes on TPUs) and "bfloat16" (bfloat16 operands with float32 accumulation). JAX's
+        own default on NVIDIA GPUs is TF32, which moved the reference check's scores by 4.8e-3 on an H100
+        (issue 18; docs/BENCHMARKS.md). The geometry
+        (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
     """
 
     emb_dims: int = 512
@@ -91,6 +103,7 @@ class DITConfig:
     dropout: float = 0.2
     attention_chunk: int = 512
     compute_dtype: str = "float32"
+    precision: str = "highest"
 
     def __post_init__(self):
         problems = []
@@ -111,6 +124,8 @@ class DITConfig:
             problems.append(f"temp_factor must be >= 1, got {self.temp_factor}")
         if self.compute_dtype not in ("float32", "bfloat16"):
             problems.append(f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}")
+        if self.precision not in PRECISIONS:
+            problems.append(f"precision must be one of {', '.join(PRECISIONS)}, got {self.precision!r}")
         if not 0.0 <= self.gmcce_min_keep <= 1.0:
             problems.append(f"gmcce_min_keep must be in [0, 1], got {self.gmcce_min_keep}")
         if not self.fitness_radius > 0:

@@ -136,12 +136,13 @@ def _special_polar(cross_cov):
 def _rotation_jvp(primals, tangents):
     (cross_cov,), (d_cross_cov,) = primals, tangents
     rotation, u_signed, s_signed, vt = _special_polar(cross_cov)
-    m = u_signed.T @ d_cross_cov @ vt.T
+    mul = lambda a, b: jnp.matmul(a, b, precision=_HIGHEST)
+    m = mul(mul(u_signed.T, d_cross_cov), vt.T)
     denom = s_signed[:, None] + s_signed[None, :]
     scale = jnp.maximum(jnp.max(jnp.abs(s_signed)), jnp.finfo(cross_cov.dtype).tiny)
     safe = jnp.abs(denom) > 1e-6 * scale
     w = jnp.where(safe, (m - m.T) / jnp.where(safe, denom, 1.0), 0.0)
-    return rotation, u_signed @ w @ vt
+    return rotation, mul(mul(u_signed, w), vt)
 
 
 def weighted_procrustes(src: jax.Array, tgt: jax.Array, weights: jax.Array):

@@ -20,7 +20,7 @@ from flax import linen as nn
 
 from dit_jax import geometry, gmcce
 from dit_jax.configs import DITConfig
-from dit_jax.layers import clip_inward, layer_norm, torch_dense
+from dit_jax.layers import clip_inward, einsum, layer_norm, torch_dense
 
 #: The inverse temperature of the GMCCE mode's near-hard softmax.
 GMCCE_SOFTMAX_SCALE = 10000.0
@@ -42,21 +42,24 @@ class TemperatureNet(nn.Module):
 
     hidden: int = 128
     factor: float = 100.0
+    precision: str = "highest"  # of the products, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, phi_x: jax.Array, phi_y: jax.Array) -> jax.Array:
         """phi_x: (N, E), phi_y: (M, E) -> scalar temperature."""
         x = jnp.abs(jnp.mean(phi_x, axis=0) - jnp.mean(phi_y, axis=0))
         for i in (0, 3, 6):  # the authors' Sequential indices: Linear at i, LayerNorm at i + 1
-            x = torch_dense(self.hidden, f"fc{i}")(x)
+            x = torch_dense(self.hidden, f"fc{i}", precision=self.precision)(x)
             x = jax.nn.leaky_relu(layer_norm(f"norm{i + 1}")(x), negative_slope=0.01)
-        x = jax.nn.leaky_relu(torch_dense(1, "fc9")(x), negative_slope=0.01)
+        x = jax.nn.leaky_relu(torch_dense(1, "fc9", precision=self.precision)(x), negative_slope=0.01)
         return clip_inward(x[0], 1.0 / self.factor, self.factor)
 
 
-def similarity(phi_x: jax.Array, phi_y: jax.Array) -> jax.Array:
-    """S = Phi_X Phi_Y^T / sqrt(E): (N, E), (M, E) -> (N, M)."""
-    return jnp.matmul(phi_x, phi_y.T) / jnp.sqrt(jnp.asarray(phi_x.shape[-1], phi_x.dtype))
+def similarity(phi_x: jax.Array, phi_y: jax.Array, precision: str = "highest") -> jax.Array:
+    """S = Phi_X Phi_Y^T / sqrt(E): (N, E), (M, E) -> (N, M). ``precision``: see
+    :func:`dit_jax.layers.dot_precision`."""
+    scale = jnp.sqrt(jnp.asarray(phi_x.shape[-1], phi_x.dtype))
+    return einsum("ne,me->nm", phi_x, phi_y, precision=precision) / scale
 
 
 class HeadOutput(NamedTuple):

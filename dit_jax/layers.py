@@ -9,8 +9,55 @@ import jax.numpy as jnp
 from flax import linen as nn
 
 
+def dot_precision(name: str) -> jax.lax.Precision:
+    """``jax.lax.Precision`` of a :attr:`dit_jax.configs.DITConfig.precision` setting.
+
+    Passed explicitly to every product, it overrides JAX's global default (TF32 on NVIDIA GPUs): "highest"
+    is float32 on every backend, "tf32" ``Precision.HIGH`` (TensorFloat-32 on GPUs, three bfloat16 passes
+    on TPUs, float32 on CPUs), "bfloat16" ``Precision.DEFAULT`` on operands rounded to bfloat16 (see
+    :func:`dot_general`).
+    """
+    if name == "highest":
+        return jax.lax.Precision.HIGHEST
+    if name == "tf32":
+        return jax.lax.Precision.HIGH
+    if name == "bfloat16":
+        return jax.lax.Precision.DEFAULT
+    raise ValueError(f"unknown precision {name!r}; choose highest, tf32 or bfloat16")
+
+
+def _operands(name: str, *arrays: jax.Array) -> tuple[tuple[jax.Array, ...], jnp.dtype | None]:
+    """The operands as the setting multiplies them, and the result type to ask for: "bfloat16" rounds
+    float32 operands to bfloat16 and accumulates in float32, on every backend alike. (XLA's bfloat16 dot
+    algorithm, ``DotAlgorithmPreset.BF16_BF16_F32``, is refused by its CPU backend for some shapes.)"""
+    if name != "bfloat16":
+        return arrays, None
+    return tuple(a.astype(jnp.bfloat16) for a in arrays), jnp.float32
+
+
+def dot_general(name: str):
+    """``jax.lax.dot_general`` computed as the precision setting ``name`` says, for ``nn.Dense(dot_general=)``;
+    the precision the caller passes is replaced."""
+
+    def dot(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kwargs):
+        del precision
+        (lhs, rhs), wanted = _operands(name, lhs, rhs)
+        return jax.lax.dot_general(lhs, rhs, dimension_numbers, precision=dot_precision(name),
+                                   preferred_element_type=wanted or preferred_element_type, **kwargs)
+
+    return dot
+
+
+def einsum(subscripts: str, a: jax.Array, b: jax.Array, *, precision: str,
+           preferred_element_type=None) -> jax.Array:
+    """``jnp.einsum`` of two operands computed as the precision setting says (see :func:`dot_precision`)."""
+    (a, b), wanted = _operands(precision, a, b)
+    return jnp.einsum(subscripts, a, b, precision=dot_precision(precision),
+                      preferred_element_type=wanted or preferred_element_type)
+
+
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = None,
-              chunk: int = 0) -> jax.Array:
+              chunk: int = 0, *, precision: str) -> jax.Array:
     """softmax(q k^T / divisor) v for each head: q (N, h, d), k (M, h, d), v (M, h, d_v) -> (N, h, d_v).
 
     The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend does ~12 % faster than
@@ -18,18 +65,19 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
     rows go ``chunk`` at a time (rows are independent, so the result is the same): the (h, N, M) logits
     never exist at once, and memory grows linearly in N instead of N M. Each block is rematerialised in the
     backward pass, so training keeps that memory bound too. Low-precision (bfloat16) inputs multiply in
-    their precision, while the logits and the softmax stay float32.
+    their precision, while the logits and the softmax stay float32. ``precision``: see :func:`dot_precision`.
     """
     k_h, v_h = jnp.swapaxes(k, 0, 1), jnp.swapaxes(v, 0, 1)  # (h, M, d)
 
     low = q.dtype != jnp.float32  # bfloat16 products, float32 logits and softmax
 
     def block(q_rows: jax.Array) -> jax.Array:  # (h, n, d) -> (h, n, d_v)
-        logits = jnp.einsum("hnd,hmd->hnm", q_rows, k_h, preferred_element_type=jnp.float32 if low else None)
+        logits = einsum("hnd,hmd->hnm", q_rows, k_h, precision=precision,
+                        preferred_element_type=jnp.float32 if low else None)
         if divisor is not None:
             logits = logits / divisor
         probs = jax.nn.softmax(logits, axis=-1)
-        return jnp.einsum("hnm,hmd->hnd", probs.astype(v_h.dtype), v_h)
+        return einsum("hnm,hmd->hnd", probs.astype(v_h.dtype), v_h, precision=precision)
 
     n_rows = q.shape[0]
     q_h = jnp.swapaxes(q, 0, 1)  # (h, N, d)
@@ -70,17 +118,19 @@ class AnnotatedLayerNorm(nn.Module):
         return scale * centred / (std + self.eps) + bias
 
 
-def torch_dense(features: int, name: str, use_bias: bool = True, dtype: str = "float32") -> nn.Dense:
+def torch_dense(features: int, name: str, use_bias: bool = True, dtype: str = "float32", *,
+                precision: str) -> nn.Dense:
     """A Dense layer whose kernel starts like PyTorch's ``nn.Linear`` weight: U(+-1/sqrt(fan_in)).
 
     (variance scaling 1/3 with a uniform law has exactly that bound.) Biases start at zero. Kernels are
     stored (in, out), the transpose of PyTorch's (out, in). ``dtype`` is the computation's (the parameters
-    stay float32); "bfloat16" gives bfloat16 outputs.
+    stay float32); "bfloat16" gives bfloat16 outputs. ``precision``: see :func:`dot_precision`.
     """
     return nn.Dense(
         features,
         use_bias=use_bias,
         dtype=None if dtype == "float32" else jnp.dtype(dtype),
+        dot_general=dot_general(precision),
         kernel_init=nn.initializers.variance_scaling(1.0 / 3.0, "fan_in", "uniform"),
         name=name,
     )

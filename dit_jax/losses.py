@@ -17,6 +17,9 @@ import jax.numpy as jnp
 
 from dit_jax.model import Iterations
 
+# Products of 3 x 3 rotations and of coordinates: float32 whatever JAX's default matmul precision is.
+_HIGHEST = jax.lax.Precision.HIGHEST
+
 DISCOUNT = 0.9
 CYCLE_WEIGHT = 0.1
 DISCRIMINATION_WEIGHT = 0.5
@@ -27,19 +30,21 @@ _BCE_EPS = 1e-7
 def transformation_loss(rotation, translation, rotation_gt, translation_gt) -> jax.Array:
     """``MSE(R^T R_gt, I) + MSE(t, t_gt)``: rotation (3, 3), translation (3,)."""
     eye = jnp.eye(3, dtype=rotation.dtype)
-    return jnp.mean((rotation.T @ rotation_gt - eye) ** 2) + jnp.mean((translation - translation_gt) ** 2)
+    rotation_gap = jnp.mean((jnp.matmul(rotation.T, rotation_gt, precision=_HIGHEST) - eye) ** 2)
+    return rotation_gap + jnp.mean((translation - translation_gt) ** 2)
 
 
 def cycle_loss(rotation_ab, translation_ab, rotation_ba, translation_ba) -> jax.Array:
     """``MSE(R_ab R_ba, I) + MSE(t_ab, -t_ba)``, the authors' form of cycle consistency."""
     eye = jnp.eye(3, dtype=rotation_ab.dtype)
-    return jnp.mean((rotation_ab @ rotation_ba - eye) ** 2) + jnp.mean((translation_ab + translation_ba) ** 2)
+    rotation_gap = jnp.mean((jnp.matmul(rotation_ab, rotation_ba, precision=_HIGHEST) - eye) ** 2)
+    return rotation_gap + jnp.mean((translation_ab + translation_ba) ** 2)
 
 
 def match_labels(src, tgt, matches, rotation_gt, translation_gt, radius: float = MATCH_RADIUS) -> jax.Array:
     """c_i: 1.0 where source point i's predicted match ``tgt[matches[i]]`` lies within ``radius`` of its true
     position, else 0.0. src (N, 3) as given (not moved), tgt (M, 3), matches (N,). Returns (N,)."""
-    truth = src @ rotation_gt.T + translation_gt
+    truth = jnp.matmul(src, rotation_gt.T, precision=_HIGHEST) + translation_gt
     distance = jnp.linalg.norm(tgt[matches] - truth, axis=-1)
     return (distance < radius).astype(src.dtype)
 

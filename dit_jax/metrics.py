@@ -11,13 +11,14 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 
 def rotation_error_deg(rotation, rotation_gt):
     """Isotropic rotation error: the angle of ``R_gt^T R`` in degrees. (..., 3, 3) -> (...)."""
-    m = jnp.swapaxes(rotation_gt, -1, -2) @ rotation
+    m = jnp.matmul(jnp.swapaxes(rotation_gt, -1, -2), rotation, precision=jax.lax.Precision.HIGHEST)
     # atan2 of sine (from the skew part) and cosine (from the trace): accurate at every angle, where
     # arccos of the trace alone loses about 0.03 degrees to float32 rounding near 0.
     cos = (jnp.trace(m, axis1=-2, axis2=-1) - 1.0) / 2.0

@@ -57,10 +57,10 @@ class DIT(nn.Module):
     def setup(self):
         c = self.config
         self.pse = PSE(c)
-        self.positional_encoding = PositionalEncoding(c.emb_dims, c.pe_expansion)
+        self.positional_encoding = PositionalEncoding(c.emb_dims, c.pe_expansion, c.precision)
         self.pft = PFT(c)
-        self.se = SqueezeExcitation(c.emb_dims, c.se_reduction)
-        self.temp_net = TemperatureNet(c.temp_hidden, c.temp_factor)
+        self.se = SqueezeExcitation(c.emb_dims, c.se_reduction, c.precision)
+        self.temp_net = TemperatureNet(c.temp_hidden, c.temp_factor, c.precision)
 
     def embed(self, points: jax.Array, knn_idx: jax.Array | None = None, encode: bool = False,
               deterministic: bool = True) -> Embedding:
@@ -89,7 +89,8 @@ class DIT(nn.Module):
         phi_src = self.se(src.pse + src_p)
         phi_tgt = self.se(tgt.pse + tgt_p)
         temperature = self.temp_net(phi_src, phi_tgt)
-        return Features(src_p, tgt_p, phi_src, phi_tgt, temperature, similarity(phi_src, phi_tgt))
+        scores = similarity(phi_src, phi_tgt, self.config.precision)
+        return Features(src_p, tgt_p, phi_src, phi_tgt, temperature, scores)
 
     def __call__(self, src: jax.Array, tgt: jax.Array, deterministic: bool = True) -> Features:
         return self.interact(self.embed(src), self.embed(tgt), deterministic)
@@ -275,7 +276,8 @@ def _soft_pose(src, tgt, scores, temperature, differentiable: bool):
     weights = jnp.max(probs, axis=-1)
     matches = jnp.argmax(probs, axis=-1).astype(jnp.int32)
     if differentiable:
-        rotation, translation = geometry.weighted_procrustes(src, jnp.matmul(probs, tgt), weights)
+        rotation, translation = geometry.weighted_procrustes(
+            src, jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST), weights)
     else:
         rotation, translation = jax.lax.stop_gradient(
             geometry.weighted_procrustes(src, tgt[matches], weights))

@@ -19,12 +19,13 @@ class PositionalEncoding(nn.Module):
 
     emb_dims: int
     expansion: int = 8
+    precision: str = "highest"  # of every product, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, points: jax.Array) -> jax.Array:
         """points: (N, 3) -> (N, E)."""
-        hidden = jax.nn.sigmoid(torch_dense(self.expansion * self.emb_dims, "fc0")(points))
-        return jax.nn.relu(torch_dense(self.emb_dims, "fc2")(hidden))
+        hidden = jax.nn.sigmoid(torch_dense(self.expansion * self.emb_dims, "fc0", precision=self.precision)(points))
+        return jax.nn.relu(torch_dense(self.emb_dims, "fc2", precision=self.precision)(hidden))
 
 
 class MultiHeadAttention(nn.Module):
@@ -34,18 +35,19 @@ class MultiHeadAttention(nn.Module):
     n_heads: int
     attention_chunk: int = 0  # query rows per block, see :func:`dit_jax.layers.attention`
     dtype: str = "float32"  # of the products; parameters and outputs stay float32
+    precision: str = "highest"  # of the products, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, query: jax.Array, key: jax.Array, value: jax.Array) -> jax.Array:
         """query: (N, E); key, value: (M, E). Returns (N, E)."""
         head_dims = self.emb_dims // self.n_heads
         split = lambda a: a.reshape(a.shape[0], self.n_heads, head_dims)
-        q = split(torch_dense(self.emb_dims, "q", dtype=self.dtype)(query))
-        k = split(torch_dense(self.emb_dims, "k", dtype=self.dtype)(key))
-        v = split(torch_dense(self.emb_dims, "v", dtype=self.dtype)(value))
-        mixed = attention(q, k, v, jnp.sqrt(jnp.asarray(head_dims, jnp.float32)), chunk=self.attention_chunk)
+        dense = lambda name: torch_dense(self.emb_dims, name, dtype=self.dtype, precision=self.precision)
+        q, k, v = split(dense("q")(query)), split(dense("k")(key)), split(dense("v")(value))
+        mixed = attention(q, k, v, jnp.sqrt(jnp.asarray(head_dims, jnp.float32)), chunk=self.attention_chunk,
+                          precision=self.precision)
         mixed = mixed.reshape(query.shape[0], self.emb_dims)
-        return torch_dense(self.emb_dims, "o", dtype=self.dtype)(mixed).astype(jnp.float32)
+        return dense("o")(mixed).astype(jnp.float32)
 
 
 class FeedForward(nn.Module):
@@ -55,12 +57,14 @@ class FeedForward(nn.Module):
     ff_dims: int
     dropout: float
     dtype: str = "float32"  # of the products; parameters and outputs stay float32
+    precision: str = "highest"  # of the products, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
-        hidden = jax.nn.leaky_relu(torch_dense(self.ff_dims, "w_1", dtype=self.dtype)(x), negative_slope=0.2)
+        dense = lambda width, name: torch_dense(width, name, dtype=self.dtype, precision=self.precision)
+        hidden = jax.nn.leaky_relu(dense(self.ff_dims, "w_1")(x), negative_slope=0.2)
         hidden = nn.Dropout(self.dropout)(hidden, deterministic=deterministic)
-        return torch_dense(self.emb_dims, "w_2", dtype=self.dtype)(hidden).astype(jnp.float32)
+        return dense(self.emb_dims, "w_2")(hidden).astype(jnp.float32)
 
 
 class EncoderLayer(nn.Module):
@@ -72,10 +76,10 @@ class EncoderLayer(nn.Module):
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
                                    name="self_attn")(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype,
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision,
                                name="feed_forward")(u, deterministic)
 
 
@@ -88,13 +92,13 @@ class DecoderLayer(nn.Module):
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
                                    name="self_attn")(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype,
+        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
                                    name="src_attn")(u, memory, memory)
         u = AnnotatedLayerNorm(name="norm2")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype,
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision,
                                name="feed_forward")(u, deterministic)
 
 
@@ -153,11 +157,13 @@ class SqueezeExcitation(nn.Module):
 
     emb_dims: int
     reduction: int = 16
+    precision: str = "highest"  # of the products, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, features: jax.Array) -> jax.Array:
         """features: (N, E) -> (N, E)."""
         squeezed = jnp.mean(features, axis=0)
-        hidden = jax.nn.relu(torch_dense(self.emb_dims // self.reduction, "fc0", use_bias=False)(squeezed))
-        gate = jax.nn.sigmoid(torch_dense(self.emb_dims, "fc2", use_bias=False)(hidden))
+        dense = lambda width, name: torch_dense(width, name, use_bias=False, precision=self.precision)
+        hidden = jax.nn.relu(dense(self.emb_dims // self.reduction, "fc0")(squeezed))
+        gate = jax.nn.sigmoid(dense(self.emb_dims, "fc2")(hidden))
         return features * gate

@@ -43,6 +43,7 @@ class TokenTransformer(nn.Module):
     token_dim: int
     n_heads: int = 4
     attention_chunk: int = 0
+    precision: str = "highest"  # of every product, see dit_jax.layers.dot_precision
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -50,16 +51,17 @@ class TokenTransformer(nn.Module):
         n_points, in_dims = x.shape
         head_dims = self.token_dim // self.n_heads
         u = layer_norm("norm1")(x)
-        qkv = torch_dense(3 * self.token_dim, "qkv", use_bias=False)(u)
+        qkv = torch_dense(3 * self.token_dim, "qkv", use_bias=False, precision=self.precision)(u)
         q, k, v = jnp.split(qkv, 3, axis=-1)
         split = lambda a: a.reshape(n_points, self.n_heads, head_dims)
         scale = (in_dims // self.n_heads) ** -0.5
-        mixed = attention(split(q) * scale, split(k), split(v), chunk=self.attention_chunk)
+        mixed = attention(split(q) * scale, split(k), split(v), chunk=self.attention_chunk,
+                          precision=self.precision)
         mixed = mixed.reshape(n_points, self.token_dim)
-        out = v + torch_dense(self.token_dim, "proj")(mixed)
+        out = v + torch_dense(self.token_dim, "proj", precision=self.precision)(mixed)
         z = layer_norm("norm2")(out)
-        hidden = nn.gelu(torch_dense(self.token_dim, "fc1")(z), approximate=False)
-        return z + torch_dense(self.token_dim, "fc2")(hidden)
+        hidden = nn.gelu(torch_dense(self.token_dim, "fc1", precision=self.precision)(z), approximate=False)
+        return z + torch_dense(self.token_dim, "fc2", precision=self.precision)(hidden)
 
 
 class PSE(nn.Module):
@@ -75,7 +77,8 @@ class PSE(nn.Module):
         for layer in range(1, PSE_LAYERS + 1):
             lfi = local_feature_integration(features, knn_idx)
             features = TokenTransformer(self.config.token_dim, self.config.pse_heads,
-                                        self.config.attention_chunk, name=f"attention{layer}")(lfi)
+                                        self.config.attention_chunk, self.config.precision,
+                                        name=f"attention{layer}")(lfi)
             tokens.append(features)
         # The paper writes ReLU here; the authors' code (and so their weights) use leaky ReLU.
         out = jax.nn.leaky_relu(jnp.concatenate(tokens, axis=-1), negative_slope=0.01)

@@ -177,17 +177,21 @@ class Registrar:
       min_fitness: a result whose fitness (the share of sampled source points it lays onto the target) is
         below this gets ``verdict=False``.
       refine: the default of :meth:`register`'s ``refine``: "none" or "icp".
+      precision: the network's matrix products (default: the config's, "highest"; see
+        :attr:`dit_jax.configs.DITConfig.precision`).
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
-                 min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "none"):
+                 min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "none", precision: str | None = None):
         _check_refine(refine)
         self.refine = refine
         if centring not in ("shared", "separate"):
             raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
         self.centring = centring
         self.config = config if n_iters is None else config.replace(n_iters=n_iters)
+        if precision is not None:
+            self.config = self.config.replace(precision=precision)
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
         self.n_points = int(n_points)
         self.seed = seed

@@ -8,6 +8,10 @@ import pathlib
 import numpy as np
 import pytest
 
+# Tests (and the train.py / dit-register processes they start) compile afresh and leave no XLA cache in the
+# user's home; tests/test_compile_cache.py turns it on where it is tested.
+os.environ.setdefault("DIT_JAX_COMPILE_CACHE", "off")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
 REFERENCE_FILE = SHARED / "reference" / "dit_reference_a.npz"

@@ -89,3 +89,35 @@ def test_changed_source_is_prepared_again(tmp_path):
     os.utime(source / "ply_data_test0.h5", (1, 1))  # make the change visible even within one second
     second = shapes.load_shapes(source, "test", n_points=16, data_dir=str(tmp_path / "p"))
     np.testing.assert_allclose(second.points[0], first.points[0] + 1.0)
+
+
+_PREPARE = """
+import sys, time
+import numpy as np
+start = float(sys.argv[2])
+from dit_jax.data import shapes
+while time.time() < start:  # both processes begin preparing at the same moment
+    time.sleep(0.001)
+data = shapes.load_shapes(None, "train", n_points=512, data_dir=sys.argv[1])
+np.save(sys.argv[3], data.points[:4])
+"""
+
+
+def test_processes_preparing_the_same_data_at_once_all_get_it(tmp_path):
+    """Two trainings started together on a fresh machine (or the processes of one multi-process run) used to
+    race in TFDS's preparation, and one died with ``FileExistsError: Cannot rename .../incomplete...``.
+    Now one prepares while the others wait, then they read what it wrote."""
+    import subprocess
+    import sys
+    import time
+
+    start = time.time() + 10.0  # after both interpreters have imported TFDS
+    procs = [subprocess.Popen([sys.executable, "-c", _PREPARE, str(tmp_path / "prepared"), str(start),
+                               str(tmp_path / f"out{i}.npy")], stderr=subprocess.PIPE, text=True)
+             for i in range(3)]
+    errors = [p.communicate(timeout=600)[1] for p in procs]
+    for p, err in zip(procs, errors):
+        assert p.returncode == 0, err[-2000:]
+    first = np.load(tmp_path / "out0.npy")
+    for i in (1, 2):
+        np.testing.assert_array_equal(np.load(tmp_path / f"out{i}.npy"), first)

@@ -15,18 +15,19 @@ def test_blocked_attention_is_attention(chunk):
     k = jax.random.normal(keys[1], (30, 4, 8))
     v = jax.random.normal(keys[2], (30, 4, 6))
     expected = jnp.einsum("hnm,mhd->nhd", jax.nn.softmax(jnp.einsum("nhd,mhd->hnm", q, k) / 2.0, axis=-1), v)
-    out = layers.attention(q, k, v, 2.0, chunk=chunk)
+    out = layers.attention(q, k, v, 2.0, chunk=chunk, precision="highest")
     assert out.shape == (50, 4, 6)
     np.testing.assert_allclose(np.asarray(out), np.asarray(expected), atol=1e-5)
-    loss = lambda q, k, v, c: jnp.sum(jnp.sin(layers.attention(q, k, v, 2.0, chunk=c)))
+    loss = lambda q, k, v, c: jnp.sum(jnp.sin(layers.attention(q, k, v, 2.0, chunk=c, precision="highest")))
     for a, b in zip(jax.grad(loss, argnums=(0, 1, 2))(q, k, v, 0), jax.grad(loss, argnums=(0, 1, 2))(q, k, v, chunk)):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5)
 
 
 def test_bfloat16_inputs_keep_float32_softmax():
     q = jax.random.normal(jax.random.PRNGKey(1), (20, 2, 8))
-    exact = layers.attention(q, q, q, 8.0 ** 0.5)
-    low = layers.attention(q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0 ** 0.5)
+    exact = layers.attention(q, q, q, 8.0 ** 0.5, precision="highest")
+    low = layers.attention(q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0 ** 0.5,
+                           precision="highest")
     assert low.dtype == jnp.bfloat16
     np.testing.assert_allclose(np.asarray(low, np.float32), np.asarray(exact), atol=5e-2)
 

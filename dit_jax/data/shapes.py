@@ -234,6 +234,34 @@ def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_
         absl_logger.setLevel(level)
 
 
+def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None):
+    """:func:`builder`'s builder, prepared: once per ``data_dir``, however many processes ask at once.
+
+    TFDS writes into a temporary folder and renames it, so two processes preparing the same data at once
+    (two trainings started together, every process of a multi-process run) both write, and the second
+    rename fails. Here the first process to take a lock file next to the data prepares; the others wait for
+    the lock, then find the data prepared and read it.
+    """
+    b = builder(source, n_points, data_dir)
+    if b.is_prepared():
+        return b
+    os.makedirs(b.data_dir_root, exist_ok=True)
+    with open(os.path.join(b.data_dir_root, f".{b.builder_config.name}.lock"), "a") as lock:
+        _lock(lock)
+        b = builder(source, n_points, data_dir)  # afresh: it sees what another process prepared meanwhile
+        b.download_and_prepare()
+    return b  # closing the file releases the lock
+
+
+def _lock(file) -> None:
+    """Blocks until this process holds an exclusive lock on ``file`` (released when it is closed)."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: no flock; concurrent preparation stays unguarded there
+        return
+    fcntl.flock(file.fileno(), fcntl.LOCK_EX)
+
+
 def load_shapes(source: str | os.PathLike | None = None, split: str = "train", n_points: int = 1000,
                 data_dir: str | None = None) -> Shapes:
     """One split of a shape collection as arrays, preparing it through TFDS the first time.
@@ -249,8 +277,7 @@ def load_shapes(source: str | os.PathLike | None = None, split: str = "train", n
     """
     if split not in SPLITS:
         raise DataError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    b = builder(source, n_points, data_dir)
-    b.download_and_prepare()
+    b = prepare(source, n_points, data_dir)
     data_source = b.as_data_source()[split]
     n = len(data_source)
     points = np.empty((n, n_points, 3), np.float32)
