@@ -9,8 +9,9 @@
     python train.py --preset cpu --settings clean independent_clean scan_high_noise   # a mix of settings
 
 Every field of the preset can be overridden with --set FIELD=VALUE (fields of dit_jax.training.TrainConfig;
-model.FIELD for dit_jax.configs.DITConfig). Multi-host: start one process per host with --distributed (and
-JAX's usual coordinator settings in the environment); the batch is split over all devices of all hosts.
+model.FIELD for dit_jax.configs.DITConfig). Several processes (hosts, or GPUs): start one per host with
+--distributed and --coordinator HOST:PORT --num-processes N --process-id I (or their JAX_* variables, or a
+SLURM allocation); the batch is split over all devices of all processes.
 """
 
 import argparse
@@ -49,7 +50,15 @@ def parse(argv=None):
     parser.add_argument("--init-from", default=None, metavar="MODEL_DIR",
                         help="start from these params (a model checkpoint, e.g. runs/x/model): fine-tuning")
     parser.add_argument("--prepared-dir", default=None, help="where TFDS keeps prepared data")
-    parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() first")
+    parser.add_argument("--distributed", action="store_true",
+                        help="join a multi-process run (one process per host or per GPU; see the README)")
+    parser.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                        help="with --distributed: process 0's address (default: $JAX_COORDINATOR_ADDRESS or "
+                             "the cluster's)")
+    parser.add_argument("--num-processes", type=int, default=None,
+                        help="with --distributed (default: $JAX_NUM_PROCESSES or the cluster's)")
+    parser.add_argument("--process-id", type=int, default=None,
+                        help="with --distributed (default: $JAX_PROCESS_ID or the cluster's)")
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -94,11 +103,10 @@ def parse(argv=None):
 
 def main(argv=None) -> int:
     args, config, workdir = parse(argv)
-    if args.distributed:
-        import jax
-
-        jax.distributed.initialize()
     from dit_jax import compile_cache, training
+
+    if args.distributed:
+        training.initialize_distributed(args.coordinator, args.num_processes, args.process_id)
 
     compile_cache.from_args(args)
     from dit_jax.data.shapes import DataError

@@ -208,6 +208,29 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
     return jax.jit(step, out_shardings=(replicated, replicated), donate_argnums=0)
 
 
+def initialize_distributed(coordinator: str | None = None, num_processes: int | None = None,
+                           process_id: int | None = None) -> None:
+    """Joins a multi-process run (``jax.distributed.initialize``); call before anything touches a device.
+
+    Each argument left None comes from the environment (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
+    ``JAX_PROCESS_ID``), else from a cluster JAX detects itself (SLURM, Open MPI, Kubernetes, TPU pods).
+    Processes on CPUs exchange gradients through gloo, JAX's CPU collectives.
+    """
+    env = os.environ
+    coordinator = coordinator or env.get("JAX_COORDINATOR_ADDRESS")
+    if num_processes is None and env.get("JAX_NUM_PROCESSES"):
+        num_processes = int(env["JAX_NUM_PROCESSES"])
+    if process_id is None and env.get("JAX_PROCESS_ID"):
+        process_id = int(env["JAX_PROCESS_ID"])
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator, num_processes, process_id)
+
+
+def is_primary() -> bool:
+    """Whether this process writes the run's shared files (logs, config, exported model): process 0."""
+    return jax.process_index() == 0
+
+
 def make_mesh(devices=None) -> Mesh:
     """A 1-D mesh named ``data`` over all devices (of all hosts)."""
     return Mesh(np.asarray(devices if devices is not None else jax.devices()), ("data",))
@@ -509,6 +532,10 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     error of the network alone, see :func:`validate`), ``metrics.jsonl``, ``train_config.json`` and, at the end, ``model/`` (the best params as a model
     checkpoint for ``evaluate.py``).
 
+    In a multi-process run (:func:`initialize_distributed`) every process calls this with the same arguments
+    and ``workdir`` (a shared file system); they train one model and save checkpoints together (orbax), and
+    process 0 alone writes the log and the config.
+
     Args:
       resume: continue from the latest checkpoint in ``workdir`` (step, optimiser, RNG and data order
         exactly). Without it, a ``workdir`` that holds checkpoints is refused rather than overwritten.
@@ -531,6 +558,8 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     optimizer = make_optimizer(config, total_steps)
     last_mgr, best_mgr = _managers(workdir, config.keep)
     log_path = os.path.join(workdir, "metrics.jsonl")
+    primary = is_primary()
+    log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
 
     state = init_state(config, optimizer)
     best_val = math.inf
@@ -541,13 +570,15 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
                                        "continue, or choose a new --workdir")
         state, meta = _restore(last_mgr, latest, jax.eval_shape(lambda: state), config)
         best_val = meta.get("best_val", math.inf)
-        _truncate_log(log_path, latest)
+        if primary:
+            _truncate_log(log_path, latest)
     else:
         if config.init_from:
             state = _initialise_from(state, config.init_from, optimizer)
-        _truncate_log(log_path, -1)
-        with open(os.path.join(workdir, "train_config.json"), "w") as f:
-            json.dump(config.to_json(), f, indent=2)
+        if primary:
+            _truncate_log(log_path, -1)
+            with open(os.path.join(workdir, "train_config.json"), "w") as f:
+                json.dump(config.to_json(), f, indent=2)
     state = replicate(state, mesh)
     step_fn = make_train_step(config, optimizer, mesh)
 
@@ -557,7 +588,7 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
 
     start = int(state.step)
     bar = None
-    if progress:
+    if progress and primary:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", dynamic_ncols=True)
@@ -577,14 +608,14 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     def run_validation(step: int, epoch: int) -> None:
         nonlocal val_metrics, best_val
         val_metrics = validate(state.params, val_ds, model_config, config.val_pairs)
-        _append_jsonl(log_path, {"step": step, "epoch": epoch, "split": "val", **val_metrics})
+        log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
         line = (f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
                 f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
                 f"{val_metrics['network_match_accuracy']:.3f}), translation error "
                 f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})")
         if bar is not None:
             bar.write(line)
-        else:
+        elif primary:
             print(line, flush=True)
         if val_metrics["network_rotation_error"] < best_val:
             best_val = val_metrics["network_rotation_error"]
@@ -604,7 +635,7 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
                       "lr": float(lr_schedule(config, total_steps)(step - 1)), **out,
                       "seconds_per_step": (now - t_last) / config.log_every}
             t_last = now
-            _append_jsonl(log_path, record)
+            log(record)
             if bar is not None:
                 bar.set_postfix(loss=f"{out['loss']:.3f}", disc=f"{out['discrimination']:.3f}",
                                 acc=f"{out['match_accuracy']:.2f}", rot=f"{out['rotation_error']:.1f}",
@@ -620,8 +651,10 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     last_mgr.close()
     best_mgr.close()
     result = {"step": step, "total_steps": total_steps, "skipped": int(state.skipped), "val": val_metrics,
-              "best_val_network_rotation_error": best_val, "workdir": os.path.abspath(workdir)}
+              "best_val_network_rotation_error": best_val, "workdir": os.path.abspath(workdir),
+              "processes": jax.process_count(), "devices": n_dev}
     if step >= total_steps:
+        # Every process: orbax's managers synchronise the processes (process 0 writes).
         result["model"] = export_params(workdir, os.path.join(workdir, "model"))
     return result
 

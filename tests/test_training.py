@@ -247,3 +247,59 @@ def test_training_curves_of_several_runs_plot_into_one_png(tmp_path):
     assert [r["step"] for r in records["val"]] == [0, 10, 15] and [r["step"] for r in records["train"]] == [5, 10, 15]
     training.plot_curves(runs, str(tmp_path / "curves.png"), title="two seeds")
     assert (tmp_path / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        return sock.getsockname()[1]
+
+
+def _last_params(workdir):
+    import orbax.checkpoint as ocp
+
+    manager = ocp.CheckpointManager(os.path.abspath(workdir / "checkpoints"), item_names=("state", "meta"))
+    step = manager.latest_step()
+    return step, manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore())).state["params"]
+
+
+def test_two_processes_train_the_model_that_one_process_with_two_devices_trains(tmp_path):
+    """`train.py --distributed`: two local processes (localhost coordinator, gloo CPU collectives), one CPU
+    device each, train the tiny preset for a few steps into one workdir; their parameters equal those of one
+    process with two devices at float tolerance. Both processes prepare the data at once (under the lock)."""
+    args = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--set", "max_steps=4", "--set",
+            "eval_every=4", "--set", "ckpt_every=4", "--set", "val_pairs=4", "--no-progress",
+            "--prepared-dir", str(tmp_path / "prepared")]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    port = _free_port()
+    commands = [(args + ["--workdir", str(tmp_path / "two"), "--distributed", "--coordinator", f"localhost:{port}",
+                         "--num-processes", "2", "--process-id", str(i)], env) for i in range(2)]
+    # The reference, started beside them: one process, two devices.
+    commands.append((args + ["--workdir", str(tmp_path / "one")],
+                     dict(env, XLA_FLAGS="--xla_force_host_platform_device_count=2")))
+    procs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=penv,
+                              cwd=str(ROOT)) for command, penv in commands]
+    outputs = [p.communicate(timeout=600) for p in procs]
+    for p, (out, err) in zip(procs, outputs):
+        assert p.returncode == 0, err[-3000:]
+    results = [json.loads(out[out.index("{"):]) for out, _ in outputs]
+    assert [(r["processes"], r["devices"]) for r in results] == [(2, 2), (2, 2), (1, 2)]
+    assert results[0]["val"] == results[1]["val"]
+
+    (step_two, two), (step_one, reference) = _last_params(tmp_path / "two"), _last_params(tmp_path / "one")
+    assert step_two == step_one == 4
+    import optax
+
+    start = training.init_state(training.PRESETS["tiny"], optax.sgd(0.1)).params
+    moved = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(start)))
+    differ = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                 for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(two)))
+    assert moved > 1e-4  # it trained
+    assert differ <= 1e-3 * moved, (differ, moved)
+    # One log, written by process 0 alone: a line per step and per validation (steps 0 and 4).
+    records = (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()
+    assert len(records) == len((tmp_path / "one" / "metrics.jsonl").read_text().splitlines()) == 6
