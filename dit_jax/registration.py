@@ -28,6 +28,7 @@ What :meth:`Registrar.register` does to a pair, in order:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.resources
 import os
 import time
@@ -116,6 +117,11 @@ class Result:
 def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: int | None = None) -> np.ndarray:
     """Indices of ``n`` points spread over the cloud by farthest-point sampling.
 
+    Each point taken is the one farthest from all taken before (ties: the lowest index), starting from a
+    seeded random point. Runs as one jitted loop (:func:`_farthest_points`): 0.07 s for 1000 of the Stanford
+    Dragon's 41,841 points on two CPU cores, against 0.97 s for the NumPy loop it replaced, with the same
+    indices (docs/BENCHMARKS.md).
+
     Args:
       points: (N, 3).
       n: how many to take; all N (in order) when N <= n.
@@ -131,13 +137,39 @@ def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: in
     rng = np.random.default_rng(seed)
     candidates = np.sort(rng.choice(count, pool, replace=False)) if pool and count > pool else np.arange(count)
     cloud = np.asarray(points[candidates], np.float64)
-    chosen = np.empty(n, np.int64)
-    chosen[0] = rng.integers(len(cloud))
-    nearest = np.sum((cloud - cloud[chosen[0]]) ** 2, axis=1)
-    for i in range(1, n):
-        chosen[i] = np.argmax(nearest)
-        np.minimum(nearest, np.sum((cloud - cloud[chosen[i]]) ** 2, axis=1), out=nearest)
-    return candidates[chosen]
+    first = int(rng.integers(len(cloud)))
+    # Centred before float32, so that squared distances keep their digits far from the origin. Padded to one
+    # of a few sizes per power of two (at most 1/8 more), so clouds of similar size share one compilation.
+    cloud = (cloud - cloud.mean(axis=0)).astype(np.float32)
+    step = 1 << max(len(cloud).bit_length() - 4, 0)
+    padded = np.zeros((3, -(-len(cloud) // step) * step), np.float32)
+    padded[:, :len(cloud)] = cloud.T
+    chosen = _farthest_points(padded, np.int32(len(cloud)), np.int32(first), n)
+    return candidates[np.asarray(chosen, np.int64)]
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _farthest_points(xyz: jax.Array, count: jax.Array, first: jax.Array, n: int) -> jax.Array:
+    """Farthest-point sampling of the first ``count`` columns of ``xyz`` (3, P), from column ``first``.
+
+    Coordinates as three rows and the arg-max as a max then a min over indices: XLA's CPU backend vectorises
+    both, where a (P, 3) layout and ``jnp.argmax`` (one reduction of value-index pairs) run 6x slower.
+    Padding columns start at distance -1 and are never taken. Returns (n,) int32.
+    """
+    x, y, z = xyz
+    index = jnp.arange(x.shape[0], dtype=jnp.int32)
+
+    def distances(i):
+        return (x - x[i]) ** 2 + (y - y[i]) ** 2 + (z - z[i]) ** 2
+
+    def body(i, state):
+        chosen, nearest = state
+        farthest = jnp.min(jnp.where(nearest == jnp.max(nearest), index, x.shape[0]))
+        return chosen.at[i].set(farthest), jnp.minimum(nearest, distances(farthest))
+
+    nearest = jnp.where(index < count, distances(first), -1.0)
+    chosen = jnp.zeros(n, jnp.int32).at[0].set(first)
+    return jax.lax.fori_loop(1, n, body, (chosen, nearest))[0]
 
 
 def check_cloud(name: str, points, min_points: int) -> np.ndarray:

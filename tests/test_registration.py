@@ -37,6 +37,33 @@ def test_farthest_point_sample_spreads_points():
     assert len(set(pooled.tolist())) == 10 and pooled.max() < len(points)
 
 
+def _farthest_point_sample_float64(points: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """The textbook loop in NumPy float64, with the same seeded start."""
+    first = np.random.default_rng(seed).integers(len(points))
+    chosen = [first]
+    nearest = np.sum((points - points[first]) ** 2, axis=1)
+    for _ in range(1, n):
+        chosen.append(int(np.argmax(nearest)))
+        nearest = np.minimum(nearest, np.sum((points - points[chosen[-1]]) ** 2, axis=1))
+    return np.asarray(chosen)
+
+
+def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir):
+    """The same indices as the float64 loop, on a real scan far from the origin and on a random cloud whose
+    size is not a padding size; two clouds of similar size share one compilation."""
+    from dit_jax import io
+
+    scan = io.read(dragon_dir / "dragonStandRight_0.ply") + np.array([1000.0, -200.0, 50.0])
+    np.testing.assert_array_equal(registration.farthest_point_sample(scan, 1000, seed=3),
+                                  _farthest_point_sample_float64(scan, 1000, 3))
+    cloud = np.random.default_rng(1).uniform(size=(3001, 3))
+    np.testing.assert_array_equal(registration.farthest_point_sample(cloud, 200, seed=0),
+                                  _farthest_point_sample_float64(cloud, 200, 0))
+    before = registration._farthest_points._cache_size()
+    registration.farthest_point_sample(cloud[:2990], 200, seed=0)
+    assert registration._farthest_points._cache_size() == before
+
+
 @pytest.mark.parametrize("bad,fragment", [
     (np.zeros((100, 2)), "N x 3"),
     (np.zeros((100, 3, 1)), "N x 3"),
