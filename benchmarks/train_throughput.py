@@ -1,32 +1,54 @@
-"""Training throughput (pairs per second) of a preset's train step on this machine.
+"""Training throughput (pairs per second) and peak memory of a preset's train step on this machine.
 
     python benchmarks/train_throughput.py --preset cpu
-    python benchmarks/train_throughput.py --preset paper
+    python benchmarks/train_throughput.py --preset paper                # the authors' 1000 points, batch 2
+    python benchmarks/train_throughput.py --preset paper --remat off    # without rematerialised blocks
 
-Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps).
+Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps). Peak
+memory: the process's peak resident set (VmHWM, compilation included) and, on an accelerator, the device's
+peak bytes in use. Prints one JSON record.
 """
 
 import argparse
+import dataclasses
+import datetime
 import json
 import time
 
 import numpy as np
 
 
+def peak_rss_bytes() -> int | None:
+    """This process's peak resident memory (Linux VmHWM)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
 def main():
-    parser = argparse.ArgumentParser()
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--n-points", type=int, default=None)
+    parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
+                        help="rematerialised blocks (DITConfig.remat): the preset's choice, or on / off")
     args = parser.parse_args()
 
-    import dataclasses
+    import jax
 
     from dit_jax import training
 
     config = training.PRESETS[args.preset]
     if args.n_points:
         config = dataclasses.replace(config, n_points=args.n_points)
+    if args.remat != "preset":
+        overrides = dict(config.model_overrides, remat=args.remat == "on")
+        config = dataclasses.replace(config, model_overrides=tuple(sorted(overrides.items())))
     optimizer = training.make_optimizer(config, 1000)
     mesh = training.make_mesh()
     state = training.replicate(training.init_state(config, optimizer), mesh)
@@ -34,7 +56,8 @@ def main():
     rng = np.random.default_rng(0)
     b, n = config.batch_size, config.n_points
     src = rng.uniform(-1, 1, (b, n, 3)).astype(np.float32)
-    batch = training.shard_batch({"src": src, "tgt": src[:, ::-1] + 0.1, "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
+    batch = training.shard_batch({"src": src, "tgt": src[:, ::-1] + 0.1,
+                                  "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
                                   "t": np.full((b, 3), 0.1, np.float32)}, mesh)
     t0 = time.perf_counter()
     state, out = step(state, batch)
@@ -47,9 +70,15 @@ def main():
         out["loss"].block_until_ready()
         times.append(time.perf_counter() - t0)
     step_s = float(np.median(times))
-    print(json.dumps({"preset": args.preset, "model": config.model, "n_points": n, "batch_size": b,
-                      "train_iters": config.train_iters, "compile_and_first_step_s": compile_s,
-                      "step_s": step_s, "pairs_per_s": b / step_s}, indent=2))
+    device = jax.devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    model_config = config.model_config()
+    print(json.dumps({"date": datetime.date.today().isoformat(), "device": device.device_kind,
+                      "preset": args.preset, "model": config.model, "n_points": n, "batch_size": b,
+                      "train_iters": config.train_iters, "remat": model_config.remat,
+                      "precision": model_config.precision, "compile_and_first_step_s": compile_s,
+                      "step_s": step_s, "pairs_per_s": b / step_s, "peak_rss_bytes": peak_rss_bytes(),
+                      "peak_device_bytes": stats and stats.get("peak_bytes_in_use")}, indent=2))
 
 
 if __name__ == "__main__":

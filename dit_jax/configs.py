@@ -79,6 +79,10 @@ class DITConfig:
         own default on NVIDIA GPUs is TF32, which moved the reference check's scores by 4.8e-3 on an H100
         (issue 18; docs/BENCHMARKS.md). The geometry
         (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
+      remat: rematerialise every PSE layer and PFT block in the backward pass (``jax.checkpoint``): training
+        keeps only each block's input and recomputes the rest, with the same gradients. Inference is
+        unaffected. Off by default: on a CPU the paper train step peaked higher with it (16.9 GB against
+        16.3) and ran 23 % slower (docs/BENCHMARKS.md); it is for accelerators short of memory.
     """
 
     emb_dims: int = 512
@@ -104,6 +108,7 @@ class DITConfig:
     attention_chunk: int = 512
     compute_dtype: str = "float32"
     precision: str = "highest"
+    remat: bool = False
 
     def __post_init__(self):
         problems = []

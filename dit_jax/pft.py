@@ -107,8 +107,10 @@ class Encoder(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
+        # deterministic (argument 2, counting the module) is a Python bool: static under remat.
+        layer = nn.remat(EncoderLayer, static_argnums=(2,)) if self.config.remat else EncoderLayer
         for i in range(self.config.n_blocks):
-            x = EncoderLayer(self.config, name=f"layers_{i}")(x, deterministic)
+            x = layer(self.config, name=f"layers_{i}")(x, deterministic)
         return AnnotatedLayerNorm(name="norm")(x)
 
 
@@ -117,8 +119,9 @@ class Decoder(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
+        layer = nn.remat(DecoderLayer, static_argnums=(3,)) if self.config.remat else DecoderLayer
         for i in range(self.config.n_blocks):
-            x = DecoderLayer(self.config, name=f"layers_{i}")(x, memory, deterministic)
+            x = layer(self.config, name=f"layers_{i}")(x, memory, deterministic)
         return AnnotatedLayerNorm(name="norm")(x)
 
 

@@ -74,9 +74,10 @@ class PSE(nn.Module):
         """points: (N, 3); knn_idx: (N, k) from :func:`geometry.knn`. Returns (N, E)."""
         tokens = []
         features = points
+        token_transformer = nn.remat(TokenTransformer) if self.config.remat else TokenTransformer
         for layer in range(1, PSE_LAYERS + 1):
             lfi = local_feature_integration(features, knn_idx)
-            features = TokenTransformer(self.config.token_dim, self.config.pse_heads,
+            features = token_transformer(self.config.token_dim, self.config.pse_heads,
                                         self.config.attention_chunk, self.config.precision,
                                         name=f"attention{layer}")(lfi)
             tokens.append(features)
