@@ -2,7 +2,7 @@
 
     python benchmarks/train_throughput.py --preset cpu
     python benchmarks/train_throughput.py --preset paper                # the authors' 1000 points, batch 2
-    python benchmarks/train_throughput.py --preset paper --remat off    # without rematerialised blocks
+    python benchmarks/train_throughput.py --preset paper --remat on     # blocks rematerialised
 
 Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps). Peak
 memory: the process's peak resident set (VmHWM, compilation included) and, on an accelerator, the device's
@@ -18,18 +18,6 @@ import time
 import numpy as np
 
 
-def peak_rss_bytes() -> int | None:
-    """This process's peak resident memory (Linux VmHWM)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="cpu")
@@ -42,6 +30,7 @@ def main():
     import jax
 
     from dit_jax import training
+    from inference import peak_memory  # benchmarks/inference.py, beside this script
 
     config = training.PRESETS[args.preset]
     if args.n_points:
@@ -70,15 +59,12 @@ def main():
         out["loss"].block_until_ready()
         times.append(time.perf_counter() - t0)
     step_s = float(np.median(times))
-    device = jax.devices()[0]
-    stats = device.memory_stats() if device.platform != "cpu" else None
     model_config = config.model_config()
-    print(json.dumps({"date": datetime.date.today().isoformat(), "device": device.device_kind,
+    print(json.dumps({"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
                       "preset": args.preset, "model": config.model, "n_points": n, "batch_size": b,
                       "train_iters": config.train_iters, "remat": model_config.remat,
                       "precision": model_config.precision, "compile_and_first_step_s": compile_s,
-                      "step_s": step_s, "pairs_per_s": b / step_s, "peak_rss_bytes": peak_rss_bytes(),
-                      "peak_device_bytes": stats and stats.get("peak_bytes_in_use")}, indent=2))
+                      "step_s": step_s, "pairs_per_s": b / step_s, **peak_memory()}, indent=2))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Checks dit-jax against activations recorded from the authors' implementation.
 
-    python -m dit_jax.reference_check FILE.npz [--json] [--x64 | --bfloat16]
+    python -m dit_jax.reference_check FILE.npz [--json] [--x64 | --bfloat16] [--precision P]
 
 The file (format: end of SPEC.md) holds the authors' config, their weights under ``param/*``, one input pair and
 the activations their code produced. This converts the weights with the file's config, runs dit-jax on the pair
@@ -47,10 +47,12 @@ def _channel_first(a) -> np.ndarray:
     return np.asarray(a).T[None]  # (N, C) -> (1, C, N), the authors' layout
 
 
-def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32") -> dict[str, np.ndarray]:
+def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32",
+            precision: str = "highest") -> dict[str, np.ndarray]:
     """Runs dit-jax on the file's pair and returns its activations under the file's names and layouts.
 
-    ``compute_dtype="bfloat16"`` runs PFT's products in bfloat16 (to measure what that mode costs)."""
+    ``compute_dtype="bfloat16"`` runs PFT's products in bfloat16, ``precision`` sets
+    :attr:`dit_jax.configs.DITConfig.precision` (both to measure what a mode costs)."""
     import jax
     import jax.numpy as jnp
 
@@ -60,7 +62,8 @@ def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32") -> dict
     raw = data["config"]
     authors = ast.literal_eval(str(raw.item() if raw.shape == () else raw))
     n_iters = len([k for k in data if re.fullmatch(r"iter\d+_R", k)]) or 2
-    config = configs.from_authors(authors, n_iters=n_iters).replace(compute_dtype=compute_dtype)
+    config = configs.from_authors(authors, n_iters=n_iters).replace(compute_dtype=compute_dtype,
+                                                                             precision=precision)
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
     state_dict = {k[len("param/"):]: v for k, v in data.items() if k.startswith("param/")}
     params = jax.tree.map(lambda a: jnp.asarray(a, dtype), convert.from_torch_state_dict(state_dict, config))
@@ -161,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--x64", action="store_true", help="run dit-jax in float64 instead of float32")
     parser.add_argument("--bfloat16", action="store_true",
                         help="PFT's products in bfloat16 (expect failures: this measures the mode's error)")
+    parser.add_argument("--precision", default="highest", choices=("highest", "tf32", "bfloat16"),
+                        help="the network's matrix products (DITConfig.precision; default highest, the verified "
+                             "one; on an accelerator the others measure what they cost)")
     args = parser.parse_args(argv)
     if args.x64 and args.bfloat16:
         parser.error("--x64 and --bfloat16 exclude each other")
@@ -177,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         missing = [k for k in ("config", "src", "tgt") if k not in data]
         if missing:
             raise ValueError(f"missing entries {', '.join(missing)}")
-        ours = compute(data, "bfloat16" if args.bfloat16 else "float32")
+        ours = compute(data, "bfloat16" if args.bfloat16 else "float32", args.precision)
     except (OSError, ValueError, SyntaxError, ConversionError) as err:
         print(f"error: {args.file}: {err}", file=sys.stderr)
         return 2
@@ -187,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         report = {
             "file": args.file,
             "dtype": "float64" if args.x64 else "bfloat16 (PFT products)" if args.bfloat16 else "float32",
+            "precision": args.precision,
             "max_abs_error": {c.name: c.value for c in checks if c.kind == "error"},
             "agreement": {c.name: c.value for c in checks if c.kind == "agreement"},
             "bounds": {c.name: c.bound for c in checks},

@@ -118,9 +118,9 @@ def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: in
     """Indices of ``n`` points spread over the cloud by farthest-point sampling.
 
     Each point taken is the one farthest from all taken before (ties: the lowest index), starting from a
-    seeded random point. Runs as one jitted loop (:func:`_farthest_points`): 0.07 s for 1000 of the Stanford
-    Dragon's 41,841 points on two CPU cores, against 0.97 s for the NumPy loop it replaced, with the same
-    indices (docs/BENCHMARKS.md).
+    seeded random point. Runs as one jitted loop (:func:`_farthest_points`): 0.05 s for 1000 of the Stanford
+    Dragon's 41,841 points on two CPU cores, against 0.13 s for the float64 NumPy loop it replaced, with the
+    same indices (docs/BENCHMARKS.md).
 
     Args:
       points: (N, 3).
