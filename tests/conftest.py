@@ -4,13 +4,24 @@ from __future__ import annotations
 
 import os
 import pathlib
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
 
-# Tests (and the train.py / dit-register processes they start) compile afresh and leave no XLA cache in the
-# user's home; tests/test_compile_cache.py turns it on where it is tested.
-os.environ.setdefault("DIT_JAX_COMPILE_CACHE", "off")
+# The train.py / dit-register / evaluate.py processes that tests start share one throwaway compilation cache
+# (a resumed run, a second CLI call reuse the first one's programs), never the user's own; it is removed when
+# the session ends. tests/test_compile_cache.py gives its processes caches of their own.
+_TEST_CACHE = None
+if "DIT_JAX_COMPILE_CACHE" not in os.environ:
+    _TEST_CACHE = tempfile.mkdtemp(prefix="dit-jax-test-xla-")
+    os.environ["DIT_JAX_COMPILE_CACHE"] = _TEST_CACHE
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _TEST_CACHE is not None:
+        shutil.rmtree(_TEST_CACHE, ignore_errors=True)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
