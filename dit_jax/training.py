@@ -227,7 +227,7 @@ def initialize_distributed(coordinator: str | None = None, num_processes: int | 
 
 
 def is_primary() -> bool:
-    """Whether this process writes the run's shared files (logs, config, exported model): process 0."""
+    """Whether this process writes the run's log and config: process 0 (orbax coordinates checkpoints)."""
     return jax.process_index() == 0
 
 

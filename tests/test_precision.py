@@ -116,3 +116,12 @@ def test_precisions_agree_on_cpu_within_bfloat16_rounding():
         results[precision] = np.asarray(model.register(params, src, tgt, config)[0])
     np.testing.assert_allclose(results["tf32"], results["highest"], atol=1e-6)
     np.testing.assert_allclose(results["bfloat16"], results["highest"], atol=0.1)
+
+
+def test_the_registration_api_takes_a_precision():
+    from dit_jax import registration
+
+    assert registration.load().config.precision == "highest"
+    assert registration.load(precision="tf32").config.precision == "tf32"
+    with pytest.raises(ValueError, match="precision must be one of"):
+        registration.load(precision="half")
