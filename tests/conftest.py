@@ -10,13 +10,17 @@ import tempfile
 import numpy as np
 import pytest
 
-# The train.py / dit-register / evaluate.py processes that tests start share one throwaway compilation cache
-# (a resumed run, a second CLI call reuse the first one's programs), never the user's own; it is removed when
-# the session ends. tests/test_compile_cache.py gives its processes caches of their own.
+# The test session and the train.py / dit-register / evaluate.py processes it starts share one throwaway
+# compilation cache (tests that build the same train step, a resumed run, a second CLI call reuse programs
+# compiled before), never the user's own; it is removed when the session ends. tests/test_compile_cache.py
+# gives its processes caches of their own.
 _TEST_CACHE = None
 if "DIT_JAX_COMPILE_CACHE" not in os.environ:
     _TEST_CACHE = tempfile.mkdtemp(prefix="dit-jax-test-xla-")
     os.environ["DIT_JAX_COMPILE_CACHE"] = _TEST_CACHE
+    from dit_jax import compile_cache
+
+    compile_cache.enable(_TEST_CACHE)
 
 
 def pytest_sessionfinish(session, exitstatus):
