@@ -1,7 +1,7 @@
 """JAX's persistent compilation cache for the command-line tools (``dit-register``, ``train.py``, ``evaluate.py``).
 
 XLA compiles DIT's registration for each config and cloud size; on two CPU cores that takes longer than the
-registration itself (docs/BENCHMARKS.md, "Starting up"). With the cache on, a second process with the same
+registration itself (docs/BENCHMARKS.md, "Start-up: the persistent compilation cache"). With the cache on, a second process with the same
 shapes loads the compiled program from disk instead.
 
 The directory, in order: ``--compile-cache DIR``; the environment variable ``DIT_JAX_COMPILE_CACHE``;

@@ -78,8 +78,8 @@ class PSE(nn.Module):
         for layer in range(1, PSE_LAYERS + 1):
             lfi = local_feature_integration(features, knn_idx)
             features = token_transformer(self.config.token_dim, self.config.pse_heads,
-                                        self.config.attention_chunk, self.config.precision,
-                                        name=f"attention{layer}")(lfi)
+                                         self.config.attention_chunk, self.config.precision,
+                                         name=f"attention{layer}")(lfi)
             tokens.append(features)
         # The paper writes ReLU here; the authors' code (and so their weights) use leaky ReLU.
         out = jax.nn.leaky_relu(jnp.concatenate(tokens, axis=-1), negative_slope=0.01)
