@@ -24,20 +24,24 @@ from typing import Sequence
 import numpy as np
 
 METHODS = ("point_to_point", "point_to_plane")
-#: DIT's refinement (:func:`refine`; ``register(refine="icp")``, evaluate.py's ``DIT+ICP``): its stages'
-#: pairing distances, in units of the unit sphere the network works in, and the method it uses where the
-#: clouds share no points; chosen on validation pairs of training shapes (scripts/tune_baselines.py,
-#: docs/baselines_tuning.md).
-REFINE_DISTANCES = (0.1, 0.05)
-REFINE_METHOD = "point_to_plane"
-#: Clouds "share their points" when, after point-to-point ICP, the median distance from a source point to its
-#: nearest target point is below this share of the target's point spacing (about 0.1 or less on the authors'
-#: low-noise pairs, 0.8 and above on independently sampled ones; scripts/check_refinement.py).
-SHARED_POINTS_GAP = 0.3
-#: :func:`refine` keeps the estimate it was given where ICP would move the source points by more than this
-#: share of the clouds' radius on average (None: no limit). On validation pairs, 0.5 keeps as many pairs
-#: within 5 degrees as no limit and lowers the mean error on scan-like pairs; 0.3 or less loses pairs ICP
-#: would have brought in (docs/refinement_check.md).
+#: DIT's refinement (:func:`refine`; ``register(refine="icp")``, evaluate.py's ``DIT+ICP``): the ICP runs it
+#: tries from the estimate it is handed, as (method, pairing distances in units of the clouds' radius, trim).
+#: No single run suits every pair: point-to-point pairs shared points exactly, point-to-plane slides
+#: independently sampled surfaces together, and trimmed runs keep partial views from being pulled by the
+#: parts one view lacks. Chosen on validation pairs of training shapes (docs/refinement_check.md).
+REFINE_CANDIDATES = (
+    ("point_to_point", (0.1, 0.05), None),
+    ("point_to_point", (0.1, 0.05, 0.02), None),
+    ("point_to_plane", (0.1, 0.05, 0.02), None),
+    ("point_to_point", (0.1, 0.05, 0.02), 0.5),
+    ("point_to_plane", (0.1, 0.05), 0.5),
+)
+#: :func:`trimmed_fit` scores a motion by its closest FIT_SHARE of the source points, so the parts of a
+#: partial view the other cloud lacks do not count (validation: 0.7 beats the median and the closest half).
+FIT_SHARE = 0.7
+#: :func:`refine` never takes a run that moves the source points by more than this share of the clouds'
+#: radius on average from the estimate it was handed (None: no limit): ICP from a start that far off slides
+#: partial views into each other rather than correcting them.
 MAX_SHIFT = 0.5
 
 
@@ -103,7 +107,8 @@ def _point_to_plane_step(src: np.ndarray, tgt: np.ndarray, normals: np.ndarray):
 def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
         translation: np.ndarray | None = None, *, distances: float | Sequence[float] = 0.05,
         method: str = "point_to_point", max_iterations: int = 50, tolerance: float = 1e-7,
-        max_points: int | None = 5_000, normal_neighbours: int = 20, seed: int = 0, tree=None) -> ICPResult:
+        max_points: int | None = 5_000, normal_neighbours: int = 20, seed: int = 0, tree=None,
+        trim: float | None = None, normals: np.ndarray | None = None) -> ICPResult:
     """Refines the motion moving ``src`` onto ``tgt``, starting from ``(rotation, translation)``.
 
     Args:
@@ -117,6 +122,9 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
       max_points: the source is thinned at random (seeded) to this many points; the target is used whole.
       normal_neighbours: neighbours per target normal (point-to-plane only).
       tree: a ``scipy.spatial.cKDTree`` of ``tgt`` to reuse (built here otherwise).
+      trim: keep only this share of the pairs, the closest (trimmed ICP, Chetverikov et al. 2002), so the
+        points one cloud has and the other lacks pull less; None keeps every pair within the distance.
+      normals: (M, 3) the target's normals to reuse (point-to-plane; estimated here otherwise).
 
     Returns:
       :class:`ICPResult`, in float64.
@@ -133,7 +141,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
     if max_points and len(src) > max_points:
         src = src[np.random.default_rng(seed).choice(len(src), max_points, replace=False)]
     tree = tree if tree is not None else cKDTree(tgt)
-    normals = estimate_normals(tgt, normal_neighbours, tree) if method == "point_to_plane" else None
+    if method == "point_to_plane" and normals is None:
+        normals = estimate_normals(tgt, normal_neighbours, tree)
     extent = float(np.linalg.norm(np.ptp(src, axis=0))) or 1.0
     iterations = 0
     for distance in stages:
@@ -141,6 +150,8 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
             moved = src @ rotation.T + translation
             gap, idx = tree.query(moved, distance_upper_bound=distance)
             paired = np.isfinite(gap)
+            if trim is not None and paired.sum() >= 3:
+                paired &= gap <= np.quantile(gap[paired], trim)
             if paired.sum() < 3:
                 break
             if method == "point_to_point":
@@ -178,13 +189,27 @@ def spacing(points: np.ndarray, tree=None, max_points: int = 5_000, seed: int = 
     return float(np.median(tree.query(points, k=2)[0][:, 1]))
 
 
-def _gap(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, seed: int,
-                quantile: float = 0.5) -> float:
-    """A quantile (the median by default) of the distances from (up to 5,000 of) the moved source points to
-    their nearest target point."""
-    if len(src) > 5_000:
-        src = src[np.random.default_rng(seed).choice(len(src), 5_000, replace=False)]
-    return float(np.quantile(tree.query(src @ rotation.T + translation)[0], quantile))
+def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, *,
+                share: float = FIT_SHARE, seed: int = 0, max_points: int = 5_000) -> float:
+    """How well a motion lays src (N, 3) onto the target of ``tree`` (a ``cKDTree``): the mean squared
+    distance from the moved source points to their nearest target points, over the closest ``share`` of
+    them (a seeded random ``max_points`` of the source for large clouds). Lower is better."""
+    if len(src) > max_points:
+        src = src[np.random.default_rng(seed).choice(len(src), max_points, replace=False)]
+    gaps = np.sort(tree.query(src @ rotation.T + translation)[0])
+    return float(np.mean(gaps[:max(1, int(share * len(gaps)))] ** 2))
+
+
+def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, truth: tuple) -> bool:
+    """Whether ``motion`` (R (3, 3), t (3,)) lays src (N, 3) onto tgt (M, 3) better than ``truth`` does, by
+    :func:`trimmed_fit`: where it does, the points themselves prefer that pose, and no refinement that fits
+    them can be expected to end at the truth."""
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(src, np.float64)
+    tree = cKDTree(np.asarray(tgt, np.float64))
+    as_float = lambda m: (np.asarray(m[0], np.float64), np.asarray(m[1], np.float64))
+    return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(truth))
 
 
 def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
@@ -194,47 +219,48 @@ def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarra
 
 
 def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
-           scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT) -> ICPResult:
-    """DIT's refinement of a global estimate.
+           scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT,
+           rounds: int = 2, max_points: int = 2_000) -> ICPResult:
+    """DIT's refinement of a global estimate: the best fit among several ICP runs and the estimate itself.
 
-    First point-to-point ICP at :data:`REFINE_DISTANCES` (times ``scale``, the clouds' radius). Where that lays
-    the clouds onto each other closer than :data:`SHARED_POINTS_GAP` point spacings (median distance from a
-    source point to the target), they share their points (the authors' synthetic pairs): a last
-    point-to-point stage pairs only points within four such median gaps, which leaves out the points one
-    cloud has and the other lacks, and the result is exact up to noise. Otherwise (independently sampled
-    clouds, as real scans are) point-to-plane ICP from the given estimate at the same distances, which slides
-    the surfaces onto each other instead of snagging on their samples (docs/refinement_check.md).
+    Each round runs every :data:`REFINE_CANDIDATES` ICP from the current estimate (distances times
+    ``scale``, the clouds' radius) and keeps whichever motion -- one of those runs or the current estimate
+    -- has the lowest :func:`trimmed_fit`; the next round starts from it. So the estimate comes back
+    unchanged (``iterations`` 0) where no run lays the clouds on each other better: an exact start on
+    shared points, or a start ICP would only slide along a partial view. Runs that move the source points
+    more than ``max_shift`` times ``scale`` on average from the estimate handed in are never taken.
 
-    The estimate comes back unchanged (``iterations`` 0) where the refinement would move the source points
-    by more than ``max_shift`` times ``scale`` on average (ICP from a start that far off slides partial views
-    into each other rather than correcting them), and where the estimate already lays the closest quarter of
-    the source points closer onto the target than the refinement does (ICP can slide a near-exact start off
-    the points the clouds share, pulled by those one cloud lacks).
-
-    Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`. Returns :class:`ICPResult`."""
+    Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`; ``rounds`` (at least 1) stops
+    early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
+    this many source points (the target is used whole), which bounds the time on large scans. Returns :class:`ICPResult` (fitness and rmse at the finest
+    candidate distance).
+    """
     from scipy.spatial import cKDTree
 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
-    distances = tuple(scale * d for d in REFINE_DISTANCES)
+    start = (np.asarray(rotation, np.float64), np.asarray(translation, np.float64))
     tree = cKDTree(tgt)
-    shared = SHARED_POINTS_GAP * spacing(tgt, tree, seed=seed)
-    # The estimate as handed in, with its fitness and rmse: what comes back where the refinement is refused.
-    kept = lambda: icp(src, tgt, rotation, translation, distances=distances[-1], max_iterations=0, tree=tree)
-    point = icp(src, tgt, rotation, translation, distances=distances, seed=seed, tree=tree)
-    gap = _gap(src, tree, point.rotation, point.translation, seed)
-    if gap < shared:
-        tight = max(4.0 * gap, 1e-9 * scale)
-        last = icp(src, tgt, point.rotation, point.translation, distances=tight, seed=seed, tree=tree)
-        result = dataclasses.replace(last, iterations=point.iterations + last.iterations)
-    else:
-        result = icp(src, tgt, rotation, translation, distances=distances, method=REFINE_METHOD, seed=seed,
-                     tree=tree)
-    if max_shift is not None and mean_shift(src, result.rotation, result.translation, rotation,
-                                            translation) > max_shift * scale:
-        return kept()
-    # The closest quarter of the points decides: where the clouds share points, those lie on each other.
-    closest = lambda r, t: _gap(src, tree, r, t, seed, quantile=0.25)
-    if closest(rotation, translation) < closest(result.rotation, result.translation):
-        return kept()
-    return result
+    finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
+    score = lambda r, t: trimmed_fit(src, tree, r, t, seed=seed, max_points=max_points)
+    best = icp(src, tgt, *start, distances=finest, max_iterations=0, tree=tree)
+    best_score = score(best.rotation, best.translation)
+    normals = estimate_normals(tgt, tree=tree)
+    iterations = 0
+    for _ in range(rounds):
+        improved = False
+        for method, distances, trim in REFINE_CANDIDATES:
+            run = icp(src, tgt, best.rotation, best.translation, distances=tuple(scale * d for d in distances),
+                      method=method, trim=trim, seed=seed, tree=tree, max_points=max_points, normals=normals)
+            iterations += run.iterations
+            if max_shift is not None and mean_shift(src, run.rotation, run.translation, *start) > max_shift * scale:
+                continue
+            run_score = score(run.rotation, run.translation)
+            if run_score < best_score:
+                best, best_score, improved = run, run_score, True
+        if not improved:
+            break
+    if best.iterations == 0:
+        return best
+    final = icp(src, tgt, best.rotation, best.translation, distances=finest, max_iterations=0, tree=tree)
+    return dataclasses.replace(final, iterations=iterations)

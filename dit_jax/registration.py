@@ -20,8 +20,8 @@ What :meth:`Registrar.register` does to a pair, in order:
 5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
    ``y = R x + s t' + c_y - R c_x``;
 6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds
-   (:func:`dit_jax.icp.refine`: point-to-plane at pairing distances :data:`dit_jax.icp.REFINE_DISTANCES`
-   times ``s``, chosen on validation pairs), and recomputes the fitness, and with it the verdict, for the
+   (:func:`dit_jax.icp.refine`: the best trimmed fit among several ICP runs, :data:`dit_jax.icp.REFINE_CANDIDATES`,
+   distances times ``s``, chosen on validation pairs), and recomputes the fitness, and with it the verdict, for the
    refined motion.
 """
 

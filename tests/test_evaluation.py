@@ -134,3 +134,12 @@ def test_refinement_summary_counts_the_pairs_dit_had_close():
     assert (summary["good"], summary["good_within_goal"], summary["good_worst_after"]) == (2, 1, 1.5)
     assert summary["mean_before"] == 10.0 and "2 pairs DIT alone had within 10 deg, 1 end" in \
         evaluation.refinement_line(summary)
+
+
+def test_refinement_summary_tells_misses_the_data_place_elsewhere():
+    import numpy as np
+
+    before, after = np.array([2.0, 5.0, 8.0, 30.0]), np.array([0.5, 3.0, 1.5, 2.0])
+    summary = evaluation.refinement_summary(before, after, np.array([False, True, False, True]))
+    assert summary["good_missed_data"] == 1  # pair 2: a miss the data prefer; pair 4: DIT was not close
+    assert "of the 2 that do not, 1 end where the clouds fit better" in evaluation.refinement_line(summary)
