@@ -204,22 +204,19 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
         assert code == 2 and fragment in err and not os.path.exists(bad)
 
 
-def test_real_scans_refined_by_icp_land_within_a_degree_or_are_flagged(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (measured 2026-11-26, docs/eval_stanford_dragon): the
-    network alone 2.4 and 25 degrees off, 0.06 and 0.15 after ICP, trusted or not; where the network is
-    63 degrees off ICP cannot help, and the verdict says so with status 3."""
+def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 2.4 and
+    25 degrees off, 0.06 and 0.15 after ICP (2026-11-26); where the network is 63 degrees off, the refinement's
+    trimmed runs pull it in to 1.8 degrees (2026-11-27; the single point-to-plane run before it could not)."""
     from dit_jax.data import scans
     from dit_jax.plotting import rotation_angle_deg
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
     for source, target, bound in (("dragonStandRight_0", "dragonStandRight_24", 0.5),
                                   ("dragonStandRight_216", "dragonStandRight_240", 1.0),
-                                  ("dragonStandRight_48", "dragonStandRight_72", None)):
+                                  ("dragonStandRight_48", "dragonStandRight_72", 3.0)):
         code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json",
                              "--refine", "icp")
         truth, _ = scans.relative_motion(series[source], series[target])
         error = rotation_angle_deg(np.asarray(json.loads(out)["matrix"])[:3, :3].T @ truth)
-        if bound is not None:
-            assert error < bound, (source, error)
-        else:
-            assert error > 10 and code == 3 and "probably wrong" in err, (source, error, code)
+        assert error < bound, (source, error)
