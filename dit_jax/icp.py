@@ -178,17 +178,6 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
                      iterations=iterations)
 
 
-def spacing(points: np.ndarray, tree=None, max_points: int = 5_000, seed: int = 0) -> float:
-    """The median distance from a point of ``points`` (N, 3) to its nearest other point (on a seeded random
-    subset of ``max_points`` for large clouds)."""
-    from scipy.spatial import cKDTree
-
-    tree = tree if tree is not None else cKDTree(points)
-    if len(points) > max_points:
-        points = points[np.random.default_rng(seed).choice(len(points), max_points, replace=False)]
-    return float(np.median(tree.query(points, k=2)[0][:, 1]))
-
-
 def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, *,
                 share: float = FIT_SHARE, seed: int = 0, max_points: int = 5_000) -> float:
     """How well a motion lays src (N, 3) onto the target of ``tree`` (a ``cKDTree``): the mean squared
