@@ -14,13 +14,16 @@ import pytest
 # compilation cache (tests that build the same train step, a resumed run, a second CLI call reuse programs
 # compiled before), never the user's own; it is removed when the session ends. tests/test_compile_cache.py
 # gives its processes caches of their own.
+# Under pytest-xdist the workers inherit the controller's variables, so they find its cache through
+# DIT_JAX_TEST_XLA_CACHE and share it (the controller alone removes it).
 _TEST_CACHE = None
 if "DIT_JAX_COMPILE_CACHE" not in os.environ:
     _TEST_CACHE = tempfile.mkdtemp(prefix="dit-jax-test-xla-")
-    os.environ["DIT_JAX_COMPILE_CACHE"] = _TEST_CACHE
+    os.environ["DIT_JAX_COMPILE_CACHE"] = os.environ["DIT_JAX_TEST_XLA_CACHE"] = _TEST_CACHE
+if os.environ.get("DIT_JAX_TEST_XLA_CACHE") == os.environ["DIT_JAX_COMPILE_CACHE"]:
     from dit_jax import compile_cache
 
-    compile_cache.enable(_TEST_CACHE)
+    compile_cache.enable(os.environ["DIT_JAX_COMPILE_CACHE"])
 
 
 def pytest_sessionfinish(session, exitstatus):
@@ -112,3 +115,13 @@ def write_scan_series(directory, poses, rng, n_points: int = 50):
         lines.append(f"bmesh s{i}.xyz {t[0]} {t[1]} {t[2]} {q[0]} {q[1]} {q[2]} {q[3]}")
     (directory / "series.conf").write_text("\n".join(lines) + "\n")
     return cloud
+
+
+#: Test modules whose tests run minutes, not seconds (training, several processes): started first, so that
+#: under pytest-xdist (the README's ``-n 2``) the quick tests fill the other worker while these run,
+#: instead of the slow ones meeting at the end.
+_SLOW_MODULES = ("test_training.py",)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    items.sort(key=lambda item: item.path.name not in _SLOW_MODULES)  # stable: order kept otherwise

@@ -2,6 +2,7 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 import signal
 import subprocess
 import sys
@@ -88,13 +89,24 @@ def test_non_finite_batches_are_skipped_not_applied(prepared):
     assert any(jax.tree.leaves(changed))
 
 
-def test_training_writes_checkpoints_and_metrics(tmp_path, prepared, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # a relative workdir, as `python train.py` gets by default
-    result = training.train(TINY, "run", prepared_dir=prepared, progress=False)
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory, prepared):
+    """One TINY run of 12 steps (checkpoints at 4, 8 and 12), trained in this process into a relative
+    workdir, as `python train.py` gets by default: (workdir, train's result). Several tests read it, so
+    the suite trains it once."""
+    directory = tmp_path_factory.mktemp("tiny")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(directory)
+        result = training.train(TINY, "run", prepared_dir=prepared, progress=False)
+    return directory / "run", result
+
+
+def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
+    workdir, result = tiny_run
     assert result["step"] == 12 and result["skipped"] == 0
-    assert sorted(os.listdir(tmp_path / "run" / "checkpoints")) == ["12", "4", "8"]
-    assert os.listdir(tmp_path / "run" / "best")
-    lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
+    assert sorted(os.listdir(workdir / "checkpoints")) == ["12", "4", "8"]
+    assert os.listdir(workdir / "best")
+    lines = (workdir / "metrics.jsonl").read_text().splitlines()
     assert any('"split": "val"' in line for line in lines) and len(lines) >= 12
     from dit_jax import checkpoint
 
@@ -102,11 +114,11 @@ def test_training_writes_checkpoints_and_metrics(tmp_path, prepared, monkeypatch
     assert config == TINY.model_config()
     # Starting again in the same directory without --resume is refused, never a silent restart.
     with pytest.raises(training.TrainCheckpointError, match="pass --resume"):
-        training.train(TINY, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+        training.train(TINY, str(workdir), prepared_dir=prepared, progress=False)
 
 
-def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared):
-    whole = training.train(TINY, str(tmp_path / "whole"), prepared_dir=prepared, progress=False)
+def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_run):
+    _, whole = tiny_run  # the same run, uninterrupted
     workdir = tmp_path / "killed"
     cmd = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--workdir", str(workdir), "--no-progress",
            "--prepared-dir", prepared, "--set", "max_steps=12", "--set", "ckpt_every=4", "--set", "eval_every=6",
@@ -123,9 +135,12 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared):
     assert _equal_params(whole["model"], workdir / "model")
 
 
-def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared):
+def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
+    # A copy of a finished run cut back to its step-4 checkpoint, then damaged.
     config = dataclasses.replace(TINY, max_steps=4)
-    training.train(config, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+    shutil.copytree(tiny_run[0], tmp_path / "run")
+    for step in ("8", "12"):
+        shutil.rmtree(tmp_path / "run" / "checkpoints" / step)
     for f in (tmp_path / "run" / "checkpoints" / "4" / "state").rglob("*"):
         if f.is_file() and f.stat().st_size > 0 and "metadata" not in f.name:
             f.write_bytes(b"\0" * 7)
