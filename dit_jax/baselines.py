@@ -8,8 +8,9 @@ in the unit sphere (as ModelNet40 and the embedded set are; evaluate.py scales r
   ``feature_radius``), RANSAC on mutual feature matches (3 points, edge-length check 0.9, inlier distance
   ``distance``), optionally on a voxel-downsampled cloud.
 * ``fgr``: fast global registration (Zhou et al. 2016) on the same features.
-* ``fpfh_ransac_icp`` / ``fgr_icp``: the global estimate refined by :func:`dit_jax.icp.icp` (the same ICP that
-  refines DIT), every point of both clouds; their time includes both stages.
+* ``fpfh_ransac_icp`` / ``fgr_icp``: the global estimate refined over every point of both clouds, by one
+  tuned :func:`dit_jax.icp.icp` schedule or by DIT's own refinement (:func:`dit_jax.icp.refine`), whichever
+  scores better on validation pairs of that setting; their time includes both stages.
 
 Every option is an :class:`Options` field. The defaults are tuned on validation pairs of training shapes
 (``scripts/tune_baselines.py``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
@@ -38,6 +39,8 @@ NAMES = ("icp", "fpfh_ransac", "fgr", "fpfh_ransac_icp", "fgr_icp")
 DENSE_POINTS = 5000
 DENSE_VOXEL = 0.025
 TUNED_FILE = "baselines_tuned.json"
+#: ``Options.icp_method`` that refines as DIT+ICP does (:func:`dit_jax.icp.refine`).
+REFINE = "refine"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +56,9 @@ class Options:
       icp_distances: the refinement's pairing distances, coarse to fine (see :func:`dit_jax.icp.icp`), and
         the plain ``icp`` baseline's distance (its first).
       icp_iterations: per refinement stage, and for the plain ``icp`` baseline.
-      icp_method: the refinement's "point_to_point" or "point_to_plane".
+      icp_method: the refinement's "point_to_point" or "point_to_plane" (one ICP with ``icp_distances``), or
+        "refine": DIT's own refinement, :func:`dit_jax.icp.refine` (the best fit among several ICP runs;
+        ``icp_distances`` and ``icp_iterations`` unused), so a baseline can be refined exactly as DIT+ICP is.
       fgr_tuple_scale: FGR's tuple test (similarity of the triangles of three matches).
     """
 
@@ -146,7 +151,10 @@ def fgr_on_features(src_features, tgt_features, options: Options):
 
 
 def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, options: Options):
-    """A global estimate refined by ICP over every point: (R, t)."""
+    """A global estimate refined by ICP over every point (``options.icp_method``): (R, t)."""
+    if options.icp_method == REFINE:
+        result = icp_lib.refine(src, tgt, rotation, translation)
+        return result.rotation, result.translation
     result = icp_lib.icp(src, tgt, rotation, translation, distances=options.icp_distances,
                          method=options.icp_method, max_iterations=options.icp_iterations)
     return result.rotation, result.translation

@@ -1,3 +1,6 @@
+import json
+import pathlib
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -47,6 +50,31 @@ def test_every_method_and_setting_has_tuned_options_recorded_in_docs():
         assert baselines.tuned_options(name, "a setting never tuned") == baselines.Options.from_dict(choice[name]["any"])
     with pytest.raises(ValueError, match="unknown baseline"):
         baselines.tuned_options("ransac")
+
+
+def test_refine_option_refines_as_dit_does(modelnet_shapes):
+    """``icp_method="refine"`` is DIT+ICP's refinement (dit_jax.icp.refine), the schedule fields unused; the
+    shipped choice uses it only where scripts/compare_baseline_refinement.py recorded why."""
+    from dit_jax import icp
+
+    rng = np.random.default_rng(4)
+    x = modelnet_shapes[5][:1000].astype(np.float64)
+    r_gt = euler_zyx_to_matrix(np.array([20.0, -10.0, 15.0]))
+    y = x[rng.permutation(1000)[:800]] @ r_gt.T + np.array([0.1, 0.0, -0.05]) + rng.normal(0, 0.01, (800, 3))
+    start = euler_zyx_to_matrix(np.array([23.0, -8.0, 13.0])), np.array([0.12, 0.02, -0.05])
+    options = baselines.Options(icp_method=baselines.REFINE, icp_distances=(0.5,), icp_iterations=1)
+    rotation, translation = baselines.refine(x, y, *start, options)
+    expected = icp.refine(x, y, *start)
+    np.testing.assert_array_equal(rotation, expected.rotation)
+    np.testing.assert_array_equal(translation, expected.translation)
+    assert float(metrics.rotation_error_deg(jnp.asarray(rotation), jnp.asarray(r_gt))) < 1.0
+
+    tuned = json.loads((pathlib.Path(baselines.__file__).parent / baselines.TUNED_FILE).read_text())
+    for name in ("fpfh_ransac_icp", "fgr_icp"):
+        for target, chosen in tuned["choice"][name].items():
+            assert chosen["icp_method"] in (*icp.METHODS, baselines.REFINE)
+            if chosen["icp_method"] == baselines.REFINE:
+                assert tuned["refinement"]["single_icp_method"][name][target] in icp.METHODS
 
 
 def test_options_round_trip_and_explicit_options_win():
