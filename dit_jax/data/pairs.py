@@ -305,10 +305,14 @@ class PairDataset:
                 noise[:, i] = np.clip(rng.normal(0.0, NOISE_STD, (2, k, 3)), -c.noise_clip, c.noise_clip)
         src_clean = np.take_along_axis(shapes, src_idx[..., None], axis=1)
         tgt_clean = np.take_along_axis(shapes, tgt_idx[..., None], axis=1)
-        # A source point's counterpart: the nearest target point on the noise-free shape, if near enough.
-        gaps = np.linalg.norm(src_clean[:, :, None] - tgt_clean[:, None], axis=-1)  # (B, K, K)
-        nearest = np.argmin(gaps, axis=2)
-        near = np.take_along_axis(gaps, nearest[..., None], axis=2)[..., 0] < CORRESPONDENCE_RADIUS
+        # A source point's counterpart: the nearest target point on the noise-free shape, if near enough. A k-d
+        # tree per pair: the dense (B, K, K, 3) differences took 2.5 GB and 17 s for 400 pairs of 512 points.
+        from scipy.spatial import cKDTree
+
+        gap, nearest = np.empty((b, k)), np.empty((b, k), np.int64)
+        for i in range(b):
+            gap[i], nearest[i] = cKDTree(tgt_clean[i]).query(src_clean[i])
+        near = gap < CORRESPONDENCE_RADIUS
         rot = euler_zyx_to_matrix(angles)
         tgt = np.einsum("bij,bnj->bni", rot, tgt_clean + noise[1]) + trans[:, None, :]
         return {
