@@ -123,5 +123,12 @@ def write_scan_series(directory, poses, rng, n_points: int = 50):
 _SLOW_MODULES = ("test_training.py",)
 
 
+def pytest_configure(config):
+    # pytest-xdist's load scheduling otherwise hands each worker a run of consecutive tests at the start, which
+    # put every slow test on the first worker; one at a time, the two workers take the slow ones in turn.
+    if hasattr(config.option, "maxschedchunk") and config.option.maxschedchunk is None:
+        config.option.maxschedchunk = 1
+
+
 def pytest_collection_modifyitems(session, config, items):
     items.sort(key=lambda item: item.path.name not in _SLOW_MODULES)  # stable: order kept otherwise
