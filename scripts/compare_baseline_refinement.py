@@ -17,9 +17,9 @@ the comparison can be run again) and the table into ``docs/baselines_refinement.
 
 import argparse
 import datetime
-import importlib.resources
 import json
 import os
+import pathlib
 import sys
 
 import numpy as np
@@ -29,6 +29,9 @@ from dit_jax.data.pairs import SETTINGS
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from tune_baselines import score  # noqa: E402  (the tuning's own score, so the two tables compare)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+TUNED_PATH = ROOT / "dit_jax" / baselines.TUNED_FILE
 
 
 def main() -> None:
@@ -46,8 +49,7 @@ def main() -> None:
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its warnings go to stdout, into the table
     batches = training.validation_batches(args.data_dir, list(SETTINGS), count=args.pairs, n_points=args.n_points,
                                           unseen=args.unseen)
-    tuned_file = importlib.resources.files("dit_jax") / baselines.TUNED_FILE
-    tuned_json = json.loads(tuned_file.read_text())
+    tuned_json = json.loads(TUNED_PATH.read_text())
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").
     single = tuned_json.get("refinement", {}).get("single_icp_method", {})
     command = ("python scripts/compare_baseline_refinement.py " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
@@ -102,17 +104,12 @@ def main() -> None:
                     options["icp_method"] = baselines.REFINE
                     chosen.append(f"{name} {target}")
         tuned_json["refinement"] = record
-        with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "dit_jax", baselines.TUNED_FILE),
-                  "w") as f:
-            json.dump(tuned_json, f, indent=1)
-            f.write("\n")
+        TUNED_PATH.write_text(json.dumps(tuned_json, indent=1) + "\n")
         lines += ["", "Written to `dit_jax/baselines_tuned.json`: DIT's refinement (`icp_method: refine`) for "
                       + (", ".join(chosen) or "none") + "; the tuned single ICP elsewhere ('any': summed over "
                       "the settings, the global estimate of each setting's own choice)."]
-        with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "baselines_refinement.md"),
-                  "w") as f:
-            f.write("# The baselines' ICP refinement: their tuned single ICP or DIT's refinement\n\n"
-                    + "\n".join(lines) + "\n")
+        (ROOT / "docs" / "baselines_refinement.md").write_text(
+            "# The baselines' ICP refinement: their tuned single ICP or DIT's refinement\n\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
