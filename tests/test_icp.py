@@ -182,3 +182,31 @@ def test_refine_never_hands_back_a_worse_fit_than_its_start():
         result = icp.refine(src, tgt, start, t)
         assert (icp.trimmed_fit(src, tree, result.rotation, result.translation)
                 <= icp.trimmed_fit(src, tree, start, t))
+
+
+def _box_views(seed: int):
+    """Two noisy partial views (800 of 1000 points each, from opposite ends) of a box's surface sampled once,
+    the target moved: (src, tgt, R, t). Along the box's long axis the views can slide over each other."""
+    rng = np.random.default_rng(seed)
+    size = np.array([1.0, 0.35, 0.25])
+    points = rng.uniform(-1, 1, size=(1000, 3)) * size
+    face, sign = rng.integers(0, 3, 1000), rng.choice([-1, 1], 1000)
+    points[np.arange(1000), face] = sign * size[face]
+    direction = np.array([1.0, 0.2, 0.1])
+    crop = lambda v: points[np.argsort(np.linalg.norm(points - 1000 * v, axis=1))[:800]]
+    noisy = lambda x: x + np.clip(rng.normal(scale=0.01, size=x.shape), -0.05, 0.05)
+    truth, t = euler_zyx_to_matrix(rng.uniform(-45, 45, 3)), rng.uniform(-0.5, 0.5, 3)
+    return noisy(crop(direction)), noisy(crop(-direction)) @ truth.T + t, truth, t
+
+
+@pytest.mark.parametrize("seed", [1, 2, 7])
+def test_translation_search_pulls_back_views_slid_along_each_other(seed):
+    """An estimate 3.6 degrees off and 0.3 along the box: ICP from it alone slides the views along each other
+    and stops about 0.2 off; descending again from the best offsets of the translation grid finds the truth."""
+    src, tgt, truth, t = _box_views(seed)
+    start, shifted = euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0]
+    plain = icp.refine(src, tgt, start, shifted, translation_search=None)
+    searched = icp.refine(src, tgt, start, shifted)
+    assert np.linalg.norm(plain.translation - t) > 0.1
+    assert np.linalg.norm(searched.translation - t) < 0.01
+    assert rotation_angle_deg(searched.rotation.T @ truth) < 1.0
