@@ -21,7 +21,8 @@ What :meth:`Registrar.register` does to a pair, in order:
    ``y = R x + s t' + c_y - R c_x``;
 6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds
    (:func:`dit_jax.icp.refine`: the best trimmed fit among several ICP runs, :data:`dit_jax.icp.REFINE_CANDIDATES`,
-   distances times ``s``, chosen on validation pairs), and recomputes the fitness, and with it the verdict, for the
+   from the estimate and from the best offsets of a translation grid, distances times ``s``, chosen on
+   validation pairs), and recomputes the fitness, and with it the verdict, for the
    refined motion.
 """
 

@@ -6,7 +6,8 @@ selection by :func:`dit_jax.icp.trimmed_fit` are based on.
         --out docs/refinement_check.md
 
 Cells: mean / median rotation error (degrees) / share within 5 degrees, for DIT alone (the shipped weights as
-they ship), each candidate run alone (started at DIT's estimate) and ``refine``. The last column: of the
+they ship), each candidate run alone (started at DIT's estimate), ``refine`` without its translation search
+(:data:`dit_jax.icp.TRANSLATION_SEARCH`) and ``refine`` as it ships. The last column: of the
 pairs DIT had within 10 degrees, how many ``refine`` ends within 1 degree, and of those it does not, how many
 end where the clouds fit better than at the true pose (the data's doing, not the refinement's).
 """
@@ -37,7 +38,8 @@ def main() -> None:
     args = parser.parse_args()
     batches = training.validation_batches(args.data_dir, list(SETTINGS), count=args.pairs, unseen=args.unseen)
     registrar = registration.load(args.checkpoint)
-    columns = ("DIT alone",) + tuple(_name(*c) for c in icp.REFINE_CANDIDATES) + ("refine (shipped)",)
+    columns = (("DIT alone",) + tuple(_name(*c) for c in icp.REFINE_CANDIDATES)
+               + ("refine, no translation search", "refine (shipped)"))
     lines = [f"DIT's ICP refinement on {args.pairs} validation pairs per setting (training shapes"
              + (", categories 0-19" if args.unseen else "") + f"), {datetime.date.today().isoformat()}: "
              f"`python {' '.join(sys.argv)}`", "",
@@ -55,8 +57,10 @@ def main() -> None:
             r0, t0 = np.asarray(rotations[i], np.float64), np.asarray(translations[i], np.float64)
             runs = [icp.icp(src, tgt, r0, t0, distances=d, method=m, trim=trim)
                     for m, d, trim in icp.REFINE_CANDIDATES]
+            plain = icp.refine(src, tgt, r0, t0, translation_search=None)
             refined = icp.refine(src, tgt, r0, t0)
-            for column, rotation in zip(columns, (r0, *(r.rotation for r in runs), refined.rotation)):
+            rotations_found = (r0, *(r.rotation for r in runs), plain.rotation, refined.rotation)
+            for column, rotation in zip(columns, rotations_found):
                 errors[column].append(rotation_angle_deg(rotation.T @ b["R"][i]))
             if errors["DIT alone"][-1] <= 10:
                 good += 1
