@@ -48,6 +48,8 @@ MAX_SHIFT = 0.5
 #: each axis: on noisy partial views ICP slides the two along each other and stops 0.2-0.3 off in
 #: translation, and no start near the estimate leads back (validation: docs/refinement_check.md).
 TRANSLATION_SEARCH = (0.3, 0.1, 3)
+#: Source points (a seeded random subset) that score the translation grid of :func:`refine`.
+GRID_POINTS = 500
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,14 +186,24 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
 
 
 def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, *,
-                share: float = FIT_SHARE, seed: int = 0, max_points: int = 5_000) -> float:
+                share: float = FIT_SHARE, seed: int = 0, max_points: int = 5_000,
+                cap: float | None = None) -> float | np.ndarray:
     """How well a motion lays src (N, 3) onto the target of ``tree`` (a ``cKDTree``): the mean squared
     distance from the moved source points to their nearest target points, over the closest ``share`` of
-    them (a seeded random ``max_points`` of the source for large clouds). Lower is better."""
+    them (a seeded random ``max_points`` of the source for large clouds). Lower is better.
+
+    ``translation`` (G, 3) scores G motions that share ``rotation`` at once: (G,) scores. ``cap``: distances
+    beyond it count as ``cap`` (the k-d tree then stops searching there, much faster for points far off).
+    """
     if len(src) > max_points:
         src = src[np.random.default_rng(seed).choice(len(src), max_points, replace=False)]
-    gaps = np.sort(tree.query(src @ rotation.T + translation)[0])
-    return float(np.mean(gaps[:max(1, int(share * len(gaps)))] ** 2))
+    translation = np.asarray(translation, np.float64)
+    moved = (src @ rotation.T)[None] + np.reshape(translation, (-1, 1, 3))
+    bound = np.inf if cap is None else cap
+    gaps = np.minimum(tree.query(moved.reshape(-1, 3), distance_upper_bound=bound)[0], bound)
+    gaps = np.sort(gaps.reshape(len(moved), -1), axis=1)[:, :max(1, int(share * len(src)))]
+    scores = np.mean(gaps ** 2, axis=1)
+    return scores if translation.ndim == 2 else float(scores[0])
 
 
 def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, truth: tuple) -> bool:
@@ -232,9 +244,10 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     shared points, or a start ICP would only slide along a partial view. Runs that move the source points
     more than ``max_shift`` times ``scale`` on average from the estimate handed in are never taken.
 
-    Then, unless the fit is already exact, the same descent runs again from a few shifted starts
-    (``translation_search``, see :data:`TRANSLATION_SEARCH`) and the best fit of all is returned, so the
-    result never fits worse than the plain descent's.
+    Then, unless the fit is already exact, the same descent runs again from a few shifted starts: the
+    offsets of a translation grid (``translation_search``, see :data:`TRANSLATION_SEARCH`) that fit best at
+    the estimate's rotation. The best fit of all is returned, so the result never fits worse than the plain
+    descent's.
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`; ``rounds`` (at least 1) stops
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
@@ -276,8 +289,9 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     if translation_search is not None and best_score > (1e-6 * scale) ** 2:
         span, step, starts = translation_search
         offsets = scale * _translation_offsets(span, step)
-        # The grid is scored at the estimate's rotation; only its best few offsets are descended from.
-        grid_scores = [score(start[0], start[1] + offset) for offset in offsets]
+        # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
+        grid_scores = trimmed_fit(src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS,
+                                  cap=step * scale)
         for k in np.argsort(grid_scores, kind="stable")[:starts]:
             run, run_score, run_iterations = descend(start[0], start[1] + offsets[k])
             iterations += run_iterations

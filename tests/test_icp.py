@@ -210,3 +210,18 @@ def test_translation_search_pulls_back_views_slid_along_each_other(seed):
     assert np.linalg.norm(plain.translation - t) > 0.1
     assert np.linalg.norm(searched.translation - t) < 0.01
     assert rotation_angle_deg(searched.rotation.T @ truth) < 1.0
+
+
+def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
+    from scipy.spatial import cKDTree
+
+    src = _surface(300, seed=6)
+    tree = cKDTree(src)
+    rotation = euler_zyx_to_matrix([4.0, 0.0, 0.0])
+    shifts = np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, 0.5, 0.0]])
+    together = icp.trimmed_fit(src, tree, rotation, shifts)
+    assert together.shape == (3,)
+    np.testing.assert_allclose(together, [icp.trimmed_fit(src, tree, rotation, s) for s in shifts], rtol=1e-12)
+    capped = icp.trimmed_fit(src, tree, rotation, shifts, cap=0.1)
+    np.testing.assert_allclose(capped[:2], together[:2], rtol=1e-12)  # every counted gap is under the cap
+    assert together[2] > capped[2] and capped[2] <= 0.1 ** 2  # half a radius off: far gaps count as the cap
