@@ -331,7 +331,6 @@ def test_two_processes_train_the_model_that_one_process_with_two_devices_trains(
     differ = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
                  for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(two)))
     assert moved > 1e-4  # it trained
-    print("largest difference", differ, "largest move", moved)
     assert differ <= 1e-3 * moved, (differ, moved)
     # One log, written by process 0 alone: a line per step and per validation (steps 0, 6 and 12).
     records = (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()
