@@ -7,6 +7,13 @@ Per iteration i, weighted by ``discount ** i``:
 * discrimination (x 0.5): ``BCE(w_i, c_i)``, w_i the soft weight of source point i and c_i = 1 where its
   predicted match lies within 0.04 of its true position ``R_gt x_i + t_gt``.
 
+Not the authors': an optional correspondence term (``correspondence_weight``, default 0) that pulls each source
+point's soft match ``(P Y)_i`` onto its true position, for the points whose true position has a target point
+nearby. The authors' terms supervise the matches only through the pose (and the weights through the
+discrimination labels); between clouds that share no point the network alone did not learn from them in the
+budget tried (README, "Training for data that shares no point"), nor, in 400 steps, with this term
+(docs/BENCHMARKS.md).
+
 All functions act on one pair; ``jax.vmap`` them over a batch.
 """
 
@@ -15,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from dit_jax import geometry
 from dit_jax.model import Iterations
 
 # Products of 3 x 3 rotations and of coordinates: float32 whatever JAX's default matmul precision is.
@@ -55,8 +63,20 @@ def discrimination_loss(weights, labels) -> jax.Array:
     return -jnp.mean(labels * jnp.log(w) + (1.0 - labels) * jnp.log1p(-w))
 
 
+def correspondence_loss(soft_targets, src, tgt, rotation_gt, translation_gt, radius: float = MATCH_RADIUS):
+    """Mean squared distance from each source point's soft match to its true position, over the points whose
+    true position has a target point within ``radius`` (the others have no counterpart to find: cropped away,
+    or a sparse region). soft_targets (N, 3), src (N, 3) as given, tgt (M, 3). Returns a scalar (0 where no
+    point has a counterpart)."""
+    truth = jnp.matmul(src, rotation_gt.T, precision=_HIGHEST) + translation_gt
+    nearest = jnp.min(geometry.pairwise_sq_dist(truth, tgt), axis=-1)
+    has_counterpart = jax.lax.stop_gradient((nearest < radius ** 2).astype(src.dtype))
+    gaps = jnp.sum((soft_targets - truth) ** 2, axis=-1)
+    return jnp.sum(has_counterpart * gaps) / jnp.maximum(jnp.sum(has_counterpart), 1.0)
+
+
 def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: float = DISCOUNT,
-             match_radius: float = MATCH_RADIUS):
+             match_radius: float = MATCH_RADIUS, correspondence_weight: float = 0.0):
     """The total loss of one pair and its terms (each summed over iterations with the discount).
 
     Args:
@@ -65,10 +85,13 @@ def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: f
       rotation_gt: (3, 3), translation_gt (3,): the true source-to-target motion.
       match_radius: the discrimination labels' radius (the authors' 0.04; clouds sampled independently have
         their nearest true counterpart about 0.04 away at 512 points, so they need a wider one).
+      correspondence_weight: the weight of :func:`correspondence_loss` (its radius ``match_radius``); 0, the
+        authors' objective, leaves it out.
 
     Returns:
       ``(total, terms)``, terms a dict with ``transformation``, ``cycle``, ``discrimination`` (unweighted by
-      their factors) and ``match_accuracy`` (fraction of last-iteration matches within the radius).
+      their factors), ``correspondence`` where its weight is not 0, and ``match_accuracy`` (fraction of
+      last-iteration matches within the radius).
     """
     n_iters = its.rotation.shape[0]
     factors = discount ** jnp.arange(n_iters, dtype=src.dtype)
@@ -85,4 +108,9 @@ def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: f
         "match_accuracy": jnp.mean(labels[-1]),
     }
     total = terms["transformation"] + CYCLE_WEIGHT * terms["cycle"] + DISCRIMINATION_WEIGHT * terms["discrimination"]
+    if correspondence_weight:
+        corr = jax.vmap(correspondence_loss, (0, None, None, None, None, None))(
+            its.soft_targets, src, tgt, rotation_gt, translation_gt, match_radius)
+        terms["correspondence"] = jnp.sum(factors * corr)
+        total = total + correspondence_weight * terms["correspondence"]
     return total, terms

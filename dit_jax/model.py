@@ -272,21 +272,23 @@ class Iterations(NamedTuple):
     soft_weights: jax.Array  # (I, N) max_j softmax(temperature S)_ij
     correspondences: jax.Array  # (I, N) int32 argmax_j S_ij
     temperature: jax.Array  # (I,)
+    soft_targets: jax.Array  # (I, N, 3) softmax(temperature S) Y: where each source point's soft match lies
 
 
 def _soft_pose(src, tgt, scores, temperature, differentiable: bool):
     """Soft-mode pose of one direction. ``differentiable``: Procrustes on the soft targets P Y with the soft
-    weights, gradients flowing through it; otherwise the authors' hard matches with detached weights."""
+    weights, gradients flowing through it; otherwise the authors' hard matches with detached weights.
+    Returns the pose, the soft weights (N,), the hard matches (N,) and the soft targets P Y (N, 3)."""
     probs = jax.nn.softmax(temperature * scores, axis=-1)
     weights = jnp.max(probs, axis=-1)
     matches = jnp.argmax(probs, axis=-1).astype(jnp.int32)
+    soft_targets = jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST)
     if differentiable:
-        rotation, translation = geometry.weighted_procrustes(
-            src, jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST), weights)
+        rotation, translation = geometry.weighted_procrustes(src, soft_targets, weights)
     else:
         rotation, translation = jax.lax.stop_gradient(
             geometry.weighted_procrustes(src, tgt[matches], weights))
-    return rotation, translation, weights, matches
+    return rotation, translation, weights, matches, soft_targets
 
 
 def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_iters: int, *,
@@ -312,10 +314,11 @@ def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_
         key = None if dropout_key is None else jax.random.fold_in(dropout_key, i)
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn,
                             deterministic=key is None, dropout_key=key)
-        r_ab, t_ab, weights, matches = _soft_pose(moved, tgt, feats.scores, feats.temperature, differentiable)
-        r_ba, t_ba, _, _ = _soft_pose(tgt, moved, feats.scores.T, feats.temperature, differentiable)
+        r_ab, t_ab, weights, matches, soft_targets = _soft_pose(moved, tgt, feats.scores, feats.temperature,
+                                                                differentiable)
+        r_ba, t_ba, *_ = _soft_pose(tgt, moved, feats.scores.T, feats.temperature, differentiable)
         rotation, translation = geometry.compose(r_ab, t_ab, rotation, translation)
         moved = geometry.apply_transform(jax.lax.stop_gradient(r_ab), jax.lax.stop_gradient(t_ab), moved)
         records.append(Iterations(rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches,
-                                  feats.temperature))
+                                  feats.temperature, soft_targets))
     return jax.tree.map(lambda *xs: jnp.stack(xs), *records)

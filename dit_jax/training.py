@@ -60,6 +60,8 @@ class TrainConfig:
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
       match_radius: radius of the discrimination labels (:func:`dit_jax.losses.match_labels`).
+      correspondence_weight: weight of the correspondence term (:func:`dit_jax.losses.correspondence_loss`,
+        not the authors'); 0 trains the authors' objective.
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
         whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
         setting. Its network shape must match ``model``'s.
@@ -91,6 +93,7 @@ class TrainConfig:
     seed: int = 0
     log_every: int = 10
     match_radius: float = losses.MATCH_RADIUS
+    correspondence_weight: float = 0.0
     init_from: str | None = None
 
     def model_config(self) -> DITConfig:
@@ -170,7 +173,8 @@ def _batch_loss(params, batch, model_config: DITConfig, config: TrainConfig, key
         its = model.unroll(params, src, tgt, model_config, config.train_iters,
                            differentiable=config.differentiable, dropout_key=pair_key)
         total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt,
-                                       match_radius=config.match_radius)
+                                       match_radius=config.match_radius,
+                                       correspondence_weight=config.correspondence_weight)
         terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
         terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
         return total, terms

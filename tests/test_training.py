@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import random_rotation
 from dit_jax import losses, training
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -177,6 +178,23 @@ def test_losses_vanish_at_the_truth():
     wrong = losses.match_labels(src, src + 1.0, jnp.roll(jnp.arange(10), 1), eye, jnp.ones(3))
     assert float(wrong.mean()) < 0.5
     assert float(losses.discrimination_loss(jnp.array([1.0, 0.0]), jnp.array([1.0, 0.0]))) < 1e-5
+
+
+def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_counterpart_exists():
+    rng = np.random.default_rng(0)
+    src = jnp.asarray(rng.normal(size=(12, 3)), jnp.float32)
+    rotation = jnp.asarray(random_rotation(rng), jnp.float32)
+    truth = src @ rotation.T + 0.5
+    tgt = truth + 0.01  # every true position has a target point 0.017 away
+    assert float(losses.correspondence_loss(truth, src, tgt, rotation, jnp.full(3, 0.5), radius=0.05)) == 0.0
+    off = truth.at[0].add(jnp.array([0.3, 0.0, 0.0]))
+    np.testing.assert_allclose(float(losses.correspondence_loss(off, src, tgt, rotation, jnp.full(3, 0.5), radius=0.05)),
+                               0.09 / 12, rtol=1e-5)
+    # A source point whose true position has no target point near (cropped away) is not pulled anywhere.
+    cropped = tgt.at[0].add(5.0)
+    assert float(losses.correspondence_loss(off, src, cropped, rotation, jnp.full(3, 0.5), radius=0.05)) < 1e-10
+    # No counterpart at all: 0, not NaN; and the term enters the total only with a weight.
+    assert float(losses.correspondence_loss(off, src, tgt + 10.0, rotation, jnp.full(3, 0.5), radius=0.05)) == 0.0
 
 
 def test_train_cli_rejects_unknown_fields(capsys):
