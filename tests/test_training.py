@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import random_rotation
-from dit_jax import losses, training
+from dit_jax import losses, model, training
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY = dataclasses.replace(training.PRESETS["tiny"], max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4)
@@ -193,8 +193,20 @@ def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_coun
     # A source point whose true position has no target point near (cropped away) is not pulled anywhere.
     cropped = tgt.at[0].add(5.0)
     assert float(losses.correspondence_loss(off, src, cropped, rotation, jnp.full(3, 0.5), radius=0.05)) < 1e-10
-    # No counterpart at all: 0, not NaN; and the term enters the total only with a weight.
+    # No counterpart at all: 0, not NaN.
     assert float(losses.correspondence_loss(off, src, tgt + 10.0, rotation, jnp.full(3, 0.5), radius=0.05)) == 0.0
+    # In the total only with a weight (0: the authors' objective, unchanged), discounted per iteration.
+    eye = jnp.broadcast_to(jnp.eye(3), (2, 3, 3))
+    its = model.Iterations(rotation=eye, translation=jnp.zeros((2, 3)), rotation_ab=eye,
+                           translation_ab=jnp.zeros((2, 3)), rotation_ba=eye, translation_ba=jnp.zeros((2, 3)),
+                           soft_weights=jnp.full((2, 12), 0.5), correspondences=jnp.zeros((2, 12), jnp.int32),
+                           temperature=jnp.ones(2), soft_targets=jnp.stack([off, off]))
+    plain, plain_terms = losses.dit_loss(its, src, tgt, rotation, jnp.full(3, 0.5), match_radius=0.05)
+    weighted, terms = losses.dit_loss(its, src, tgt, rotation, jnp.full(3, 0.5), match_radius=0.05,
+                                      correspondence_weight=2.0)
+    assert "correspondence" not in plain_terms
+    np.testing.assert_allclose(float(terms["correspondence"]), 1.9 * 0.09 / 12, rtol=1e-5)
+    np.testing.assert_allclose(float(weighted - plain), 2.0 * 1.9 * 0.09 / 12, rtol=1e-4)
 
 
 def test_train_cli_rejects_unknown_fields(capsys):
