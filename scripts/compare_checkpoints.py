@@ -4,8 +4,8 @@
         --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 32
 
 Every checkpoint registers the same validation pairs of each setting two ways: with the shipped weights'
-inference setting (three iterations, GMCCE threshold 0.9 keeping at least the 30 % most consistent matches:
-what `register` does) and as the network alone (one soft iteration, what training changes first). Prints a
+inference setting, read from their checkpoint (three iterations, GMCCE threshold 0.9 keeping at least the 30 %
+most consistent matches: what `register` does) and as the network alone (one soft iteration, what training changes first). Prints a
 markdown table of the median rotation error and the shares within 5 and 10 degrees.
 """
 
@@ -14,11 +14,11 @@ import argparse
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import checkpoint, metrics, model, training
+from dit_jax import checkpoint, metrics, model, registration, training
 
 SETTINGS = ("clean", "high_noise_partial", "independent_clean", "independent_high_noise_partial", "scan_high_noise")
-#: The shipped weights' inference setting (README, "Shipped weights").
-SHIPPED_INFERENCE = {"gmcce_threshold": 0.9, "gmcce_min_keep": 0.3, "guard_iterations": False}
+#: The inference options the shipped weights carry in their config (README, "Shipped weights").
+INFERENCE_FIELDS = ("gmcce_threshold", "gmcce_min_keep", "guard_iterations")
 
 
 def rotation_errors(params, config, batch, batch_size: int = 8) -> np.ndarray:
@@ -41,6 +41,8 @@ def main() -> None:
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS))
     args = parser.parse_args()
 
+    shipped = checkpoint.read_config(registration.shipped_weights())
+    shipped_inference = {name: getattr(shipped, name) for name in INFERENCE_FIELDS}
     batches = training.validation_batches(args.data_dir, args.settings, count=args.pairs, n_points=1000,
                                           unseen=args.unseen)
     print(f"{args.pairs} validation pairs per setting; median rotation error (deg) / within 5 / within 10\n")
@@ -48,7 +50,7 @@ def main() -> None:
     print("|---|---|" + "---|" * len(args.settings))
     for path in args.checkpoints:
         params, config = checkpoint.restore(path)
-        for mode, cfg in (("as shipped", config.replace(**SHIPPED_INFERENCE)),
+        for mode, cfg in (("as shipped", config.replace(**shipped_inference)),
                           ("network alone", config.replace(n_iters=1))):
             cells = []
             for setting in args.settings:
