@@ -10,8 +10,9 @@ three coordinates per point, all points identical) ends with one line on stderr 
 problem, exit status 2, and no output file. Clouds above ``--max-points`` are read as a random subset of that
 many points (say ``--no-downsample`` to refuse them instead).
 
-Every result carries a verdict from the model's own evidence: the share of the sampled source points the
-estimate lays onto the target (fitness). Below the model's threshold the transform is still printed and
+Every result carries a verdict from the model's own evidence: the target is registered onto the source as
+well, and the result is trusted where the two motions agree (``--verdict fitness``: where enough of the
+source lands on the target, one registration instead of two). A suspect result is still printed and
 written, a one-line warning goes to stderr, and the exit status is 3 (``--no-verdict-status`` keeps it 0).
 
 Range (shipped weights, measured 2026-11-26, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
@@ -61,6 +62,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="icp: refine the network's estimate by ICP on every point (default: none)")
     parser.add_argument("--plot", default=None, metavar="FILE.png",
                         help="draw both clouds before and after the registration, from two viewpoints")
+    parser.add_argument("--verdict", choices=("agreement", "fitness"), default="agreement",
+                        help="agreement (default): also register TGT onto SRC and trust the result where both "
+                             "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
@@ -112,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         src = _read(args.src, args)
         tgt = _read(args.tgt, args)
-        kwargs = {"seed": args.seed}
+        kwargs = {"seed": args.seed, "verdict_rule": args.verdict}
         if args.points is not None:
             kwargs["n_points"] = args.points
         if args.iters is not None:
@@ -139,16 +143,15 @@ def main(argv: list[str] | None = None) -> int:
         angle = np.degrees(np.arccos(np.clip((np.trace(result.rotation) - 1) / 2, -1, 1)))
         print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} "
               f"(units of the input)")
-        print(f"fitness {result.fitness:.3f} ({'trusted' if result.verdict else 'suspect'}: threshold "
-              f"{result.min_fitness:.2f}), inlier ratio {result.inlier_ratio:.3f}, "
+        print(f"{'trusted' if result.verdict else 'suspect'}: {result.evidence()}")
+        print(f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
               f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
               + (f" + {result.refine_seconds:.2f} s of ICP" if result.refinement else ""))
         for written in (args.out, args.plot):
             if written is not None:
                 print(f"wrote {written}")
     if not result.verdict:
-        print(f"{PROG}: warning: the result is probably wrong: only {100 * result.fitness:.0f} % of the sampled "
-              f"source points land on the target (trusted from {100 * result.min_fitness:.0f} %)", file=sys.stderr)
+        print(f"{PROG}: warning: the result is probably wrong: {result.evidence()}", file=sys.stderr)
         return 0 if args.no_verdict_status else EXIT_SUSPECT
     return 0
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 from typing import Sequence
 
@@ -27,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dit_jax import baselines as baselines_lib
-from dit_jax import checkpoint, icp as icp_lib, metrics, model, plotting
-from dit_jax.registration import DEFAULT_MIN_FITNESS
+from dit_jax import checkpoint, geometry, icp as icp_lib, metrics, model, plotting
+from dit_jax.registration import DEFAULT_MAX_DISAGREEMENT, DEFAULT_MIN_FITNESS
 from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
@@ -63,22 +64,80 @@ def predict_dit(params, config, dataset: pairs_lib.PairDataset, indices: np.ndar
             "fitness": np.concatenate(fitness)}
 
 
-def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, right_deg: float = 5.0) -> dict:
-    """How well a verdict separates results: errors (P,) in degrees, verdicts (P,) True = trusted.
+def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_deg: float = 5.0) -> dict:
+    """How well a verdict separates results: errors (P,) in degrees, verdicts (P,) True = trusted; ``rule``
+    says in words what it trusts (e.g. "agreement within 5.0 deg").
 
     ``failures_caught``: of the results more than ``right_deg`` off, the share flagged; ``passed_right``: of
     the results trusted, the share within ``right_deg`` (NaN where there are none)."""
     wrong = errors > right_deg
     caught = float(np.mean(~verdicts[wrong])) if wrong.any() else float("nan")
     right = float(np.mean(~wrong[verdicts])) if verdicts.any() else float("nan")
-    return {"failures": int(wrong.sum()), "failures_caught": caught, "passed": int(verdicts.sum()),
+    return {"rule": rule, "failures": int(wrong.sum()), "failures_caught": caught, "passed": int(verdicts.sum()),
             "passed_right": right, "right_deg": right_deg}
 
 
-def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None) -> dict:
+def verdict_line(name: str, v: dict) -> str:
+    """One sentence on a :func:`verdict_summary` of method ``name``."""
+    return (f"{name}'s verdict ({v['rule']}): flags {_share(v['failures_caught'])} of its {v['failures']} results "
+            f"more than {v['right_deg']:g} deg off; of the {v['passed']} it trusts, {_share(v['passed_right'])} are "
+            f"within {v['right_deg']:g} deg.")
+
+
+def agreement_rule(max_disagreement: float) -> str:
+    """The agreement verdict's rule in words (see :class:`dit_jax.registration.Registrar`)."""
+    return f"target onto source agrees within {max_disagreement:g} deg"
+
+
+def fitness_rule(min_fitness: float) -> str:
+    """The fitness verdict's rule in words."""
+    return f"fitness >= {min_fitness:.2f}"
+
+
+def backward_agreement(params, config, dataset: pairs_lib.PairDataset, indices: np.ndarray, forward: dict,
+                       refined: dict | None = None, batch_size: int = 8, bar=None) -> dict[str, dict]:
+    """The agreement verdict's evidence, as ``register`` gathers it: each pair registered the other way
+    (target onto source, and refined by ICP where ``refined``, DIT+ICP's estimates, is given). Returns
+    ``{method: {"agreement": (P,) degrees between its rotation and the inverse of the backward one,
+    "seconds": (P,) the backward work's time per pair}}``."""
+    swapped = _Swapped(dataset)
+    back = predict_dit(params, config, swapped, indices, batch_size)
+    out = {METHOD_DIT: {"agreement": np.array([geometry.rotation_angle_deg(r @ b)
+                                               for r, b in zip(forward["R"], back["R"])]),
+                        "seconds": back["seconds"]}}
+    if refined is not None:
+        back_refined = refine_dit(back, swapped, indices, truth_fit=False)  # its seconds include the network's
+        out[METHOD_DIT_ICP] = {"agreement": np.array([geometry.rotation_angle_deg(r @ b)
+                                                      for r, b in zip(refined["R"], back_refined["R"])]),
+                               "seconds": back_refined["seconds"]}
+    if bar is not None:
+        bar.update(len(indices))
+    return out
+
+
+class _Swapped:
+    """A pair dataset with every pair's clouds swapped (target onto source), for :func:`backward_agreement`."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+
+    @staticmethod
+    def _swap(pair: dict) -> dict:
+        return pair | {"src": pair["tgt"], "tgt": pair["src"]}
+
+    def batch(self, indices):
+        return self._swap(self.dataset.batch(indices))
+
+    def __getitem__(self, n):
+        return self._swap(self.dataset[n])
+
+
+def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None, *,
+               truth_fit: bool = True) -> dict:
     """DIT's estimates (from :func:`predict_dit`) refined by ICP on every point of each pair, as
-    ``register(refine="icp")`` does; ``seconds`` counts both stages. ``beats_truth`` (P,) bool: the refined
-    motion fits the clouds better than the true one (:func:`dit_jax.icp.fits_better`)."""
+    ``register(refine="icp")`` does; ``seconds`` counts both stages. ``beats_truth`` (P,) bool (with
+    ``truth_fit``): the refined motion fits the clouds better than the true one
+    (:func:`dit_jax.icp.fits_better`)."""
     rotations, translations, seconds, beats_truth = [], [], [], []
     for row, n in enumerate(indices):
         pair = dataset[int(n)]
@@ -87,8 +146,9 @@ def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, b
         seconds.append(dit["seconds"][row] + time.perf_counter() - t0)
         rotations.append(result.rotation)
         translations.append(result.translation)
-        beats_truth.append(icp_lib.fits_better(pair["src"], pair["tgt"], (result.rotation, result.translation),
-                                               (pair["R"], pair["t"])))
+        if truth_fit:
+            beats_truth.append(icp_lib.fits_better(pair["src"], pair["tgt"], (result.rotation, result.translation),
+                                                   (pair["R"], pair["t"])))
         if bar is not None:
             bar.update(1)
     return {"R": np.stack(rotations), "t": np.stack(translations), "seconds": np.asarray(seconds),
@@ -151,9 +211,10 @@ def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndar
 
 
 def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
-          min_fitness: float | None = None) -> dict:
+          min_fitness: float | None = None, max_disagreement: float | None = None) -> dict:
     """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
-    distance, time per pair and the per-category breakdown."""
+    distance, time per pair, the per-category breakdown, the worst pair and, where ``pred`` carries their
+    evidence (``fitness``, ``agreement``), how its verdicts do at ``min_fitness`` and ``max_disagreement``."""
     truth = dataset.batch(indices)
     result = metrics.summarise(pred["R"], pred["t"], truth["R"], truth["t"])
     chamfer = []
@@ -166,10 +227,16 @@ def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape
         chamfer.append(metrics.chamfer_distance(src_moved, truth["tgt"][sl], src_clean_moved, truth["tgt_clean"][sl]))
     result["chamfer"] = float(np.mean(np.concatenate(chamfer)))
     result["seconds_per_pair"] = float(np.mean(pred["seconds"]))
+    errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(pred["R"]), jnp.asarray(truth["R"])))
+    worst = int(np.argmax(errors))  # kept, so a later --reuse run can still draw this method's worst pair
+    result["worst"] = {"pair": int(indices[worst]), "rot_err": float(errors[worst]),
+                       "R": np.asarray(pred["R"][worst]).tolist(), "t": np.asarray(pred["t"][worst]).tolist()}
+    if "agreement" in pred and max_disagreement is not None:
+        result["verdict"] = verdict_summary(errors, pred["agreement"] <= max_disagreement,
+                                            agreement_rule(max_disagreement))
+        result["verdict"]["extra_seconds_per_pair"] = float(np.mean(pred["agreement_seconds"]))
     if "fitness" in pred and min_fitness is not None:
-        errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(pred["R"]), jnp.asarray(truth["R"])))
-        result["verdict"] = verdict_summary(errors, pred["fitness"] >= min_fitness)
-        result["verdict"]["min_fitness"] = min_fitness
+        result["verdict_fitness"] = verdict_summary(errors, pred["fitness"] >= min_fitness, fitness_rule(min_fitness))
     by_category = {}
     for label in np.unique(truth["label"]):
         rows = truth["label"] == label
@@ -207,12 +274,12 @@ def markdown_tables(results: dict) -> str:
         if METHOD_DIT_ICP in methods and "refinement" in methods[METHOD_DIT_ICP]:
             lines += ["", refinement_line(methods[METHOD_DIT_ICP]["refinement"])]
         for name, r in methods.items():
-            v = r.get("verdict")
-            if v:
-                lines.append("")
-                lines.append(f"{name}'s verdict (fitness >= {v['min_fitness']:.2f}): flags {_share(v['failures_caught'])} "
-                             f"of its {v['failures']} results more than {v['right_deg']:g} deg off; of the "
-                             f"{v['passed']} it trusts, {_share(v['passed_right'])} are within {v['right_deg']:g} deg.")
+            for key in ("verdict", "verdict_fitness"):
+                if r.get(key):
+                    lines += ["", verdict_line(name, r[key])]
+                    if "extra_seconds_per_pair" in r[key]:
+                        lines[-1] += (f" Its second registration (target onto source) takes "
+                                      f"{r[key]['extra_seconds_per_pair']:.3f} s per pair more.")
         lines.append("")
     return "\n".join(lines)
 
@@ -282,16 +349,15 @@ def plot_worst(path: str, title: str, worst: Sequence[dict]) -> None:
     plt.close(fig)
 
 
-def plot_worst_pairs(dataset: pairs_lib.PairDataset, indices: np.ndarray, preds: dict, path: str,
-                     title: str) -> None:
-    """:func:`plot_worst` of each method's pair with the largest rotation error among ``indices``."""
+def plot_worst_pairs(dataset: pairs_lib.PairDataset, scored: dict, path: str, title: str) -> None:
+    """:func:`plot_worst` of each method's pair with the largest rotation error, from the ``worst`` entry of
+    its scores (``{method: score(...)}``, reused ones included)."""
     worst = []
-    for name, pred in preds.items():
-        errors = [plotting.rotation_angle_deg(r.T @ dataset[int(n)]["R"]) for r, n in zip(pred["R"], indices)]
-        row = int(np.argmax(errors))
-        pair = dataset[int(indices[row])]
-        worst.append({"method": name, "pair": int(indices[row]), "src": pair["src"], "tgt": pair["tgt"],
-                      "R": pred["R"][row], "t": pred["t"][row], "truth": (pair["R"], pair["t"])})
+    for name, result in scored.items():
+        pair = dataset[result["worst"]["pair"]]
+        worst.append({"method": name, "pair": result["worst"]["pair"], "src": pair["src"], "tgt": pair["tgt"],
+                      "R": np.asarray(result["worst"]["R"]), "t": np.asarray(result["worst"]["t"]),
+                      "truth": (pair["R"], pair["t"])})
     plot_worst(path, title, worst)
 
 
@@ -344,6 +410,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     else:
         params, config, extra = None, None, {}
     n_points = n_points or extra.get("inference_points") or extra.get("n_points") or 1000
+    min_fitness = extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS)
+    max_disagreement = {**DEFAULT_MAX_DISAGREEMENT, **(extra.get("verdict_max_disagreement") or {})}
     test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir,
                                          n_points=pairs_lib.shape_points(data_dir, n_points, settings))
     os.makedirs(out_dir, exist_ok=True)
@@ -359,7 +427,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     if progress:
         from tqdm.auto import tqdm
 
-        methods = len(baselines) + (params is not None) * (1 + refine)
+        methods = len(baselines) + (params is not None) * (2 + refine)
         bar = tqdm(total=sum(len(ix) for _, ix in datasets.values()) * methods, desc="evaluate",
                    unit="pair", dynamic_ncols=True)
     earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
@@ -382,6 +450,12 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                 if bar is not None:
                     bar.set_postfix_str(f"{setting}: DIT+ICP")
                 preds[METHOD_DIT_ICP] = refine_dit(preds[METHOD_DIT], ds, indices, bar)
+            if bar is not None:
+                bar.set_postfix_str(f"{setting}: verdict (target onto source)")
+            agreement = backward_agreement(params, run_config, ds, indices, preds[METHOD_DIT],
+                                           preds.get(METHOD_DIT_ICP), batch_size, bar)
+            for method, evidence in agreement.items():
+                preds[method].update(agreement=evidence["agreement"], agreement_seconds=evidence["seconds"])
         reused = {}
         for name in baselines:
             old = earlier.get(setting, {}).get(name)
@@ -394,8 +468,9 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar, setting)
-        min_fitness = extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS)
-        scored = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness) for name, p in preds.items()}
+        scored = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness,
+                              max_disagreement["icp" if name == METHOD_DIT_ICP else "none"])
+                  for name, p in preds.items()}
         for name in baselines:
             if name in scored:
                 scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
@@ -412,8 +487,12 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                                             "n_iters": n_iters or (config.n_iters if config else None)}
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
-        if worst_pairs and preds:
-            plot_worst_pairs(ds, indices, preds, os.path.join(out_dir, f"worst_{setting}.png"),
+        drawable = all("worst" in r for r in results["settings"][setting].values())
+        if worst_pairs and preds and not drawable:
+            print(f"note: worst_{setting}.png not redrawn: some reused results do not keep their worst pair "
+                  f"(made before 2026-11-27); the earlier picture stays", file=sys.stderr)
+        if worst_pairs and preds and drawable:
+            plot_worst_pairs(ds, results["settings"][setting], os.path.join(out_dir, f"worst_{setting}.png"),
                              f"worst pair of each method: {setting} ({results['data']}, "
                              f"{'unseen' if unseen else 'seen'} split)")
     if bar is not None:
@@ -464,7 +543,7 @@ def register_scan_pair(method: str, src: np.ndarray, tgt: np.ndarray, registrar=
 
 
 def _rotation_error_deg(rotation: np.ndarray, truth: np.ndarray) -> float:
-    return plotting.rotation_angle_deg(np.asarray(rotation, np.float64).T @ truth)
+    return geometry.rotation_angle_deg(np.asarray(rotation, np.float64).T @ truth)
 
 
 def summarise_scans(rows: list[dict]) -> dict:
@@ -494,11 +573,8 @@ def scan_tables(results: dict) -> str:
         if METHOD_DIT_ICP in methods:
             lines += ["", refinement_line(methods[METHOD_DIT_ICP]["summary"]["refinement"])]
         for name, r in methods.items():
-            v = r["summary"].get("verdict")
-            if v:
-                lines += ["", f"{name}'s verdict (fitness >= {v['min_fitness']:.2f}): flags {_share(v['failures_caught'])} "
-                              f"of its {v['failures']} results more than {v['right_deg']:g} deg off; of the "
-                              f"{v['passed']} it trusts, {_share(v['passed_right'])} are within {v['right_deg']:g} deg."]
+            if r["summary"].get("verdict"):
+                lines += ["", verdict_line(name, r["summary"]["verdict"])]
         lines.append("")
     return "\n".join(lines)
 
@@ -582,15 +658,16 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 if result is not None:
                     row.update(inlier_ratio=result.inlier_ratio, fitness=result.fitness)
                     if getattr(result, "verdict", None) is not None:
-                        row["verdict"] = result.verdict
+                        row.update(verdict=result.verdict, agreement=result.agreement)
                 rows.append(row)
                 if bar is not None:
                     bar.update(1)
             summary = summarise_scans(rows)
             if rows and "verdict" in rows[0]:
+                rule = (agreement_rule(registrar.max_disagreement["icp" if method == METHOD_DIT_ICP else "none"])
+                        if registrar.verdict_rule == "agreement" else fitness_rule(registrar.min_fitness))
                 summary["verdict"] = verdict_summary(np.array([r["rot_err"] for r in rows]),
-                                                     np.array([r["verdict"] for r in rows]))
-                summary["verdict"]["min_fitness"] = registrar.min_fitness
+                                                     np.array([r["verdict"] for r in rows]), rule)
             results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
         done = results["pair_sets"][set_name]
         if METHOD_DIT_ICP in done:
@@ -642,7 +719,8 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     Writes ``angle_sweep.md``, ``.json`` and ``.png``."""
     from dit_jax import registration
 
-    registrar = registration.load(checkpoint_dir, **({"n_points": n_points} if n_points else {}))
+    registrar = registration.load(checkpoint_dir, verdict_rule="fitness",  # errors only: one direction
+                                  **({"n_points": n_points} if n_points else {}))
     test_shapes = shapes_lib.load_shapes(data_dir, "test",
                                          n_points=pairs_lib.shape_points(data_dir, registrar.n_points, [setting]))
     ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen,

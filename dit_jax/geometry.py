@@ -9,6 +9,7 @@ from __future__ import annotations
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 #: Added to every squared distance by the authors' nearest-neighbour search (SPEC.md section 1).
 KNN_EPS = 1e-7
@@ -78,6 +79,14 @@ def alignment_cost(src: jax.Array, tgt: jax.Array, radius: jax.Array | float) ->
     ``radius``, over ``radius``: 0 where every source point lies on a target point, 1 where none is within
     ``radius``. Unlike :func:`fitness` it keeps falling as a good pose gets better. Returns () in [0, 1]."""
     return jnp.mean(jnp.minimum(nearest_distances(src, tgt), radius)) / radius
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """The angle (degrees) of a rotation (3, 3), in NumPy float64, accurate near 0 (atan2 of the skew part
+    and the trace, as :func:`dit_jax.metrics.rotation_error_deg`)."""
+    m = np.asarray(rotation, np.float64)
+    sin = 0.5 * np.linalg.norm([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    return float(np.degrees(np.arctan2(sin, (np.trace(m) - 1.0) / 2.0)))
 
 
 def gather_neighbours(features: jax.Array, idx: jax.Array) -> jax.Array:

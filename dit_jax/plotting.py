@@ -12,6 +12,8 @@ import os
 
 import numpy as np
 
+from dit_jax.geometry import rotation_angle_deg
+
 #: Points drawn per cloud at most (a random, seeded subset of larger clouds), so scans draw in a second.
 MAX_DRAWN = 4000
 #: (elevation, azimuth) of the two views, degrees.
@@ -26,14 +28,6 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def rotation_angle_deg(rotation: np.ndarray) -> float:
-    """The angle (degrees) of a rotation (3, 3), accurate near 0 (atan2 of the skew part and the trace, as
-    :func:`dit_jax.metrics.rotation_error_deg`)."""
-    m = np.asarray(rotation, np.float64)
-    sin = 0.5 * np.linalg.norm([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-    return float(np.degrees(np.arctan2(sin, (np.trace(m) - 1.0) / 2.0)))
 
 
 def _subset(points: np.ndarray, seed: int) -> np.ndarray:

@@ -22,8 +22,13 @@ What :meth:`Registrar.register` does to a pair, in order:
 6. with ``refine="icp"``, refines that estimate by ICP on every point of both clouds
    (:func:`dit_jax.icp.refine`: the best trimmed fit among several ICP runs, :data:`dit_jax.icp.REFINE_CANDIDATES`,
    from the estimate and from the best offsets of a translation grid, distances times ``s``, chosen on
-   validation pairs), and recomputes the fitness, and with it the verdict, for the
-   refined motion.
+   validation pairs), and recomputes the fitness for the refined motion;
+7. judges the result (the verdict; ``verdict_rule="agreement"``, the default): the same steps 4-6 register the
+   target onto the source, and the result is trusted where that motion's inverse lies within
+   ``max_disagreement`` degrees of the result's (a threshold per refinement, chosen on validation pairs). A
+   right result is the same found from either side; a wrong one rarely is. ``verdict_rule="fitness"`` skips the
+   second registration and trusts a result where at least ``min_fitness`` of the sampled source points land
+   on the target (cheaper; it flags right results on partial views).
 """
 
 from __future__ import annotations
@@ -50,6 +55,12 @@ SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
 DEFAULT_MIN_FITNESS = 0.5
 #: What :meth:`Registrar.register` can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
 REFINEMENTS = ("none", "icp")
+#: How :meth:`Registrar.register` judges a result (step 7 above).
+VERDICTS = ("agreement", "fitness")
+#: The agreement verdict's thresholds (degrees between the result and the inverse of the target-onto-source
+#: registration) per refinement, where a checkpoint records none (``verdict_max_disagreement``): those chosen
+#: for the shipped weights by ``scripts/choose_inference.py`` (README, "Is the result right?").
+DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
 
 
 class InputError(ValueError):
@@ -70,12 +81,17 @@ class Result:
       inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
       fitness: share of the sampled source points the estimate lays within ``fitness_radius`` point spacings
         of the target (see :func:`dit_jax.geometry.fitness`).
-      seconds: wall time of the network call (excluding sampling and a first call's compilation).
+      seconds: wall time of the network calls (excluding sampling and a first call's compilation; both
+        directions under the agreement verdict).
       refinement: "icp" where ICP refined the network's estimate, else None.
-      refine_seconds: wall time of the refinement (0 without one).
-      verdict: True where the model's own evidence supports the result (``fitness >= min_fitness``), False
-        where it is probably wrong; see :class:`Registrar`.
-      min_fitness: the verdict's threshold.
+      refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
+      verdict: True where the model's own evidence supports the result, False where it is probably wrong
+        (``agreement <= max_disagreement``, or with ``verdict_rule="fitness"``, ``fitness >= min_fitness``).
+      min_fitness: the fitness verdict's threshold.
+      agreement: degrees between the rotation and the inverse of the one found registering the target onto
+        the source (refined alike); NaN where the fitness verdict did not measure it.
+      max_disagreement: the agreement verdict's threshold (degrees).
+      verdict_rule: "agreement" or "fitness": which of the two decided ``verdict``.
     """
 
     rotation: np.ndarray
@@ -91,6 +107,9 @@ class Result:
     min_fitness: float = DEFAULT_MIN_FITNESS
     refinement: str | None = None
     refine_seconds: float = 0.0
+    agreement: float = float("nan")
+    max_disagreement: float = float("nan")
+    verdict_rule: str = "fitness"
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -100,9 +119,20 @@ class Result:
         return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
                 "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
                 "fitness": self.fitness,
-                "verdict": "trusted" if self.verdict else "suspect", "min_fitness": self.min_fitness,
+                "verdict": "trusted" if self.verdict else "suspect", "verdict_rule": self.verdict_rule,
+                "min_fitness": self.min_fitness,
+                "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
+                "max_disagreement_deg": None if np.isnan(self.max_disagreement) else self.max_disagreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds}
+
+    def evidence(self) -> str:
+        """One line of what the verdict rests on, e.g. for a report or a warning."""
+        if self.verdict_rule == "agreement":
+            return (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
+                    f"this one's inverse (trusted up to {self.max_disagreement:.1f} deg)")
+        return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
+                f"(trusted from {100 * self.min_fitness:.0f} %)")
 
     def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
         """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
@@ -208,21 +238,31 @@ class Registrar:
       centring: "shared" moves both clouds by the centroid of the two together (the clouds keep their offset,
         as in training, where targets sit up to 0.5 radii away); "separate" moves each to its own centroid,
         for clouds that lie far apart (more than about half their size) in the caller's frame.
-      min_fitness: a result whose fitness (the share of sampled source points it lays onto the target) is
-        below this gets ``verdict=False``.
+      min_fitness: with ``verdict_rule="fitness"``, a result whose fitness (the share of sampled source points
+        it lays onto the target) is below this gets ``verdict=False``.
       refine: the default of :meth:`register`'s ``refine``: "none" or "icp".
       precision: the network's matrix products (default: the config's, "highest"; see
         :attr:`dit_jax.configs.DITConfig.precision`).
+      verdict_rule: "agreement" (default): also register the target onto the source and trust the result
+        where the two agree within ``max_disagreement`` (about twice the time); "fitness": trust it where
+        its fitness reaches ``min_fitness`` (one registration).
+      max_disagreement: {refine: degrees}, the agreement verdict's thresholds (default
+        :data:`DEFAULT_MAX_DISAGREEMENT`; a checkpoint records its own).
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
-                 min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "none", precision: str | None = None):
+                 min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "none", precision: str | None = None,
+                 verdict_rule: str = "agreement", max_disagreement: dict | None = None):
         _check_refine(refine)
         self.refine = refine
         if centring not in ("shared", "separate"):
             raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
         self.centring = centring
+        if verdict_rule not in VERDICTS:
+            raise ValueError(f"verdict_rule must be one of {', '.join(map(repr, VERDICTS))}, got {verdict_rule!r}")
+        self.verdict_rule = verdict_rule
+        self.max_disagreement = {**DEFAULT_MAX_DISAGREEMENT, **(max_disagreement or {})}
         self.config = config if n_iters is None else config.replace(n_iters=n_iters)
         if precision is not None:
             self.config = self.config.replace(precision=precision)
@@ -258,30 +298,48 @@ class Registrar:
         started = time.perf_counter()
         rotation, translation, extras = model_lib.register(self.params, src_n, tgt_n, self.config)
         rotation, translation, extras = jax.device_get((rotation, translation, extras))
+        both_ways = self.verdict_rule == "agreement"
+        if both_ways:
+            back_rotation, back_translation, _ = jax.device_get(
+                model_lib.register(self.params, tgt_n, src_n, self.config))
         seconds = time.perf_counter() - started
+        # Step 5: y = R x + s t' + c_y - R c_x (and the backward motion with the clouds' roles swapped).
         rotation = np.asarray(rotation[0], np.float64)
         translation = scale * np.asarray(translation[0], np.float64) + tgt_centre - rotation @ src_centre
+        if both_ways:
+            back_rotation = np.asarray(back_rotation[0], np.float64)
+            back_translation = (scale * np.asarray(back_translation[0], np.float64) + src_centre
+                                - back_rotation @ tgt_centre)
         fitness = float(extras["fitness"][0])
         refine_seconds = 0.0
         if refine == "icp":
             started = time.perf_counter()
             refined = icp_lib.refine(src, tgt, rotation, translation, scale=scale, seed=self.seed)
             rotation, translation = refined.rotation, refined.translation
-            # The verdict's fitness, as the model measures it, for the refined motion.
+            if both_ways:
+                back_rotation = icp_lib.refine(tgt, src, back_rotation, back_translation, scale=scale,
+                                               seed=self.seed).rotation
+            # The fitness, as the model measures it, for the refined motion.
             moved = ((src_s @ rotation.T + translation) - tgt_centre) / scale
             tgt_j = jnp.asarray(tgt_n[0])
             fitness = float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
                                              self.config.fitness_radius * geometry.spacing(tgt_j)))
             refine_seconds = time.perf_counter() - started
+        max_disagreement = float(self.max_disagreement[refine])
+        if both_ways:
+            agreement = geometry.rotation_angle_deg(rotation @ back_rotation)
+            verdict = agreement <= max_disagreement
+        else:
+            agreement, verdict = float("nan"), fitness >= self.min_fitness
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = rotation, translation
         return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
                       correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
                       confidence=np.asarray(extras["weights"][0], np.float64),
                       inlier_ratio=float(extras["inlier_ratio"][0]), fitness=fitness,
-                      seconds=seconds, verdict=bool(fitness >= self.min_fitness),
-                      min_fitness=self.min_fitness, refinement=None if refine == "none" else refine,
-                      refine_seconds=refine_seconds)
+                      seconds=seconds, verdict=bool(verdict), min_fitness=self.min_fitness,
+                      refinement=None if refine == "none" else refine, refine_seconds=refine_seconds,
+                      agreement=agreement, max_disagreement=max_disagreement, verdict_rule=self.verdict_rule)
 
 
 def _check_refine(refine) -> None:
@@ -313,4 +371,5 @@ def load(checkpoint: str | os.PathLike | None = None, **kwargs) -> Registrar:
         extra = ckpt_lib.read_extra(path)
     kwargs.setdefault("n_points", extra.get("inference_points") or 1000)
     kwargs.setdefault("min_fitness", extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS))
+    kwargs.setdefault("max_disagreement", extra.get("verdict_max_disagreement"))
     return Registrar(params, config, **kwargs)

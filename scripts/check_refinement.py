@@ -21,7 +21,7 @@ import numpy as np
 
 from dit_jax import icp, model, registration, training
 from dit_jax.data.pairs import SETTINGS
-from dit_jax.plotting import rotation_angle_deg
+from dit_jax.geometry import rotation_angle_deg
 
 
 def _name(method: str, distances, trim) -> str:
@@ -37,7 +37,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also write the table here (markdown)")
     args = parser.parse_args()
     batches = training.validation_batches(args.data_dir, list(SETTINGS), count=args.pairs, unseen=args.unseen)
-    registrar = registration.load(args.checkpoint)
+    registrar = registration.load(args.checkpoint, verdict_rule="fitness")  # estimates only: one direction
     columns = (("DIT alone",) + tuple(_name(*c) for c in icp.REFINE_CANDIDATES)
                + ("refine, no translation search", "refine (shipped)"))
     lines = [f"DIT's ICP refinement on {args.pairs} validation pairs per setting (training shapes"

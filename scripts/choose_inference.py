@@ -7,8 +7,19 @@ Validation pairs are made from the training split's held-out shapes (the same on
 categories 0-19 with ``--unseen``), for the authors' settings and those whose clouds share no point. Every
 combination of GMCCE threshold, ``gmcce_min_keep`` and ``guard_iterations`` in the grid registers them; the
 one with the most pairs within 5 degrees, averaged over the settings (ties: the lower mean log error), wins:
-one setting for every input. The verdict threshold is then the lowest fitness at which at least 95 % of the
-results it trusts are within 5 degrees, over all settings' pairs pooled.
+one setting for every input. The fitness verdict's threshold is then the lowest fitness at which at least 95 %
+of the results it trusts are within 5 degrees, over all settings' pairs pooled.
+
+The agreement verdict (the default of ``register``) is chosen the same way, on every setting (``--verdict-settings``):
+each pair is also registered target onto source, alone and refined by ICP as ``register`` does, and each
+threshold (``verdict_max_disagreement``, per refinement) is the largest of :data:`AGREEMENT_GRID` at which at
+least 95 % of the results it trusts are within 5 degrees.
+
+    python scripts/choose_inference.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record \
+        --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 32 --out runs/verdict_choice.json
+
+``--verdict-only`` keeps the checkpoint's inference settings and chooses the agreement thresholds alone;
+``--record`` writes them into the checkpoint's record (the weights themselves are not touched).
 """
 
 import argparse
@@ -18,9 +29,83 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import checkpoint, metrics, model, training
+from dit_jax import checkpoint, evaluation, metrics, model, training
+from dit_jax.data import pairs as pairs_lib
 
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
+#: Candidate thresholds (degrees) of the agreement verdict.
+AGREEMENT_GRID = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
+#: A verdict threshold must leave at least this share of the results it trusts within ``RIGHT_DEG``.
+PRECISION = 0.95
+RIGHT_DEG = 5.0
+
+
+class BatchPairs:
+    """A validation batch (:func:`dit_jax.training.validation_batches`) read pair by pair, as the evaluation's
+    functions read a :class:`~dit_jax.data.pairs.PairDataset`."""
+
+    def __init__(self, batch: dict):
+        self.arrays = batch
+
+    def batch(self, indices) -> dict:
+        return {k: v[np.asarray(indices)] for k, v in self.arrays.items()}
+
+    def __getitem__(self, n: int) -> dict:
+        return {k: v[n] for k, v in self.arrays.items()}
+
+
+def largest_threshold(errors: np.ndarray, agreement: np.ndarray) -> float | None:
+    """The largest :data:`AGREEMENT_GRID` value at which at least :data:`PRECISION` of the results with
+    ``agreement`` (P,) at or below it have ``errors`` (P,) within :data:`RIGHT_DEG`; None if none does."""
+    chosen = None
+    for threshold in AGREEMENT_GRID:
+        trusted = agreement <= threshold
+        if trusted.any() and np.mean(errors[trusted] <= RIGHT_DEG) >= PRECISION:
+            chosen = threshold
+    return chosen
+
+
+def choose_agreement(params, config, batches: dict) -> dict:
+    """The agreement verdict's thresholds per refinement on ``batches`` ({setting: validation batch}), with
+    what they do on those pairs, per setting and pooled."""
+    found = {"none": ([], [], []), "icp": ([], [], [])}
+    for setting, b in batches.items():
+        pairs = BatchPairs(b)
+        indices = np.arange(len(b["src"]))
+        forward = evaluation.predict_dit(params, config, pairs, indices)
+        refined = evaluation.refine_dit(forward, pairs, indices, truth_fit=False)
+        agreement = evaluation.backward_agreement(params, config, pairs, indices, forward, refined)
+        for refinement, pred, method in (("none", forward, evaluation.METHOD_DIT),
+                                         ("icp", refined, evaluation.METHOD_DIT_ICP)):
+            errors = np.array([evaluation.geometry.rotation_angle_deg(r.T @ t) for r, t in zip(pred["R"], b["R"])])
+            found[refinement][0].append(errors)
+            found[refinement][1].append(agreement[method]["agreement"])
+            found[refinement][2].append(np.full(len(errors), setting))
+        print(f"{setting}: agreement gathered", flush=True)
+    report = {"verdict_max_disagreement": {}, "verdict_agreement_on_validation": {}}
+    for refinement, (errors, agreement, settings) in found.items():
+        errors, agreement, settings = map(np.concatenate, (errors, agreement, settings))
+        threshold = largest_threshold(errors, agreement)
+        report["verdict_max_disagreement"][refinement] = threshold
+        if threshold is None:
+            continue
+        rule = evaluation.agreement_rule(threshold)
+        report["verdict_agreement_on_validation"][refinement] = {
+            "pooled": evaluation.verdict_summary(errors, agreement <= threshold, rule, RIGHT_DEG),
+            **{s: evaluation.verdict_summary(errors[settings == s], agreement[settings == s] <= threshold, rule,
+                                             RIGHT_DEG) for s in batches}}
+        print(f"refine={refinement}: agreement within {threshold} deg; "
+              + evaluation.verdict_line("pooled", report["verdict_agreement_on_validation"][refinement]["pooled"]))
+    return report
+
+
+def record(path: str, report: dict) -> None:
+    """Writes the chosen agreement thresholds into the checkpoint's record at ``path`` (its params untouched)."""
+    checkpoint.update_extra(path, {
+        "verdict_max_disagreement": report["verdict_max_disagreement"],
+        "verdict_agreement_choice": {k: report[k] for k in ("settings_verdict", "pairs_per_setting",
+                                                            "verdict_agreement_on_validation") if k in report}})
+    print(f"recorded the agreement thresholds in {path}")
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
 
 
@@ -32,9 +117,25 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=24, help="validation pairs per setting")
     parser.add_argument("--n-points", type=int, default=1000)
     parser.add_argument("--out", required=True)
+    parser.add_argument("--verdict-settings", nargs="+", default=list(pairs_lib.SETTINGS),
+                        help="settings the agreement verdict is chosen on (default: all)")
+    parser.add_argument("--verdict-only", action="store_true",
+                        help="keep the checkpoint's inference settings; choose the agreement thresholds only")
+    parser.add_argument("--record", action="store_true",
+                        help="write the agreement thresholds into the checkpoint's record")
     args = parser.parse_args()
 
     params, config = checkpoint.restore(args.checkpoint)
+    if args.verdict_only:
+        batches = training.validation_batches(args.data_dir, args.verdict_settings, count=args.pairs,
+                                              n_points=args.n_points, unseen=args.unseen)
+        report = {"checkpoint": args.checkpoint, "settings_verdict": args.verdict_settings,
+                  "pairs_per_setting": args.pairs} | choose_agreement(params, config, batches)
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=2)
+        if args.record:
+            record(args.checkpoint, report)
+        return
     batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs, n_points=args.n_points,
                                           unseen=args.unseen)
 
@@ -84,8 +185,14 @@ def main() -> None:
             "trusted": int(trusted.sum()), "pairs": int(len(errors))}
     print(f"chosen: {json.dumps(best['changes'])}; verdict threshold {chosen_fitness}; "
           f"{json.dumps(report.get('verdict_on_validation'))}")
+    verdict_batches = training.validation_batches(args.data_dir, args.verdict_settings, count=args.pairs,
+                                                  n_points=args.n_points, unseen=args.unseen)
+    report |= {"settings_verdict": args.verdict_settings} | choose_agreement(
+        params, config.replace(**best["changes"]), verdict_batches)
     with open(args.out, "w") as f:
         json.dump(report, f, indent=2)
+    if args.record:
+        record(args.checkpoint, report)
 
 
 if __name__ == "__main__":

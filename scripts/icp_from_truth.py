@@ -23,7 +23,7 @@ import numpy as np
 from dit_jax import icp, registration
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
-from dit_jax.plotting import rotation_angle_deg
+from dit_jax.geometry import rotation_angle_deg
 
 
 def _generalized_icp(src, tgt, rotation, translation, distances):

@@ -62,6 +62,10 @@ def main() -> None:
         extra["inference_choice"] = {k: choice[k] for k in ("chosen", "verdict_min_fitness", "settings",
                                                             "pairs_per_setting") if k in choice}
         extra["inference_choice"]["verdict_on_validation"] = choice.get("verdict_on_validation")
+        if choice.get("verdict_max_disagreement"):
+            extra["verdict_max_disagreement"] = choice["verdict_max_disagreement"]
+            extra["verdict_agreement_choice"] = {k: choice[k] for k in (
+                "settings_verdict", "pairs_per_setting", "verdict_agreement_on_validation") if k in choice}
     shutil.rmtree(staging)
     if os.path.exists(args.out):
         shutil.rmtree(args.out)

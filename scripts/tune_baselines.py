@@ -159,7 +159,7 @@ def main() -> None:
     if args.checkpoint != "none":
         from dit_jax import model, registration
 
-        registrar = registration.load(args.checkpoint)
+        registrar = registration.load(args.checkpoint, verdict_rule="fitness")  # estimates only: one direction
         dit_est = {}
         for setting, b in batches.items():
             out = []

@@ -42,3 +42,24 @@ def test_missing_damaged_and_mismatched_checkpoints_raise_clear_errors(tmp_path)
     shutil.rmtree(tmp_path / "ck" / "params")
     with pytest.raises(checkpoint.CheckpointError, match="params do not restore"):
         checkpoint.restore(tmp_path / "ck")
+
+
+def test_update_extra_adds_to_the_record_and_leaves_the_params_files_alone(tmp_path):
+    """A newly chosen setting (the verdict's thresholds) goes into a shipped checkpoint's record without a new
+    copy of its weights: only the record's file changes, and the params restore as before."""
+    config = configs.tiny()
+    params = model.init(jax.random.PRNGKey(0), config)
+    path = checkpoint.save(tmp_path / "m", params, config, extra={"step": 7})
+    files = sorted(p for p in (tmp_path / "m").rglob("*") if p.is_file())
+    before = {p: p.read_bytes() for p in files}
+    checkpoint.update_extra(path, {"verdict_max_disagreement": {"none": 3.0, "icp": 6.0}})
+    assert checkpoint.read_extra(path) == {"step": 7, "verdict_max_disagreement": {"none": 3.0, "icp": 6.0}}
+    changed = [p.relative_to(tmp_path / "m").as_posix() for p in files if p.read_bytes() != before[p]]
+    assert changed == ["config/metadata"]
+    assert sorted(p for p in (tmp_path / "m").rglob("*") if p.is_file()) == files
+    restored, restored_config = checkpoint.restore(path)
+    assert restored_config == config
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(restored)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(checkpoint.CheckpointError, match="no such checkpoint"):
+        checkpoint.update_extra(tmp_path / "absent", {})

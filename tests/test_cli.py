@@ -21,7 +21,8 @@ def tiny_checkpoint(tmp_path_factory) -> str:
     path = tmp_path_factory.mktemp("ckpt") / "tiny"
     # An untrained network: its verdict would be "suspect"; these tests are about everything else.
     return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_min_fitness": 0.0})
+                           extra={"inference_points": 128, "verdict_min_fitness": 0.0,
+                                  "verdict_max_disagreement": {"none": 180.0, "icp": 180.0}})
 
 
 @pytest.fixture(scope="module")
@@ -134,23 +135,31 @@ def test_console_script_exit_status(tmp_path):
     assert proc.stderr.strip() == f"dit-register: error: {tmp_path / 'a.ply'}: no such file"
 
 
-@pytest.mark.parametrize("min_fitness,expected", [(1.01, 3), (0.0, 0)])
-def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_path, pair, min_fitness, expected):
-    """The verdict's threshold comes with the checkpoint; below it the transform is printed and written, one
-    warning line goes to stderr and the status is 3 (0 with --no-verdict-status)."""
+@pytest.mark.parametrize("rule,threshold,expected", [("agreement", -1.0, 3), ("agreement", 180.0, 0),
+                                                      ("fitness", 1.01, 3), ("fitness", 0.0, 0)])
+def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_path, pair, rule, threshold, expected):
+    """The verdict's thresholds come with the checkpoint (agreement, the default, or --verdict fitness); a
+    result they do not trust is still printed and written, one warning line goes to stderr and the status
+    is 3 (0 with --no-verdict-status)."""
     config = configs.tiny()
     ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_min_fitness": min_fitness})
+                           extra={"inference_points": 128, "verdict_min_fitness": threshold,
+                                  "verdict_max_disagreement": {"none": threshold, "icp": threshold}})
     folder, _, _ = pair
     code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
-                         "--out", tmp_path / "moved.ply", "--json")
+                         "--out", tmp_path / "moved.ply", "--json", "--verdict", rule)
     report = json.loads(out)
     assert code == expected and report["verdict"] == ("suspect" if expected else "trusted")
-    assert report["min_fitness"] == min_fitness and 0.0 <= report["fitness"] <= 1.0
+    assert report["verdict_rule"] == rule and 0.0 <= report["fitness"] <= 1.0
+    if rule == "agreement":
+        assert report["max_disagreement_deg"] == threshold and 0.0 <= report["agreement_deg"] <= 180.0
+    else:
+        assert report["min_fitness"] == threshold and report["agreement_deg"] is None
     assert (tmp_path / "moved.ply").exists()
     if expected:
         assert err.count("\n") == 1 and err.startswith("dit-register: warning: the result is probably wrong")
-        code, _, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--no-verdict-status")
+        code, _, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--no-verdict-status",
+                         "--verdict", rule)
         assert code == 0
     else:
         assert err == ""
@@ -158,12 +167,14 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     """The shipped weights on two pairs of real Stanford Dragon scans 24 degrees apart (measured in
-    docs/eval_stanford_dragon): 0 -> 24 registers within 5 degrees and is trusted; 48 -> 72 is wrong and the
-    verdict says so with status 3 (the transform is still printed)."""
+    docs/eval_stanford_dragon, 2026-11-27): 312 -> 336 registers within 5 degrees (2.0) and registering the
+    target onto the source agrees within 1.7 degrees (trusted up to 3), so the status is 0; 48 -> 72 is wrong
+    (63 degrees, the two directions 38 apart) and the verdict says so with status 3 (the transform is still
+    printed)."""
     from dit_jax.data import scans
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
-    for source, target, expected in (("dragonStandRight_0", "dragonStandRight_24", 0),
+    for source, target, expected in (("dragonStandRight_312", "dragonStandRight_336", 0),
                                      ("dragonStandRight_48", "dragonStandRight_72", 3)):
         code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json")
         report = json.loads(out)
@@ -180,16 +191,18 @@ def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
 def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
     examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured
-    2026-11-26: 4.3 -> 2.8 degrees; 2026-11-27: 4.3 -> 1.09), and --plot writes a PNG."""
-    from dit_jax.plotting import rotation_angle_deg
+    2026-11-26: 4.3 -> 2.8 degrees; 2026-11-27: 4.3 -> 1.09), the verdict trusts it (status 0; the two
+    directions agree within 0.54 degrees) and flags the network alone (status 3, 19 degrees apart), and --plot
+    writes a PNG."""
+    from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
     truth = np.loadtxt(os.path.join(examples, "chair_truth.txt"))
     errors = {}
-    for refine in ("none", "icp"):
+    for refine, status in (("none", 3), ("icp", 0)):
         code, out, err = run(capsys, os.path.join(examples, "chair_src.ply"), os.path.join(examples, "chair_tgt.pcd"),
-                             "--refine", refine, "--plot", tmp_path / f"{refine}.png", "--json", "--no-verdict-status")
-        assert code == 0, err
+                             "--refine", refine, "--plot", tmp_path / f"{refine}.png", "--json")
+        assert code == status, err
         report = json.loads(out)
         errors[refine] = rotation_angle_deg(np.asarray(report["matrix"])[:3, :3].T @ truth[:3, :3])
         assert report["refinement"] == (None if refine == "none" else "icp")
@@ -209,7 +222,7 @@ def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir)
     25 degrees off, 0.06 and 0.15 after ICP (2026-11-26); where the network is 63 degrees off, the refinement's
     trimmed runs pull it in to 1.8 degrees (2026-11-27; the single point-to-plane run before it could not)."""
     from dit_jax.data import scans
-    from dit_jax.plotting import rotation_angle_deg
+    from dit_jax.geometry import rotation_angle_deg
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
     for source, target, bound in (("dragonStandRight_0", "dragonStandRight_24", 0.5),

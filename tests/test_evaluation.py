@@ -35,7 +35,13 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert saved["settings"][setting]["DIT+ICP"]["seconds_per_pair"] > dit["seconds_per_pair"]
     assert "| DIT |" in (out / "results.md").read_text()
     assert (out / "success_ratio.png").stat().st_size > 10_000
-    assert "verdict" in saved["settings"]["clean"]["DIT"] and "verdict (fitness" in (out / "results.md").read_text()
+    for method in ("DIT", "DIT+ICP"):
+        verdict = saved["settings"]["clean"][method]["verdict"]
+        assert verdict["rule"].startswith("target onto source agrees within") and verdict["extra_seconds_per_pair"] > 0
+    clean = saved["settings"]["clean"]
+    assert clean["DIT"]["verdict"]["extra_seconds_per_pair"] < clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"]
+    assert "DIT's verdict (target onto source agrees" in (out / "results.md").read_text()
+    assert "DIT's verdict (fitness" in (out / "results.md").read_text()
 
 
 def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path):

@@ -140,7 +140,7 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
 def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict(modelnet_shapes):
     """Two disjoint halves of a shape (no point shared), in metres with an offset: the shipped network lands
     15-50 degrees off on these six shapes; refine="icp" improves every one, to a median under 2 degrees
-    (measured 2026-11-26: 0.3-3.0), and reports the refined fitness."""
+    (measured 2026-11-26: 0.3-3.0), and reports the refined fitness and the refined motions' agreement."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     model_ = registration.load(n_points=512)
     plain_errors, refined_errors = [], []
@@ -150,7 +150,7 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
         plain = model_.register(src, tgt)
         refined = model_.register(src, tgt, refine="icp")
         assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
-        assert refined.fitness > plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
+        assert refined.fitness > plain.fitness and refined.verdict == (refined.agreement <= refined.max_disagreement)
         plain_errors.append(_rotation_error_deg(plain.rotation, truth))
         refined_errors.append(_rotation_error_deg(refined.rotation, truth))
     assert all(r < p for r, p in zip(refined_errors, plain_errors)), (plain_errors, refined_errors)
@@ -165,3 +165,22 @@ def test_result_plot_writes_a_png(tiny_registrar, tmp_path):
     result = tiny_registrar.register(src, src + 0.1)
     path = result.plot(tmp_path / "r.png", src, src + 0.1, truth=(np.eye(3), np.full(3, 0.1)), title="a pair")
     assert (tmp_path / "r.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path == str(tmp_path / "r.png")
+
+
+def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_shapes):
+    """The default verdict registers the target onto the source as well: a shape and its moved copy come out
+    the same both ways (trusted), a shape registered onto a different one does not (suspect); measured
+    2026-11-27 on these four shapes: agreement 0.00-0.01 against 20-55 degrees."""
+    model_ = registration.load()
+    truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
+    for index in range(4):
+        shape = modelnet_shapes[index].astype(np.float64)
+        right = model_.register(shape, shape @ truth.T + [0.1, 0.0, -0.2])
+        wrong = model_.register(shape, modelnet_shapes[index + 10].astype(np.float64) @ truth.T)
+        assert right.verdict_rule == wrong.verdict_rule == "agreement"
+        assert _rotation_error_deg(right.rotation, truth) < 1.0 and right.agreement < 0.5 and right.verdict
+        assert wrong.agreement > wrong.max_disagreement and not wrong.verdict
+    cheap = registration.load(verdict_rule="fitness").register(shape, shape @ truth.T)
+    assert np.isnan(cheap.agreement) and cheap.verdict == (cheap.fitness >= cheap.min_fitness)
+    with pytest.raises(ValueError, match="verdict_rule"):
+        registration.load(verdict_rule="vote")
