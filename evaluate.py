@@ -58,6 +58,8 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default="eval")
     parser.add_argument("--reuse", default=None, metavar="DIR",
                         help="take baselines scored on the same pairs from an earlier --out instead of rerunning them")
+    parser.add_argument("--no-verdict", action="store_true",
+                        help="skip the agreement verdict's second registration (target onto source) of every pair")
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -100,7 +102,7 @@ def main(argv=None) -> int:
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
                                       batch_size=args.batch_size, progress=not args.no_progress,
                                       compute_dtype="bfloat16" if args.bfloat16 else "float32",
-                                      reuse=args.reuse, refine=args.refine == "icp")
+                                      reuse=args.reuse, refine=args.refine == "icp", verdict=not args.no_verdict)
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -90,9 +90,10 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     import evaluate
     from dit_jax import registration
 
-    assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress", "--no-verdict"]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["checkpoint"] == os.path.abspath(registration.shipped_weights())
+    assert "verdict" not in saved["settings"]["clean"]["DIT"] and "verdict_fitness" in saved["settings"]["clean"]["DIT"]
     extra = checkpoint.read_extra(registration.shipped_weights())
     assert saved["n_points"] == (extra.get("inference_points") or extra.get("n_points") or 1000)
 
@@ -123,7 +124,7 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
     names = ["fpfh_ransac_icp"] if baselines.available() else []
     results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("clean",),
                                   max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
-                                  worst_pairs=False)
+                                  worst_pairs=False, verdict=False)
     rows = results["settings"]["clean"]
     assert rows["DIT"]["rot_iso"] < 0.01
     assert rows["DIT+ICP"]["rot_iso"] <= rows["DIT"]["rot_iso"] + 1e-6
