@@ -29,7 +29,7 @@ def test_a_directory_that_cannot_be_made_leaves_the_cache_off(tmp_path, capsys):
 
 def _register(cache_args):
     command = [sys.executable, "-m", "dit_jax.cli", "examples/chair_src.ply", "examples/chair_tgt.pcd",
-               "--points", "256", "--no-verdict-status", *cache_args]
+               "--points", "256", "--no-verdict-status", "--verdict", "fitness", *cache_args]  # one direction
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     return done.stdout.splitlines()[:4]  # the matrix
