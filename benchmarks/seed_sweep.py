@@ -14,26 +14,7 @@ without TFDS (a bare accelerator) the embedded set is read straight from its npz
 import argparse
 import dataclasses
 import json
-import sys
 import time
-import types
-
-
-def _without_tfds() -> bool:
-    """Lets dit_jax.data.shapes import where tensorflow_datasets is missing (its builder then goes unused);
-    True where it is missing."""
-    try:
-        import tensorflow_datasets  # noqa: F401
-        return False
-    except ImportError:
-        stub = types.ModuleType("tensorflow_datasets")
-        any_class = type("Unused", (), {"__init__": lambda self, *a, **k: None})
-        stub.core = types.SimpleNamespace(BuilderConfig=any_class, GeneratorBasedBuilder=any_class,
-                                          Version=any_class, DatasetInfo=any_class)
-        stub.features = types.SimpleNamespace(FeaturesDict=any_class, Tensor=any_class, Scalar=any_class,
-                                              Text=any_class)
-        sys.modules["tensorflow_datasets"] = stub
-        return True
 
 
 def _seeds(text: str) -> list[int]:
@@ -52,7 +33,9 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="write every curve here")
     args = parser.parse_args()
 
-    no_tfds = _without_tfds()
+    from dit_jax.data import packed
+
+    no_tfds = packed.allow_without_tfds()
     import jax
     import jax.numpy as jnp
     import numpy as np

@@ -5,7 +5,8 @@ Here, where the data is, pack the training shapes once (the machine there has no
     python scripts/device_stage.py pack --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen \
         --out runs/device_data/mn40_train.npz
 
-There (the device tool carries runs/device_data), from the repository root::
+There (the device tool carries runs/device_data), from the repository root, either with ``--steps N`` or
+with ``--seconds`` alone (then the recipe is timed first, at the cost of compiling it twice)::
 
     PYTHONPATH=. JAX_DEFAULT_MATMUL_PRECISION=highest python3 scripts/device_stage.py run \
         --packed runs/device_data/mn40_train.npz --out $OUT --seconds 540 \
@@ -86,6 +87,10 @@ def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.
            args.compile_cache, "--workdir", os.path.join(args.workdir, name), "--", *train_args]
     log = open(os.path.join(log_dir, f"{name}.log"), "w")
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1")
+    if args.autotune is not None:
+        # XLA's GPU autotuning: at its default level the `cpu` recipe's train step did not compile in 170 s
+        # on an H200; at level 0 it compiled in 65 s (docs/BENCHMARKS.md, "Training on a lent GPU")
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_gpu_autotune_level={args.autotune}".strip()
     print(f"[{time.strftime('%H:%M:%S')}] {name}: {shlex.join(cmd)}", flush=True)
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
 
@@ -122,11 +127,17 @@ def run(args) -> int:
         runs.append((name, extra))
     base = list(args.train_args)
 
+    if args.steps:
+        return _train_side_by_side(args, runs, base, start, deadline, args.steps, None)
     # Timing: the first run's recipe for a few steps, validation included (it fills the compile cache).
     calib = [*base, *runs[0][1], f"--set=max_steps={args.calibration_steps}", "--set=log_every=10",
              "--set=eval_every=1000000", "--set=ckpt_every=1000000"]
     proc = _launch("calibration", args, calib, args.out)
-    proc.wait(timeout=max(60.0, deadline - time.time() - 120))
+    try:
+        proc.wait(timeout=max(60.0, deadline - time.time() - 120))
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
     if proc.returncode != 0:
         print(f"calibration failed ({proc.returncode}); the end of calibration.log:", flush=True)
         print(open(os.path.join(args.out, "calibration.log")).read()[-6000:], flush=True)
@@ -140,10 +151,13 @@ def run(args) -> int:
     compile_seconds = max(args.compile_seconds, 3 * 10 * first)
     steps = int((left - compile_seconds - 9 * args.validation_seconds) / per_step)
     steps = max(args.min_steps, steps // 50 * 50)
-    every = max(10, steps // 8)
     print(f"calibration: {spent:.0f} s, {steady:.3f} s / step steady, {first:.2f} s / step in the first "
-          f"interval; {left:.0f} s left, {compile_seconds:.0f} s for compiling -> {steps} steps, validation "
-          f"every {every}", flush=True)
+          f"interval; {left:.0f} s left, {compile_seconds:.0f} s for compiling -> {steps} steps", flush=True)
+    return _train_side_by_side(args, runs, base, start, deadline, steps, steady)
+
+
+def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) -> int:
+    every = max(10, steps // 8)
     procs = {}
     for name, extra in runs:
         procs[name] = _launch(name, args, [*base, *extra, f"--set=max_steps={steps}", f"--set=eval_every={every}",
@@ -155,7 +169,7 @@ def run(args) -> int:
             p.kill()
             p.wait()
             print(f"{name}: stopped at the deadline", flush=True)
-    summary = {"seconds_per_step_calibration": steady, "steps": steps, "eval_every": every,
+    summary = {"seconds_per_step_calibration": calibrated, "steps": steps, "eval_every": every,
                "elapsed": round(time.time() - start), "runs": {}}
     for name, p in procs.items():
         workdir = os.path.join(args.workdir, name)
@@ -192,6 +206,9 @@ def main() -> int:
     r.add_argument("--compile-cache", default="/tmp/device_stage_xla")
     r.add_argument("--seconds", type=float, required=True, help="wall-clock budget of the whole command")
     r.add_argument("--run", action="append", required=True, metavar="NAME[:FIELD=VALUE,...]")
+    r.add_argument("--steps", type=int, default=None,
+                   help="train this many steps, without timing the recipe first (each compile costs minutes)")
+    r.add_argument("--autotune", default="0", help="XLA's --xla_gpu_autotune_level for the runs (0: off)")
     r.add_argument("--calibration-steps", type=int, default=40)
     r.add_argument("--slowdown", type=float, default=1.3, help="step time side by side / alone (assumed)")
     r.add_argument("--compile-seconds", type=float, default=60.0,
