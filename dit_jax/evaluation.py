@@ -100,7 +100,7 @@ def backward_agreement(params, config, dataset: pairs_lib.PairDataset, indices: 
     (target onto source, and refined by ICP where ``refined``, DIT+ICP's estimates, is given). Returns
     ``{method: {"agreement": (P,) degrees between its rotation and the inverse of the backward one,
     "seconds": (P,) the backward work's time per pair}}``."""
-    swapped = _Swapped(dataset)
+    swapped = pairs_lib.PairView(dataset, swap=True)
     back = predict_dit(params, config, swapped, indices, batch_size)
     out = {METHOD_DIT: {"agreement": np.array([geometry.rotation_angle_deg(r @ b)
                                                for r, b in zip(forward["R"], back["R"])]),
@@ -113,23 +113,6 @@ def backward_agreement(params, config, dataset: pairs_lib.PairDataset, indices: 
     if bar is not None:
         bar.update(len(indices))
     return out
-
-
-class _Swapped:
-    """A pair dataset with every pair's clouds swapped (target onto source), for :func:`backward_agreement`."""
-
-    def __init__(self, dataset):
-        self.dataset = dataset
-
-    @staticmethod
-    def _swap(pair: dict) -> dict:
-        return pair | {"src": pair["tgt"], "tgt": pair["src"]}
-
-    def batch(self, indices):
-        return self._swap(self.dataset.batch(indices))
-
-    def __getitem__(self, n):
-        return self._swap(self.dataset[n])
 
 
 def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None, *,

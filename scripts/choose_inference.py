@@ -29,7 +29,7 @@ import json
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import checkpoint, evaluation, metrics, model, training
+from dit_jax import checkpoint, evaluation, geometry, metrics, model, training
 from dit_jax.data import pairs as pairs_lib
 
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
@@ -38,20 +38,6 @@ AGREEMENT_GRID = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 #: A verdict threshold must leave at least this share of the results it trusts within ``RIGHT_DEG``.
 PRECISION = 0.95
 RIGHT_DEG = 5.0
-
-
-class BatchPairs:
-    """A validation batch (:func:`dit_jax.training.validation_batches`) read pair by pair, as the evaluation's
-    functions read a :class:`~dit_jax.data.pairs.PairDataset`."""
-
-    def __init__(self, batch: dict):
-        self.arrays = batch
-
-    def batch(self, indices) -> dict:
-        return {k: v[np.asarray(indices)] for k, v in self.arrays.items()}
-
-    def __getitem__(self, n: int) -> dict:
-        return {k: v[n] for k, v in self.arrays.items()}
 
 
 def largest_threshold(errors: np.ndarray, agreement: np.ndarray) -> float | None:
@@ -70,14 +56,14 @@ def choose_agreement(params, config, batches: dict) -> dict:
     what they do on those pairs, per setting and pooled."""
     found = {"none": ([], [], []), "icp": ([], [], [])}
     for setting, b in batches.items():
-        pairs = BatchPairs(b)
+        pairs = pairs_lib.PairView(b)
         indices = np.arange(len(b["src"]))
         forward = evaluation.predict_dit(params, config, pairs, indices)
         refined = evaluation.refine_dit(forward, pairs, indices, truth_fit=False)
         agreement = evaluation.backward_agreement(params, config, pairs, indices, forward, refined)
         for refinement, pred, method in (("none", forward, evaluation.METHOD_DIT),
                                          ("icp", refined, evaluation.METHOD_DIT_ICP)):
-            errors = np.array([evaluation.geometry.rotation_angle_deg(r.T @ t) for r, t in zip(pred["R"], b["R"])])
+            errors = np.array([geometry.rotation_angle_deg(r.T @ t) for r, t in zip(pred["R"], b["R"])])
             found[refinement][0].append(errors)
             found[refinement][1].append(agreement[method]["agreement"])
             found[refinement][2].append(np.full(len(errors), setting))

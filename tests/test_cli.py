@@ -218,17 +218,17 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
 
 
 def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 2.4 and
-    25 degrees off, 0.06 and 0.15 after ICP (2026-11-26); where the network is 63 degrees off, the refinement's
-    trimmed runs pull it in to 1.8 degrees (2026-11-27; the single point-to-plane run before it could not).
-    The first pair with the default verdict: trusted, status 0 (both directions agree within 0.03 degrees);
-    the others with the one-direction fitness verdict, which is all this accuracy check needs."""
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 2.4
+    degrees off, 0.06 after ICP (2026-11-26); where the network is 63 degrees off, the refinement's trimmed runs
+    pull it in to 1.8 degrees (2026-11-27; the single point-to-plane run before it could not). The first pair
+    with the default verdict: trusted, status 0 (both directions agree within 0.03 degrees); the other with the
+    one-direction fitness verdict, which is all this accuracy check needs. (A third pair, 216 -> 240, 25
+    degrees off and 0.15 after ICP, lies between the two and was dropped to keep the suite short.)"""
     from dit_jax.data import scans
     from dit_jax.geometry import rotation_angle_deg
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
     for source, target, bound in (("dragonStandRight_0", "dragonStandRight_24", 0.5),
-                                  ("dragonStandRight_216", "dragonStandRight_240", 1.0),
                                   ("dragonStandRight_48", "dragonStandRight_72", 3.0)):
         first = source == "dragonStandRight_0"
         code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json",

@@ -204,3 +204,15 @@ def test_mixed_pairs_draw_whole_batches_from_each_setting(modelnet_test):
         assert mixed.setting_of(indices, epoch=2) == setting, "deterministic"
     assert set(seen) == {"clean", "independent_clean", "scan_high_noise"}
     assert len(mixed) == len(mixed.datasets["clean"])
+
+
+def test_pair_view_reads_a_stacked_batch_and_swaps_clouds(modelnet_test):
+    ds = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="low_noise_partial"))
+    stacked = ds.batch(np.arange(6))
+    view, swapped = pairs.PairView(stacked), pairs.PairView(ds, swap=True)
+    for key in ("src", "tgt", "R"):
+        np.testing.assert_array_equal(view.batch([4, 1])[key], ds.batch([4, 1])[key])
+        np.testing.assert_array_equal(view[3][key], ds[3][key])
+    np.testing.assert_array_equal(swapped.batch([2])["src"], ds.batch([2])["tgt"])
+    np.testing.assert_array_equal(swapped[2]["tgt"], ds[2]["src"])
+    np.testing.assert_array_equal(pairs.PairView(stacked, swap=True)[5]["src"], stacked["tgt"][5])

@@ -432,3 +432,27 @@ class MixedPairs:
 
     def batch(self, indices, epoch: int = 0) -> dict[str, np.ndarray]:
         return self.datasets[self.setting_of(indices, epoch)].batch(indices, epoch)
+
+
+class PairView:
+    """Pairs read as a :class:`PairDataset` is read (``view.batch(indices)``, ``view[n]``), from a dataset or
+    from one stacked batch (a dict of arrays with the pairs along axis 0, as :meth:`PairDataset.batch` and
+    :func:`dit_jax.training.validation_batches` give); with ``swap`` every pair's clouds trade places, so the
+    target is registered onto the source."""
+
+    def __init__(self, source, swap: bool = False):
+        self.source = source
+        self.swap = swap
+
+    def _out(self, pair: dict) -> dict:
+        return pair | {"src": pair["tgt"], "tgt": pair["src"]} if self.swap else pair
+
+    def batch(self, indices) -> dict:
+        if isinstance(self.source, Mapping):
+            return self._out({k: v[np.asarray(indices)] for k, v in self.source.items()})
+        return self._out(self.source.batch(indices))
+
+    def __getitem__(self, n: int) -> dict:
+        if isinstance(self.source, Mapping):
+            return self._out({k: v[n] for k, v in self.source.items()})
+        return self._out(self.source[n])
