@@ -316,15 +316,16 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     args = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--set", "max_steps=12", "--set",
             "eval_every=6", "--set", "ckpt_every=4", "--set", "val_pairs=4", "--no-progress",
             "--prepared-dir", prepared]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    # one CPU device per process, whatever device count the environment asks for
+    flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=flags)
     port = _free_port()
     commands = [(args + ["--workdir", str(tmp_path / "two"), "--distributed", "--coordinator", f"localhost:{port}",
                          "--num-processes", "2", "--process-id", str(i)], env) for i in range(2)]
     # Beside them, one process with two devices takes TINY's first step.
     moments = tmp_path / "two_devices.npz"
     script = TWO_DEVICE_SCRIPT.format(tests=str(ROOT / "tests"), prepared=prepared, out=str(moments))
-    commands.append(([sys.executable, "-c", script], dict(env, XLA_FLAGS="--xla_force_host_platform_device_count=2")))
+    commands.append(([sys.executable, "-c", script], dict(env, XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=2")))
     procs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=penv,
                               cwd=str(ROOT)) for command, penv in commands]
     outputs = [p.communicate(timeout=600) for p in procs]
