@@ -79,7 +79,8 @@ def _seconds_per_step(workdir: str) -> tuple[float, float]:
     """(steady seconds per step, seconds of the first logged interval, compilation included)."""
     records = [json.loads(line) for line in open(os.path.join(workdir, "metrics.jsonl"))]
     train = [r["seconds_per_step"] for r in records if r.get("split") == "train"]
-    return sorted(train[1:])[len(train[1:]) // 2], train[0]
+    steady = sorted(train[1:] or train)
+    return steady[len(steady) // 2], train[0]
 
 
 def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.Popen:

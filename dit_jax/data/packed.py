@@ -81,8 +81,3 @@ def load(path: str, n_points: int | None = None):
         ids[z["rows"]] = z["ids"]
         return Shapes(points, labels, ids.astype(str), tuple(str(s) for s in z["shape_names"]))
 
-
-def source_of(path: str) -> str:
-    """The data directory the file was packed from (what a run records as its ``data_dir``)."""
-    with np.load(path) as z:
-        return str(z["source"])
