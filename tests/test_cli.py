@@ -167,10 +167,10 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     """The shipped weights on two pairs of real Stanford Dragon scans 24 degrees apart (measured in
-    docs/eval_stanford_dragon, 2026-11-27): 312 -> 336 registers within 5 degrees (2.0) and registering the
-    target onto the source agrees within 1.7 degrees (trusted up to 3), so the status is 0; 48 -> 72 is wrong
-    (63 degrees, the two directions 38 apart) and the verdict says so with status 3 (the transform is still
-    printed)."""
+    docs/eval_stanford_dragon with the weights shipped on 2026-11-27): 312 -> 336 registers within 5 degrees
+    (1.5) and registering the target onto the source agrees within 0.8 degrees (trusted up to 1.5), so the
+    status is 0; 48 -> 72 is wrong (36 degrees, the two directions 26 apart) and the verdict says so with
+    status 3 (the transform is still printed)."""
     from dit_jax.data import scans
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
@@ -190,10 +190,10 @@ def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
 
 def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
-    examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured
-    2026-11-26: 4.3 -> 2.8 degrees; 2026-11-27: 4.3 -> 1.09), the verdict trusts it (status 0; the two
-    directions agree within 0.54 degrees) and flags the network alone (status 3, 19 degrees apart), and --plot
-    writes a PNG."""
+    examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured with
+    the weights shipped on 2026-11-27: 12.7 -> 1.10 degrees), the verdict trusts it (status 0; the two
+    directions agree within 0.55 degrees, trusted up to 1.5) and flags the network alone (status 3, 16 degrees
+    apart), and --plot writes a PNG."""
     from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
@@ -218,9 +218,10 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
 
 
 def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 2.4
-    degrees off, 0.06 after ICP (2026-11-26); where the network is 63 degrees off, the refinement's trimmed runs
-    pull it in to 1.8 degrees (2026-11-27; the single point-to-plane run before it could not). The first pair
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 1.7
+    degrees off (weights shipped on 2026-11-27; 2.4 with the earlier ones, 0.06 after ICP); where the network is
+    36-63 degrees off, the refinement's trimmed runs pull it in to about 2 degrees (the single point-to-plane
+    run before 2026-11-27 could not). The first pair
     with the default verdict: trusted, status 0 (both directions agree within 0.03 degrees); the other with the
     one-direction fitness verdict, which is all this accuracy check needs. (A third pair, 216 -> 240, 25
     degrees off and 0.15 after ICP, lies between the two and was dropped to keep the suite short.)"""
