@@ -17,7 +17,8 @@ written, a one-line warning goes to stderr, and the exit status is 3 (``--no-ver
 
 Range (shipped weights, measured 2026-11-27, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
 independently, as real scans are, rotations up to about 15 degrees alone (within 10 degrees on 50-88 % of
-pairs) and up to 60 with --refine icp (median 1.2-2.0 degrees); beyond that it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 3.5
+pairs) and up to 60 with --refine icp (median 1.2-2.0 degrees); beyond that it fails. On two scans of the
+Stanford Dragon 24 degrees apart the median error is 3.5
 degrees alone and 0.12 with --refine icp (14 of 15 pairs within 1 degree, 15 of 15 within 2; 48 degrees
 apart: 0.37, 11 of 15 within 1, 13 within 5; docs/eval_stanford_dragon, 2026-11-27). Use --refine icp on
 real scans.
