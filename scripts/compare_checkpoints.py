@@ -5,7 +5,7 @@
 
 Every checkpoint registers the same validation pairs of each setting two ways: with the shipped weights'
 inference setting, read from their checkpoint (three iterations, GMCCE threshold 0.9 keeping at least the 30 %
-most consistent matches: what `register` does) and as the network alone (one soft iteration, what training changes first). Prints a
+most consistent matches; guarded iterations since 2026-11-27: what `register` does) and as the network alone (one soft iteration, what training changes first). Prints a
 markdown table of the median rotation error and the shares within 5 and 10 degrees.
 """
 
