@@ -139,8 +139,11 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
 
 def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict(modelnet_shapes):
     """Two disjoint halves of a shape (no point shared), in metres with an offset: the shipped network lands
-    15-50 degrees off on these six shapes; refine="icp" improves every one, to a median under 2 degrees
-    (measured 2026-11-26: 0.3-3.0), and reports the refined fitness."""
+    2-20 degrees off on these six shapes (weights shipped 2026-11-27; 15-50 with the earlier ones);
+    refine="icp" improves every one, to a median under 2 degrees (measured 2026-11-27: 0.5-1.5), and reports
+    the refined fitness. Fitness is a share of points within two spacings, not what the refinement
+    minimises, so it must rise only where the network started far off the surface (the 2-degree starts
+    end more accurate at a fitness about 0.01 lower)."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     model_ = registration.load(n_points=512, verdict_rule="fitness")  # one direction: this checks the refinement
     plain_errors, refined_errors = [], []
@@ -150,8 +153,10 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
         plain = model_.register(src, tgt)
         refined = model_.register(src, tgt, refine="icp")
         assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
-        assert refined.fitness > plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
+        assert refined.fitness != plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
         plain_errors.append(_rotation_error_deg(plain.rotation, truth))
+        if plain_errors[-1] > 5.0:
+            assert refined.fitness > plain.fitness, (index, plain_errors[-1])
         refined_errors.append(_rotation_error_deg(refined.rotation, truth))
     assert all(r < p for r, p in zip(refined_errors, plain_errors)), (plain_errors, refined_errors)
     assert np.median(refined_errors) < 2.0, refined_errors
