@@ -332,16 +332,25 @@ def plot_worst(path: str, title: str, worst: Sequence[dict]) -> None:
     plt.close(fig)
 
 
-def plot_worst_pairs(dataset: pairs_lib.PairDataset, scored: dict, path: str, title: str) -> None:
+def plot_worst_pairs(dataset: pairs_lib.PairDataset, scored: dict, path: str, title: str) -> list[str]:
     """:func:`plot_worst` of each method's pair with the largest rotation error, from the ``worst`` entry of
-    its scores (``{method: score(...)}``, reused ones included)."""
-    worst = []
+    its scores (``{method: score(...)}``, reused ones included). Methods whose scores lack that entry (reused
+    from a ``results.json`` written before it was kept) are left out and named in the title, so the picture
+    never mixes in an earlier run's estimates. Returns the methods left out."""
+    worst, missing = [], []
     for name, result in scored.items():
+        if "worst" not in result:
+            missing.append(name)
+            continue
         pair = dataset[result["worst"]["pair"]]
         worst.append({"method": name, "pair": result["worst"]["pair"], "src": pair["src"], "tgt": pair["tgt"],
                       "R": np.asarray(result["worst"]["R"]), "t": np.asarray(result["worst"]["t"]),
                       "truth": (pair["R"], pair["t"])})
-    plot_worst(path, title, worst)
+    if missing:
+        title += f"\n(not shown: {', '.join(missing)}, reused without their worst pair; rerun them to draw it)"
+    if worst:
+        plot_worst(path, title, worst)
+    return missing
 
 
 def _reusable(reuse: str | None, data_dir, unseen: bool, variant: str, n_points: int) -> dict:
@@ -473,14 +482,13 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                                             "n_iters": n_iters or (config.n_iters if config else None)}
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
-        drawable = all("worst" in r for r in results["settings"][setting].values())
-        if worst_pairs and preds and not drawable:
-            print(f"note: worst_{setting}.png not redrawn: some reused results do not keep their worst pair "
-                  f"(made before 2026-11-27); the earlier picture stays", file=sys.stderr)
-        if worst_pairs and preds and drawable:
-            plot_worst_pairs(ds, results["settings"][setting], os.path.join(out_dir, f"worst_{setting}.png"),
-                             f"worst pair of each method: {setting} ({results['data']}, "
-                             f"{'unseen' if unseen else 'seen'} split)")
+        if worst_pairs and preds:
+            missing = plot_worst_pairs(ds, results["settings"][setting], os.path.join(out_dir, f"worst_{setting}.png"),
+                                       f"worst pair of each method: {setting} ({results['data']}, "
+                                       f"{'unseen' if unseen else 'seen'} split)")
+            if missing:
+                print(f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
+                      f"keep their worst pair", file=sys.stderr)
     if bar is not None:
         bar.close()
     with open(os.path.join(out_dir, "results.json"), "w") as f:

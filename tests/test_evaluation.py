@@ -150,3 +150,20 @@ def test_refinement_summary_tells_misses_the_data_place_elsewhere():
     summary = evaluation.refinement_summary(before, after, np.array([False, True, False, True]))
     assert summary["good_missed_data"] == 1  # pair 2: a miss the data prefer; pair 4: DIT was not close
     assert "of the 2 that do not, 1 end where the clouds fit better" in evaluation.refinement_line(summary)
+
+
+def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(tmp_path):
+    """A picture of worst pairs never shows an earlier run's estimate: a method whose reused scores lack
+    their worst pair is left out (and named), the others are drawn."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    pair = {"src": rng.normal(size=(32, 3)), "tgt": rng.normal(size=(32, 3)), "R": np.eye(3), "t": np.zeros(3)}
+    scored = {"DIT": {"worst": {"pair": 0, "rot_err": 3.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}},
+              "icp": {"rot_iso": 1.0}}
+    path = tmp_path / "worst.png"
+    missing = evaluation.plot_worst_pairs([pair], scored, str(path), "worst pairs")
+    assert missing == ["icp"]
+    assert path.stat().st_size > 1000
+    assert evaluation.plot_worst_pairs([pair], {"icp": {}}, str(tmp_path / "none.png"), "t") == ["icp"]
+    assert not (tmp_path / "none.png").exists(), "nothing drawable: no picture at all"
