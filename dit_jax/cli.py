@@ -1,9 +1,9 @@
 """``dit-register SRC TGT``: register two point-cloud files and print the 4x4 transform moving SRC onto TGT.
 
-    dit-register scan_a.ply scan_b.pcd                    # the shipped weights
+    dit-register scan_a.ply scan_b.pcd                    # the shipped weights, refined by ICP
     dit-register a.xyz b.npy --checkpoint runs/x/model --out a_aligned.ply
     dit-register a.ply b.ply --json > result.json
-    dit-register scan_a.ply scan_b.ply --refine icp --plot check.png   # ICP after the network; a picture
+    dit-register scan_a.ply scan_b.ply --refine none --plot check.png   # the network alone; a picture
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical) ends with one line on stderr naming the file and the
@@ -16,12 +16,12 @@ source lands on the target, one registration instead of two). A suspect result i
 written, a one-line warning goes to stderr, and the exit status is 3 (``--no-verdict-status`` keeps it 0).
 
 Range (shipped weights, measured 2026-11-27, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
-independently, as real scans are, rotations up to about 15 degrees alone (within 10 degrees on 50-88 % of
-pairs) and up to 60 with --refine icp (median 1.2-2.0 degrees); beyond that it fails. On two scans of the
-Stanford Dragon 24 degrees apart the median error is 3.5
-degrees alone and 0.12 with --refine icp (14 of 15 pairs within 1 degree, 15 of 15 within 2; 48 degrees
-apart: 0.37, 11 of 15 within 1, 13 within 5; docs/eval_stanford_dragon, 2026-11-27). Use --refine icp on
-real scans.
+independently, as real scans are, rotations up to about 60 degrees as it ships, refined by ICP (median
+1.2-2.0 degrees), and up to about 15 with --refine none (within 10 degrees on 50-88 % of pairs); beyond that
+it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 0.12 degrees (14 of 15
+pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 3.5
+with --refine none (docs/eval_stanford_dragon, 2026-11-27). --refine none is faster (on those 42,000-point
+scans about 2 s a pair against 16, both with the verdict's second registration).
 """
 
 from __future__ import annotations
@@ -60,8 +60,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-downsample", action="store_true",
                         help="refuse clouds above --max-points instead of reading a random subset")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
-    parser.add_argument("--refine", choices=("none", "icp"), default="none",
-                        help="icp: refine the network's estimate by ICP on every point (default: none)")
+    parser.add_argument("--refine", choices=("none", "icp"), default="icp",
+                        help="icp (default): refine the network's estimate by ICP on every point; "
+                             "none: the network alone (faster, less accurate)")
     parser.add_argument("--plot", default=None, metavar="FILE.png",
                         help="draw both clouds before and after the registration, from two viewpoints")
     parser.add_argument("--verdict", choices=("agreement", "fitness"), default="agreement",

@@ -58,12 +58,17 @@ def test_prints_matrix_and_writes_moved_source(capsys, tiny_checkpoint, pair):
     np.testing.assert_allclose(moved, src @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-5)
 
 
-def test_json_output(capsys, tiny_checkpoint, pair):
+def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
+    """The default refines by ICP (the better result on every setting measured); --refine none does not."""
     folder, _, _ = pair
     code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json")
     report = json.loads(out)
     assert code == 0 and np.shape(report["matrix"]) == (4, 4) and report["points_used"] == 128
     assert report["matrix"][3] == [0.0, 0.0, 0.0, 1.0] and 0.0 <= report["inlier_ratio"] <= 1.0
+    assert report["refinement"] == "icp" and report["refine_seconds"] > 0
+    code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json",
+                       "--refine", "none")
+    assert code == 0 and json.loads(out)["refinement"] is None and json.loads(out)["refine_seconds"] == 0
 
 
 def _bad_inputs(folder):
@@ -166,8 +171,8 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 
 
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
-    """The shipped weights on two pairs of real Stanford Dragon scans 24 degrees apart (measured in
-    docs/eval_stanford_dragon with the weights shipped on 2026-11-27): 312 -> 336 registers within 5 degrees
+    """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart
+    (measured in docs/eval_stanford_dragon with the weights shipped on 2026-11-27): 312 -> 336 registers within 5 degrees
     (1.5) and registering the target onto the source agrees within 0.8 degrees (trusted up to 1.5), so the
     status is 0; 48 -> 72 is wrong (36 degrees, the two directions 26 apart) and the verdict says so with
     status 3 (the transform is still printed)."""
@@ -176,7 +181,8 @@ def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
     for source, target, expected in (("dragonStandRight_312", "dragonStandRight_336", 0),
                                      ("dragonStandRight_48", "dragonStandRight_72", 3)):
-        code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json")
+        code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json",
+                             "--refine", "none")
         report = json.loads(out)
         truth, _ = scans.relative_motion(series[source], series[target])
         rotation = np.asarray(report["matrix"])[:3, :3]

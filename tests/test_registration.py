@@ -13,7 +13,8 @@ from dit_jax.data.pairs import euler_zyx_to_matrix
 @pytest.fixture(scope="module")
 def tiny_registrar() -> registration.Registrar:
     config = configs.tiny()
-    return registration.Registrar(model.init(jax.random.PRNGKey(0), config), config, n_points=96)
+    # The network alone: these tests are about sampling, shapes and checks (ICP is tested on its own).
+    return registration.Registrar(model.init(jax.random.PRNGKey(0), config), config, n_points=96, refine="none")
 
 
 def _rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
@@ -105,6 +106,7 @@ def test_result_matrix_and_apply_agree(tiny_registrar):
 
 def test_shipped_weights_load_by_default():
     registrar = registration.load()
+    assert registrar.refine == "icp", "ICP after the network is the default"
     path = registration.shipped_weights()
     assert registrar.n_points == checkpoint.read_extra(path).get("inference_points", 1000)
     assert registrar.config == checkpoint.read_config(path)
@@ -116,7 +118,8 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
     close to where they belong, in radii, within 1e-4. (The translation vector itself is not compared: with
     the origin 1000 m away, float32's 1e-7 rotation error moves it by 1e-4 m per m of lever arm, while the
     cloud itself lands as well as at unit scale.)"""
-    registrar = registration.load(verdict_rule="fitness")  # one direction: this checks units, not the verdict
+    # One direction, the network alone: this checks units, not the verdict or the refinement.
+    registrar = registration.load(verdict_rule="fitness", refine="none")
     rng = np.random.default_rng(4)
     scale, offset = 50.0, np.array([1000.0, -1000.0, 1000.0])
     for shape in modelnet_shapes[:4]:
@@ -150,8 +153,8 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
     for index in range(6):
         shape = modelnet_shapes[index].astype(np.float64)
         src, tgt = shape[0::2] * 2.0, (shape[1::2] * 2.0) @ truth.T + [5.0, -3.0, 1.0]
-        plain = model_.register(src, tgt)
-        refined = model_.register(src, tgt, refine="icp")
+        plain = model_.register(src, tgt, refine="none")
+        refined = model_.register(src, tgt)  # ICP is the default
         assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
         assert refined.fitness != plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
         plain_errors.append(_rotation_error_deg(plain.rotation, truth))
@@ -176,7 +179,7 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
     """The default verdict registers the target onto the source as well: a shape and its moved copy come out
     the same both ways (trusted), a shape registered onto a different one does not (suspect); measured
     2026-11-27 on these four shapes: agreement 0.00-0.01 against 20-55 degrees."""
-    model_ = registration.load()
+    model_ = registration.load(refine="none")  # the network's own evidence, as measured
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     for index in range(4):
         shape = modelnet_shapes[index].astype(np.float64)
@@ -185,7 +188,7 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
         assert right.verdict_rule == wrong.verdict_rule == "agreement"
         assert _rotation_error_deg(right.rotation, truth) < 1.0 and right.agreement < 0.5 and right.verdict
         assert wrong.agreement > wrong.max_disagreement and not wrong.verdict
-    cheap = registration.load(verdict_rule="fitness").register(shape, shape @ truth.T)
+    cheap = registration.load(verdict_rule="fitness", refine="none").register(shape, shape @ truth.T)
     assert np.isnan(cheap.agreement) and cheap.verdict == (cheap.fitness >= cheap.min_fitness)
     with pytest.raises(ValueError, match="verdict_rule"):
         registration.load(verdict_rule="vote")
