@@ -60,6 +60,32 @@ def update_extra(directory: str | os.PathLike, changes: dict) -> None:
     takes a newly measured setting without a new copy of its weights."""
     meta = _read_meta(directory)
     meta["extra"] = {**meta.get("extra", {}), **changes}
+    _write_meta(directory, meta)
+
+
+def update_config(directory: str | os.PathLike, changes: dict) -> DITConfig:
+    """Replaces fields of a checkpoint's stored :class:`DITConfig` in place, as :func:`update_extra` does
+    the record: for inference settings chosen after training (``n_iters``, GMCCE options), which no param
+    depends on. A change that would alter the params' tree or shapes is refused. Returns the new config."""
+    meta = _read_meta(directory)
+    old = DITConfig.from_dict(meta["dit_config"])
+    try:
+        new = old.replace(**changes)
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: cannot apply {changes}: {err}") from None
+    shapes = lambda config: jax.eval_shape(lambda: model.init(jax.random.key(0), config))
+    if jax.tree_util.tree_structure(shapes(new)) != jax.tree_util.tree_structure(shapes(old)) or any(
+            a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(shapes(new)),
+                                               jax.tree_util.tree_leaves(shapes(old)))):
+        raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: {changes} would change the params' "
+                              f"shapes; train or convert a new checkpoint instead")
+    meta["dit_config"] = new.to_dict()
+    _write_meta(directory, meta)
+    return new
+
+
+def _write_meta(directory: str | os.PathLike, meta: dict) -> None:
+    """Rewrites a checkpoint's record file atomically and checks that it reads back."""
     target = os.path.join(os.path.abspath(os.fspath(directory)), "config", "metadata")
     if not os.path.isfile(target):
         raise CheckpointError(f"{os.path.dirname(os.path.dirname(target))}: no record file to update")

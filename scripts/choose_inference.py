@@ -20,6 +20,14 @@ least 95 % of the results it trusts are within 5 degrees.
 
 ``--verdict-only`` keeps the checkpoint's inference settings and chooses the agreement thresholds alone;
 ``--record`` writes them into the checkpoint's record (the weights themselves are not touched).
+
+``--n-iters 3 5 8`` adds the number of registration iterations to the grid; with ``--keep-gmcce`` it is the
+only thing searched (the checkpoint's GMCCE options and guard stay). With ``--record`` the chosen settings go
+into the checkpoint's config (:func:`dit_jax.checkpoint.update_config`) and both verdicts' thresholds into its
+record:
+
+    python scripts/choose_inference.py dit_jax/weights/dit-cpu-modelnet40 --keep-gmcce --n-iters 3 5 8 \
+        --record --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 32 --out runs/iters.json
 """
 
 import argparse
@@ -86,12 +94,21 @@ def choose_agreement(params, config, batches: dict) -> dict:
 
 
 def record(path: str, report: dict) -> None:
-    """Writes the chosen agreement thresholds into the checkpoint's record at ``path`` (its params untouched)."""
-    checkpoint.update_extra(path, {
-        "verdict_max_disagreement": report["verdict_max_disagreement"],
-        "verdict_agreement_choice": {k: report[k] for k in ("settings_verdict", "pairs_per_setting",
-                                                            "verdict_agreement_on_validation") if k in report}})
-    print(f"recorded the agreement thresholds in {path}")
+    """Writes the choice into the checkpoint at ``path``, its params untouched: the agreement thresholds
+    and, where inference settings were chosen too, those settings (into its config) and the fitness
+    threshold, with what they did on validation (into its record)."""
+    changes = {"verdict_max_disagreement": report["verdict_max_disagreement"],
+               "verdict_agreement_choice": {k: report[k] for k in ("settings_verdict", "pairs_per_setting",
+                                                                   "verdict_agreement_on_validation") if k in report}}
+    if "chosen" in report:
+        config = checkpoint.update_config(path, report["chosen"])
+        changes["verdict_min_fitness"] = report["verdict_min_fitness"]
+        changes["inference_choice"] = {k: report[k] for k in ("chosen", "verdict_min_fitness", "settings",
+                                                              "pairs_per_setting", "grid") if k in report}
+        changes["inference_choice"]["verdict_on_validation"] = report.get("verdict_on_validation")
+        print(f"recorded {json.dumps(report['chosen'])} in {path}'s config (n_iters {config.n_iters})")
+    checkpoint.update_extra(path, changes)
+    print(f"recorded the verdict thresholds in {path}")
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
 
 
@@ -108,7 +125,12 @@ def main() -> None:
     parser.add_argument("--verdict-only", action="store_true",
                         help="keep the checkpoint's inference settings; choose the agreement thresholds only")
     parser.add_argument("--record", action="store_true",
-                        help="write the agreement thresholds into the checkpoint's record")
+                        help="write the choice into the checkpoint (settings into its config, thresholds into "
+                             "its record; the params are not touched)")
+    parser.add_argument("--n-iters", type=int, nargs="+", default=None,
+                        help="registration iteration counts to try as well (default: the checkpoint's only)")
+    parser.add_argument("--keep-gmcce", action="store_true",
+                        help="keep the checkpoint's GMCCE options and guard; search only --n-iters")
     args = parser.parse_args()
 
     params, config = checkpoint.restore(args.checkpoint)
@@ -125,13 +147,17 @@ def main() -> None:
     batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs, n_points=args.n_points,
                                           unseen=args.unseen)
 
+    grid = {k: (getattr(config, k),) for k in GRID} if args.keep_gmcce else dict(GRID)
+    if args.n_iters:
+        grid["n_iters"] = tuple(args.n_iters)
     variants = []
-    for values in itertools.product(*GRID.values()):
-        changes = dict(zip(GRID, values))
+    for values in itertools.product(*grid.values()):
+        changes = dict(zip(grid, values))
         if changes["gmcce_threshold"] == 0.0 and changes["gmcce_min_keep"] > 0:
             continue  # a zero threshold keeps every match already
         variants.append(changes)
-    report = {"checkpoint": args.checkpoint, "settings": SETTINGS, "pairs_per_setting": args.pairs, "variants": []}
+    report = {"checkpoint": args.checkpoint, "settings": SETTINGS, "pairs_per_setting": args.pairs,
+              "grid": {k: list(v) for k, v in grid.items()}, "variants": []}
     for changes in variants:
         cfg = config.replace(**changes)
         row = {"changes": changes, "settings": {}}

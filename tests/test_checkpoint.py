@@ -63,3 +63,22 @@ def test_update_extra_adds_to_the_record_and_leaves_the_params_files_alone(tmp_p
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(checkpoint.CheckpointError, match="no such checkpoint"):
         checkpoint.update_extra(tmp_path / "absent", {})
+
+
+def test_update_config_changes_inference_fields_and_refuses_shape_changes(tmp_path):
+    """An inference setting chosen after training (more iterations) goes into the stored config in place;
+    the params restore under it, the record is kept, and a field that would reshape the params is refused."""
+    config = configs.tiny()
+    params = model.init(jax.random.PRNGKey(0), config)
+    path = checkpoint.save(tmp_path / "m", params, config, extra={"step": 7})
+    new = checkpoint.update_config(path, {"n_iters": config.n_iters + 2, "gmcce_min_keep": 0.3})
+    restored, restored_config = checkpoint.restore(path)
+    assert restored_config == new == config.replace(n_iters=config.n_iters + 2, gmcce_min_keep=0.3)
+    assert checkpoint.read_extra(path) == {"step": 7}
+    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(restored)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(checkpoint.CheckpointError, match="shapes"):
+        checkpoint.update_config(path, {"n_blocks": config.n_blocks + 1})
+    with pytest.raises(checkpoint.CheckpointError, match="cannot apply"):
+        checkpoint.update_config(path, {"no_such_field": 1})
+    assert checkpoint.read_config(path) == new, "a refused change leaves the config as it was"
