@@ -73,10 +73,8 @@ def update_config(directory: str | os.PathLike, changes: dict) -> DITConfig:
         new = old.replace(**changes)
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: cannot apply {changes}: {err}") from None
-    shapes = lambda config: jax.eval_shape(lambda: model.init(jax.random.key(0), config))
-    if jax.tree_util.tree_structure(shapes(new)) != jax.tree_util.tree_structure(shapes(old)) or any(
-            a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(shapes(new)),
-                                               jax.tree_util.tree_leaves(shapes(old)))):
+    shapes = [jax.eval_shape(lambda: model.init(jax.random.key(0), c)) for c in (old, new)]
+    if jax.tree_util.tree_map(lambda a: a.shape, shapes[0]) != jax.tree_util.tree_map(lambda a: a.shape, shapes[1]):
         raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: {changes} would change the params' "
                               f"shapes; train or convert a new checkpoint instead")
     meta["dit_config"] = new.to_dict()

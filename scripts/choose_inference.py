@@ -109,6 +109,8 @@ def record(path: str, report: dict) -> None:
         print(f"recorded {json.dumps(report['chosen'])} in {path}'s config (n_iters {config.n_iters})")
     checkpoint.update_extra(path, changes)
     print(f"recorded the verdict thresholds in {path}")
+
+
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
 
 
