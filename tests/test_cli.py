@@ -172,9 +172,9 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart
-    (measured in docs/eval_stanford_dragon with the weights shipped on 2026-11-27): 312 -> 336 registers within 5 degrees
-    (1.5) and registering the target onto the source agrees within 0.8 degrees (trusted up to 1.5), so the
-    status is 0; 48 -> 72 is wrong (36 degrees, the two directions 26 apart) and the verdict says so with
+    (measured in docs/eval_stanford_dragon with the weights shipped on 2026-11-28): 312 -> 336 registers within 5 degrees
+    (0.85) and registering the target onto the source agrees within 1.0 degree (trusted up to 1.5), so the
+    status is 0; 48 -> 72 is wrong (24 degrees, the two directions 17 apart) and the verdict says so with
     status 3 (the transform is still printed)."""
     from dit_jax.data import scans
 
@@ -224,13 +224,14 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
 
 
 def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 1.7
-    degrees off (weights shipped on 2026-11-27; 2.4 with the earlier ones, 0.06 after ICP); where the network is
-    36-63 degrees off, the refinement's trimmed runs pull it in to about 2 degrees (the single point-to-plane
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 1.6
+    degrees off (weights shipped on 2026-11-28; 0.05 after ICP); where the network is 24 degrees off
+    (36-63 with earlier weights), the refinement's trimmed runs pull it in to about 2 degrees (1.8) (the single point-to-plane
     run before 2026-11-27 could not). The first pair
     with the default verdict: trusted, status 0 (both directions agree within 0.03 degrees); the other with the
-    one-direction fitness verdict, which is all this accuracy check needs. (A third pair, 216 -> 240, 25
-    degrees off and 0.15 after ICP, lies between the two and was dropped to keep the suite short.)"""
+    one-direction fitness verdict, which is all this accuracy check needs. (A third pair, 216 -> 240, 12.6
+    degrees off (25 with earlier weights) and 0.15 after ICP, lies between the two and was dropped to keep
+    the suite short.)"""
     from dit_jax.data import scans
     from dit_jax.geometry import rotation_angle_deg
 
