@@ -60,6 +60,10 @@ def main(argv=None) -> int:
                         help="take baselines scored on the same pairs from an earlier --out instead of rerunning them")
     parser.add_argument("--no-verdict", action="store_true",
                         help="skip the agreement verdict's second registration (target onto source) of every pair")
+    parser.add_argument("--best-direction", choices=["on", "off"], default=None,
+                        help="DIT+ICP keeps the better fitting of its two directions (source onto target, target "
+                             "onto source), as dit-register --best-direction; default: the package's "
+                             "(registration.DEFAULT_BEST_DIRECTION)")
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -78,6 +82,7 @@ def main(argv=None) -> int:
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.data.shapes import DataError
 
+    best_direction = None if args.best_direction is None else args.best_direction == "on"
     try:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
         if args.angle_sweep:
@@ -92,7 +97,9 @@ def main(argv=None) -> int:
         if args.scans:
             results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
                                                 baselines=args.baselines, max_pairs=args.max_pairs,
-                                                progress=not args.no_progress, refine=args.refine == "icp")
+                                                progress=not args.no_progress, refine=args.refine == "icp",
+                                                registrar_options=None if best_direction is None
+                                                else {"best_direction": best_direction})
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
             return 0
@@ -102,7 +109,8 @@ def main(argv=None) -> int:
                                       gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
                                       batch_size=args.batch_size, progress=not args.no_progress,
                                       compute_dtype="bfloat16" if args.bfloat16 else "float32",
-                                      reuse=args.reuse, refine=args.refine == "icp", verdict=not args.no_verdict)
+                                      reuse=args.reuse, refine=args.refine == "icp", verdict=not args.no_verdict,
+                                      best_direction=best_direction)
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

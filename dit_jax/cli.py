@@ -68,6 +68,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--verdict", choices=("agreement", "fitness"), default="agreement",
                         help="agreement (default): also register TGT onto SRC and trust the result where both "
                              "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
+    parser.add_argument("--best-direction", choices=("on", "off"), default=None,
+                        help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
+                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: off)")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
@@ -124,6 +127,8 @@ def main(argv: list[str] | None = None) -> int:
             kwargs["n_points"] = args.points
         if args.iters is not None:
             kwargs["n_iters"] = args.iters
+        if args.best_direction is not None:
+            kwargs["best_direction"] = args.best_direction == "on"
         model = registration.load(args.checkpoint, **kwargs)
         try:
             result = model.register(src, tgt, refine=args.refine)

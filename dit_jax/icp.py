@@ -206,16 +206,17 @@ def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.nda
     return scores if translation.ndim == 2 else float(scores[0])
 
 
-def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, truth: tuple) -> bool:
-    """Whether ``motion`` (R (3, 3), t (3,)) lays src (N, 3) onto tgt (M, 3) better than ``truth`` does, by
-    :func:`trimmed_fit`: where it does, the points themselves prefer that pose, and no refinement that fits
-    them can be expected to end at the truth."""
+def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -> bool:
+    """Whether ``motion`` (R (3, 3), t (3,)) lays src (N, 3) onto tgt (M, 3) better than ``other`` does, by
+    :func:`trimmed_fit`. Against the true motion: where it does, the points themselves prefer that pose, and
+    no refinement that fits them can be expected to end at the truth. Between two estimates: the one to keep
+    (:class:`dit_jax.registration.Registrar`'s ``best_direction``)."""
     from scipy.spatial import cKDTree
 
     src = np.asarray(src, np.float64)
     tree = cKDTree(np.asarray(tgt, np.float64))
     as_float = lambda m: (np.asarray(m[0], np.float64), np.asarray(m[1], np.float64))
-    return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(truth))
+    return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(other))
 
 
 def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,

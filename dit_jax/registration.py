@@ -28,7 +28,10 @@ What :meth:`Registrar.register` does to a pair, in order:
    ``max_disagreement`` degrees of the result's (a threshold per refinement, chosen on validation pairs). A
    right result is the same found from either side; a wrong one rarely is. ``verdict_rule="fitness"`` skips the
    second registration and trusts a result where at least ``min_fitness`` of the sampled source points land
-   on the target (cheaper; it flags right results on partial views).
+   on the target (cheaper; it flags right results on partial views). With ``best_direction`` (ICP and the
+   agreement verdict only) the result is whichever of the two refined motions, the forward one or the inverse
+   of the target-onto-source one, lays the source onto the target better (:func:`dit_jax.icp.fits_better`);
+   the agreement between them, and so the verdict, is the same either way.
 """
 
 from __future__ import annotations
@@ -61,6 +64,10 @@ VERDICTS = ("agreement", "fitness")
 #: registration) per refinement, where a checkpoint records none (``verdict_max_disagreement``): those chosen
 #: for the shipped weights by ``scripts/choose_inference.py`` (README, "Is the result right?").
 DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
+#: The default of :class:`Registrar`'s ``best_direction``. On validation pairs it raised DIT+ICP's share within
+#: 5 degrees on six of ten settings and lowered it on none (docs/BENCHMARKS.md, "DIT+ICP from both
+#: directions"); it stays off until every evaluation in docs/ has been re-measured with it.
+DEFAULT_BEST_DIRECTION = False
 
 
 class InputError(ValueError):
@@ -92,6 +99,8 @@ class Result:
         the source (refined alike); NaN where the fitness verdict did not measure it.
       max_disagreement: the agreement verdict's threshold (degrees).
       verdict_rule: "agreement" or "fitness": which of the two decided ``verdict``.
+      direction: "forward" (the source registered onto the target) or "backward" (the inverse of the target
+        registered onto the source, kept by ``best_direction`` where it fits better).
     """
 
     rotation: np.ndarray
@@ -110,6 +119,7 @@ class Result:
     agreement: float = float("nan")
     max_disagreement: float = float("nan")
     verdict_rule: str = "fitness"
+    direction: str = "forward"
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -124,7 +134,8 @@ class Result:
                 "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
                 "max_disagreement_deg": None if np.isnan(self.max_disagreement) else self.max_disagreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
-                "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds}
+                "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
+                "direction": self.direction}
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
@@ -250,12 +261,16 @@ class Registrar:
         its fitness reaches ``min_fitness`` (one registration).
       max_disagreement: {refine: degrees}, the agreement verdict's thresholds (default
         :data:`DEFAULT_MAX_DISAGREEMENT`; a checkpoint records its own).
+      best_direction: with ICP and the agreement verdict, return whichever of the two refined registrations
+        (source onto target, or the inverse of target onto source) fits the clouds better; no extra work, the
+        verdict already computes both (default :data:`DEFAULT_BEST_DIRECTION`).
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
                  min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "icp", precision: str | None = None,
-                 verdict_rule: str = "agreement", max_disagreement: dict | None = None):
+                 verdict_rule: str = "agreement", max_disagreement: dict | None = None,
+                 best_direction: bool = DEFAULT_BEST_DIRECTION):
         _check_refine(refine)
         self.refine = refine
         if centring not in ("shared", "separate"):
@@ -265,6 +280,7 @@ class Registrar:
             raise ValueError(f"verdict_rule must be one of {', '.join(map(repr, VERDICTS))}, got {verdict_rule!r}")
         self.verdict_rule = verdict_rule
         self.max_disagreement = {**DEFAULT_MAX_DISAGREEMENT, **(max_disagreement or {})}
+        self.best_direction = bool(best_direction)
         self.config = config if n_iters is None else config.replace(n_iters=n_iters)
         if precision is not None:
             self.config = self.config.replace(precision=precision)
@@ -314,13 +330,18 @@ class Registrar:
                                 - back_rotation @ tgt_centre)
         fitness = float(extras["fitness"][0])
         refine_seconds = 0.0
+        direction, forward_rotation = "forward", rotation
         if refine == "icp":
             started = time.perf_counter()
             refined = icp_lib.refine(src, tgt, rotation, translation, scale=scale, seed=self.seed)
             rotation, translation = refined.rotation, refined.translation
+            forward_rotation = rotation
             if both_ways:
-                back_rotation = icp_lib.refine(tgt, src, back_rotation, back_translation, scale=scale,
-                                               seed=self.seed).rotation
+                back = icp_lib.refine(tgt, src, back_rotation, back_translation, scale=scale, seed=self.seed)
+                back_rotation = back.rotation
+                inverse = (back.rotation.T, -back.rotation.T @ back.translation)
+                if self.best_direction and icp_lib.fits_better(src, tgt, inverse, (rotation, translation)):
+                    (rotation, translation), direction = inverse, "backward"
             # The fitness, as the model measures it, for the refined motion.
             moved = ((src_s @ rotation.T + translation) - tgt_centre) / scale
             tgt_j = jnp.asarray(tgt_n[0])
@@ -329,7 +350,8 @@ class Registrar:
             refine_seconds = time.perf_counter() - started
         max_disagreement = float(self.max_disagreement[refine])
         if both_ways:
-            agreement = geometry.rotation_angle_deg(rotation @ back_rotation)
+            # Between the two directions' motions, whichever of them the result is.
+            agreement = geometry.rotation_angle_deg(forward_rotation @ back_rotation)
             verdict = agreement <= max_disagreement
         else:
             agreement, verdict = float("nan"), fitness >= self.min_fitness
@@ -341,7 +363,8 @@ class Registrar:
                       inlier_ratio=float(extras["inlier_ratio"][0]), fitness=fitness,
                       seconds=seconds, verdict=bool(verdict), min_fitness=self.min_fitness,
                       refinement=None if refine == "none" else refine, refine_seconds=refine_seconds,
-                      agreement=agreement, max_disagreement=max_disagreement, verdict_rule=self.verdict_rule)
+                      agreement=agreement, max_disagreement=max_disagreement, verdict_rule=self.verdict_rule,
+                      direction=direction)
 
 
 def _check_refine(refine) -> None:

@@ -46,12 +46,15 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
 
 def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path):
     """By default one inference setting for every data setting (the checkpoint's own); settings whose clouds
-    share no point read every point of the shapes."""
+    share no point read every point of the shapes. (Run here with DIT+ICP keeping its better direction.)"""
     results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean", "scan_high_noise"),
-                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False)
+                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False, best_direction=True)
     for setting in ("independent_clean", "scan_high_noise"):
         assert results["setting_info"][setting]["gmcce_threshold"] == configs.tiny().gmcce_threshold
         assert results["settings"][setting]["DIT"]["pairs"] == 3
+        # With best_direction, DIT+ICP reports how often it kept the target-onto-source registration.
+        assert 0 <= results["settings"][setting]["DIT+ICP"]["backward_kept"] <= 3
+    assert "the second on" in (tmp_path / "e" / "results.md").read_text()
 
 
 def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
@@ -167,3 +170,30 @@ def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(
     assert path.stat().st_size > 1000
     assert evaluation.plot_worst_pairs([pair], {"icp": {}}, str(tmp_path / "none.png"), "t") == ["icp"]
     assert not (tmp_path / "none.png").exists(), "nothing drawable: no picture at all"
+
+
+def test_choose_direction_keeps_the_better_fitting_motion_per_pair():
+    """DIT+ICP with ``best_direction``: per pair the forward motion or the inverse of the backward one,
+    whichever fits; the time counts both directions, and whether the kept motion beats the truth is
+    recomputed for it."""
+    import numpy as np
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    rng = np.random.default_rng(0)
+    truth, offset = euler_zyx_to_matrix([30.0, -10.0, 5.0]), np.array([0.2, -0.1, 0.3])
+    src = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3]
+    pairs = [{"src": src, "tgt": src @ truth.T + offset, "R": truth, "t": offset}] * 2
+    off = euler_zyx_to_matrix([20.0, 0.0, 0.0]) @ truth
+    exact_back = (truth.T, -truth.T @ offset)
+    refined = {"R": np.stack([off, truth]), "t": np.stack([offset, offset]), "seconds": np.array([1.0, 1.0]),
+               "beats_truth": np.array([False, False])}
+    # Pair 0: forward 20 degrees off, backward exact; pair 1: forward exact, backward 20 degrees off.
+    backward = {"R": np.stack([exact_back[0], off.T]), "t": np.stack([exact_back[1], -off.T @ offset]),
+                "seconds": np.array([0.5, 0.5])}
+    chosen = evaluation.choose_direction(refined, backward, pairs, np.arange(2))
+    assert chosen["backward"].tolist() == [True, False]
+    np.testing.assert_allclose(chosen["R"], np.stack([truth, truth]), atol=1e-12)
+    np.testing.assert_allclose(chosen["t"], np.stack([offset, offset]), atol=1e-12)
+    np.testing.assert_allclose(chosen["seconds"], [1.5, 1.5])
+    assert chosen["beats_truth"].tolist() == [False, False]
+    assert refined["R"][0] is not chosen["R"][0] and np.allclose(refined["R"][0], off), "the input is left alone"

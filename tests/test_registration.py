@@ -192,3 +192,35 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
     assert np.isnan(cheap.agreement) and cheap.verdict == (cheap.fitness >= cheap.min_fitness)
     with pytest.raises(ValueError, match="verdict_rule"):
         registration.load(verdict_rule="vote")
+
+
+def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(tiny_registrar, monkeypatch):
+    """With ``best_direction`` the result is the better fitting of the two refined registrations; the
+    agreement between them, and so the verdict, does not depend on which is kept. ICP is replaced here by
+    one that returns a motion 20 degrees off forward and the exact one backward, so the choice is known."""
+    from dit_jax import icp
+
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3]
+    truth, offset = euler_zyx_to_matrix([30.0, -10.0, 5.0]), np.array([0.2, -0.1, 0.3])
+    tgt = src @ truth.T + offset
+    off = euler_zyx_to_matrix([20.0, 0.0, 0.0]) @ truth
+
+    def fake_refine(a, b, rotation, translation, **_):
+        if a is src:  # forward: source onto target, 20 degrees off
+            return icp.ICPResult(off, offset, 1.0, 0.0, 1)
+        return icp.ICPResult(truth.T, -truth.T @ offset, 1.0, 0.0, 1)  # backward: exact
+
+    monkeypatch.setattr(registration.icp_lib, "refine", fake_refine)
+    results = {}
+    for best in (False, True):
+        registrar = registration.Registrar(tiny_registrar.params, tiny_registrar.config, n_points=96,
+                                           best_direction=best)
+        results[best] = registrar.register(src, tgt)
+    assert results[False].direction == "forward" and _rotation_error_deg(results[False].rotation, off) < 1e-6
+    assert results[True].direction == "backward" and _rotation_error_deg(results[True].rotation, truth) < 1e-6
+    np.testing.assert_allclose(results[True].apply(src), tgt, atol=1e-9)
+    assert results[True].agreement == pytest.approx(results[False].agreement) == pytest.approx(20.0)
+    assert results[True].verdict == results[False].verdict
+    assert results[True].to_json()["direction"] == "backward"
+    assert registration.load(refine="none").best_direction is registration.DEFAULT_BEST_DIRECTION
