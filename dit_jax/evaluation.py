@@ -427,8 +427,10 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     """
     from dit_jax.registration import DEFAULT_BEST_DIRECTION
 
+    if best_direction and not (verdict and refine):
+        raise ValueError("best_direction needs DIT+ICP and the verdict's second registration (refine and verdict)")
     if best_direction is None:
-        best_direction = DEFAULT_BEST_DIRECTION
+        best_direction = DEFAULT_BEST_DIRECTION and verdict and refine
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
     if checkpoint_dir is not None:

@@ -55,6 +55,9 @@ def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpo
         # With best_direction, DIT+ICP reports how often it kept the target-onto-source registration.
         assert 0 <= results["settings"][setting]["DIT+ICP"]["backward_kept"] <= 3
     assert "the second on" in (tmp_path / "e" / "results.md").read_text()
+    with pytest.raises(ValueError, match="best_direction"):
+        evaluation.evaluate(tiny_checkpoint, str(tmp_path / "f"), max_pairs=1, prepared_dir=str(tmp_path / "p"),
+                            progress=False, verdict=False, best_direction=True)
 
 
 def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
