@@ -65,7 +65,7 @@ VERDICTS = ("agreement", "fitness")
 #: for the shipped weights by ``scripts/choose_inference.py`` (README, "Is the result right?").
 DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
 #: The default of :class:`Registrar`'s ``best_direction``. On validation pairs it raised DIT+ICP's share within
-#: 5 degrees on six of ten settings and lowered it on none (docs/BENCHMARKS.md, "DIT+ICP from both
+#: 5 degrees on four of ten settings and lowered it on none (docs/BENCHMARKS.md, "DIT+ICP from both
 #: directions"); it stays off until every evaluation in docs/ has been re-measured with it.
 DEFAULT_BEST_DIRECTION = False
 
