@@ -70,7 +70,7 @@ def _parser() -> argparse.ArgumentParser:
                              "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
     parser.add_argument("--best-direction", choices=("on", "off"), default=None,
                         help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
-                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: off)")
+                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: on)")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict says the result is probably wrong (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)

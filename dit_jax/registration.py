@@ -66,8 +66,9 @@ VERDICTS = ("agreement", "fitness")
 DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
 #: The default of :class:`Registrar`'s ``best_direction``. On validation pairs it raised DIT+ICP's share within
 #: 5 degrees on four of ten settings and lowered it on none (docs/BENCHMARKS.md, "DIT+ICP from both
-#: directions"); it stays off until every evaluation in docs/ has been re-measured with it.
-DEFAULT_BEST_DIRECTION = False
+#: directions"); on by default since the sixth training stage's weights, with which every evaluation in docs/
+#: was re-measured.
+DEFAULT_BEST_DIRECTION = True
 
 
 class InputError(ValueError):

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, cli, configs, io, model
+from dit_jax import checkpoint, cli, configs, io, model, registration
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -69,6 +69,10 @@ def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
     code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json",
                        "--refine", "none")
     assert code == 0 and json.loads(out)["refinement"] is None and json.loads(out)["refine_seconds"] == 0
+    # --help states the package's default for --best-direction, which lives in registration (imported late).
+    state = "on" if registration.DEFAULT_BEST_DIRECTION else "off"
+    option_help = " ".join(cli._parser().format_help().split()).split("--best-direction")[-1]
+    assert f"(default: {state})" in option_help.split("--no-verdict-status")[0]
 
 
 def _bad_inputs(folder):
