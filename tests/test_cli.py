@@ -201,9 +201,9 @@ def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
 def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
     examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured with
-    the weights shipped on 2026-11-28: 4.7 -> 1.09 degrees), the verdict trusts it (status 0; the two
-    directions agree within 0.56 degrees, trusted up to 3.0) and flags the network alone (status 3, 8.2 degrees
-    apart, trusted up to 1.5), and --plot writes a PNG."""
+    the sixth stage's weights, shipped on 2026-11-28: 2.9 -> 1.10 degrees), the verdict trusts it (status 0; the
+    two directions agree within 0.54 degrees, trusted up to 4.0) and flags the network alone (status 3, 3.8
+    degrees apart, trusted up to 2.0), and --plot writes a PNG."""
     from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
