@@ -176,9 +176,9 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart
-    (measured in docs/eval_stanford_dragon with the weights shipped on 2026-11-28): 312 -> 336 registers within 5 degrees
-    (0.85) and registering the target onto the source agrees within 1.0 degree (trusted up to 1.5), so the
-    status is 0; 48 -> 72 is wrong (24 degrees, the two directions 17 apart) and the verdict says so with
+    (measured with the sixth stage's weights, shipped on 2026-11-28): 312 -> 336 registers within 5 degrees
+    (0.99) and registering the target onto the source agrees within 0.73 degrees (trusted up to 2.0), so the
+    status is 0; 48 -> 72 is wrong (16.8 degrees, the two directions 7.8 apart) and the verdict says so with
     status 3 (the transform is still printed)."""
     from dit_jax.data import scans
 
@@ -228,14 +228,14 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
 
 
 def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): the network alone 1.6
-    degrees off (weights shipped on 2026-11-28; 0.05 after ICP); where the network is 24 degrees off
-    (36-63 with earlier weights), the refinement's trimmed runs pull it in to about 2 degrees (1.8; the
-    single point-to-plane run before 2026-11-27 could not). The first pair
-    with the default verdict: trusted, status 0 (both directions agree within 0.03 degrees); the other with the
-    one-direction fitness verdict, which is all this accuracy check needs. (A third pair, 216 -> 240, 12.6
-    degrees off (25 with earlier weights) and 0.19 after ICP, lies between the two and was dropped to keep
-    the suite short.)"""
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): 0 -> 24 ends 0.05 degrees
+    off (the sixth stage's weights, shipped on 2026-11-28; the fifth's: the network alone 1.6, 0.05 after ICP);
+    where the network is 17 degrees off (48 -> 72; 24 with the fifth stage's weights, 36-63 with earlier ones),
+    the refinement's trimmed runs pull it in to about 2 degrees (1.8 both times; the single point-to-plane run
+    before 2026-11-27 could not). The first pair with the default verdict: trusted, status 0 (both directions
+    agree within 0.03 degrees); the other with the one-direction fitness verdict, which is all this accuracy
+    check needs. (A third pair, 216 -> 240, 0.19 after ICP with both weights, lies between the two and was
+    dropped to keep the suite short.)"""
     from dit_jax.data import scans
     from dit_jax.geometry import rotation_angle_deg
 
