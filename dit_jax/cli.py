@@ -16,12 +16,12 @@ source lands on the target, one registration instead of two). A suspect result i
 written, a one-line warning goes to stderr, and the exit status is 3 (``--no-verdict-status`` keeps it 0).
 
 Range (shipped weights, measured 2026-11-28, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
-independently, as real scans are, rotations up to about 60 degrees as it ships, refined by ICP (median
-1.2-1.9 degrees), and up to about 15 with --refine none (within 10 degrees on 69-88 % of pairs); beyond that
+independently, as real scans are, rotations up to about 75 degrees as it ships, refined by ICP (median
+1.2-2.6 degrees), and up to about 30 with --refine none (within 10 degrees on 56-94 % of pairs); beyond that
 it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 0.12 degrees (14 of 15
-pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 12 within 5) and 3.5
+pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 2.05
 with --refine none (docs/eval_stanford_dragon, 2026-11-28). --refine none is faster (on those 42,000-point
-scans about 2 s a pair against 14, both with the verdict's second registration).
+scans about 2 s a pair against 17-25, both with the verdict's second registration).
 """
 
 from __future__ import annotations
