@@ -175,6 +175,19 @@ def test_visible_points_of_a_sphere_face_the_camera():
     assert 0.7 < seen.sum() / (sphere[:, 2] > 1 / 3).sum() <= 1.1
 
 
+@pytest.mark.parametrize("hidden", [50, 0])
+def test_scan_views_stay_whole_and_disjoint_when_few_points_are_hidden(monkeypatch, hidden):
+    """One camera sees 100 points, the other all but ``hidden``: too few hidden points to fill the first view
+    (training stopped on such a pair with "could not broadcast (199,) into (205,)"). Both clouds still get k
+    distinct points and share none."""
+    shape = np.random.default_rng(1).normal(size=(1024, 3))
+    masks = iter([np.arange(1024) < 100, np.arange(1024) < 1024 - hidden])
+    monkeypatch.setattr(pairs, "visible_points", lambda points, camera: next(masks))
+    src, tgt = pairs._scan_views(shape, 205, np.random.default_rng(0))
+    assert len(src) == len(tgt) == 205
+    assert len(np.unique(src)) == len(np.unique(tgt)) == 205 and not np.intersect1d(src, tgt).size
+
+
 def test_scan_views_differ_by_at_most_sixty_degrees(modelnet_test):
     """The two views' clouds lie on the sides of the shape their cameras face: their mean directions from the
     shape's centre are less than about 90 degrees apart, where independent halves would be random."""

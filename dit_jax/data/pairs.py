@@ -392,6 +392,16 @@ def _scan_views(shape: np.ndarray, k: int, rng: np.random.Generator) -> tuple[np
         fill = spare[np.argsort(np.linalg.norm(shape[spare] - cameras[view], axis=1))[:k - len(own)]]
         owner[fill] = view
         out.append(np.concatenate([own, fill]))
+    # Both views seeing most of a sparse shape leaves few hidden points to fill with: a view still short
+    # takes the points neither cloud holds (the other view's unchosen ones) nearest its camera. Shapes have at
+    # least 2k points, so there are always enough; nothing here draws from ``rng``, so every pair that was
+    # whole before stays as it was.
+    for view in (0, 1):
+        short = k - len(out[view])
+        if short > 0:
+            free = np.setdiff1d(np.arange(len(shape)), np.concatenate(out))
+            nearest = free[np.argsort(np.linalg.norm(shape[free] - cameras[view], axis=1))[:short]]
+            out[view] = np.concatenate([out[view], nearest])
     return out[0], out[1]
 
 
