@@ -54,11 +54,10 @@ def gather(params, config, batches: dict) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in rows.items()}
 
 
-def score(trusted: np.ndarray, right: np.ndarray) -> tuple[float, float, int]:
-    """(share of trusted results right, share of failures flagged, results trusted)."""
-    precision = float(right[trusted].mean()) if trusted.any() else float("nan")
-    caught = float((~trusted[~right]).mean()) if (~right).any() else float("nan")
-    return precision, caught, int(trusted.sum())
+def score(trusted: np.ndarray, errors: np.ndarray) -> tuple[float, float, int]:
+    """(share of trusted results right, share of failures flagged, results trusted), as evaluate.py counts."""
+    v = evaluation.verdict_summary(errors, trusted, "", RIGHT_DEG)
+    return v["passed_right"], v["failures_caught"], v["passed"]
 
 
 def trust(d: dict, agreement, shift, trimmed_fit, fitness) -> np.ndarray:
@@ -77,23 +76,23 @@ def report(d: dict) -> None:
     best = {}
     for a in GRID["agreement"]:
         for rest in itertools.product(*(GRID[k] for k in ("shift", "trimmed_fit", "fitness"))):
-            p, c, n = score(trust(d, a, *rest)[choose], right[choose])
+            p, c, n = score(trust(d, a, *rest)[choose], d["error"][choose])
             if rest != trivial and n and p >= PRECISION and (a not in best or (n, c) > best[a][0]):
                 best[a] = ((n, c), rest)
     for a in GRID["agreement"]:
         for rest in [trivial] + ([best[a][1]] if a in best else []):
             t = trust(d, a, *rest)
-            p, c, n = score(t, right)
-            po, co, _ = score(t[~choose], right[~choose])
+            p, c, n = score(t, d["error"])
+            po, co, _ = score(t[~choose], d["error"][~choose])
             bounds = "" if rest == trivial else ", shift <= {:g}, trimmed fit <= {:g}, fitness >= {:g}".format(*rest)
             print(f"| agreement <= {a:g}{bounds} | {p:.3f} | {c:.3f} | {n} | {po:.3f} | {co:.3f} |")
     independent = np.array([pairs_lib.SETTINGS[str(x)].independent for x in d["setting"]])
     print("\nThe largest agreement threshold with at least 95 % of the trusted results right, pooled over:")
     for name, pool in (("every setting", np.ones_like(independent)), ("the settings that share no point", independent)):
-        fits = [a for a in GRID["agreement"] if score(d["agreement"][pool] <= a, right[pool])[0] >= PRECISION]
+        fits = [a for a in GRID["agreement"] if score(d["agreement"][pool] <= a, d["error"][pool])[0] >= PRECISION]
         if fits:
             a = max(fits)
-            p, c, n = score(d["agreement"][independent] <= a, right[independent])
+            p, c, n = score(d["agreement"][independent] <= a, d["error"][independent])
             print(f"- {name}: {a:g} deg; on the settings that share no point {p:.3f} of {n} trusted right, "
                   f"{c:.3f} of failures flagged")
     fooled = trust(d, 4, np.inf, np.inf, 0) & ~right

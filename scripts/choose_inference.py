@@ -16,8 +16,9 @@ threshold (``verdict_max_disagreement``, per refinement) is the largest of :data
 least 95 % of the results it trusts are within 5 degrees, pooled over the settings whose clouds share no point
 (``--verdict-pool independent``, the default since 2026-11-28: users' data never shares points, and the
 authors' settings, nearly all right and agreeing, would loosen the threshold for everyone; ``all`` pools
-every setting, as before). The figures on every setting are reported beside it. DIT+ICP's errors are those of the motion ``register``
-returns: with ``best_direction`` (the default) the better fitting of the two refined directions.
+every setting, as before). The figures on every setting are reported beside it. DIT+ICP's errors are those
+of the motion ``register`` returns: with ``best_direction`` (the default) the better fitting of the two refined
+directions.
 
     python scripts/choose_inference.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record \
         --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 32 --out runs/verdict_choice.json
@@ -67,8 +68,9 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
                      best_direction: bool = registration.DEFAULT_BEST_DIRECTION) -> dict:
     """The agreement verdict's thresholds per refinement on ``batches`` ({setting: validation batch}), chosen
     on the pairs of ``pool``'s settings ("independent": those whose clouds share no point, where there are
-    any; "all"), with what they do on those pairs, per setting, over the pool and over all. ``best_direction``: DIT+ICP's errors are those of the
-    better fitting refined direction, as ``register`` returns it (else the forward one's)."""
+    any; "all"), with what they do on those pairs, per setting, over the pool and over all.
+    ``best_direction``: DIT+ICP's errors are those of the better fitting refined direction, as ``register``
+    returns it (else the forward one's)."""
     found = {"none": ([], [], []), "icp": ([], [], [])}
     for setting, b in batches.items():
         pairs = pairs_lib.PairView(b)
