@@ -217,8 +217,9 @@ def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndar
 def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
           min_fitness: float | None = None, max_disagreement: float | None = None) -> dict:
     """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
-    distance, time per pair, the per-category breakdown, the worst pair and, where ``pred`` carries their
-    evidence (``fitness``, ``agreement``), how its verdicts do at ``min_fitness`` and ``max_disagreement``."""
+    distance, time per pair, the per-category breakdown, the worst pair, each pair's rotation error and verdict
+    evidence (``per_pair``) and, where ``pred`` carries that evidence (``fitness``, ``agreement``), how its
+    verdicts do at ``min_fitness`` and ``max_disagreement``."""
     truth = dataset.batch(indices)
     result = metrics.summarise(pred["R"], pred["t"], truth["R"], truth["t"])
     chamfer = []
@@ -235,6 +236,11 @@ def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape
     worst = int(np.argmax(errors))  # kept, so a later --reuse run can still draw this method's worst pair
     result["worst"] = {"pair": int(indices[worst]), "rot_err": float(errors[worst]),
                        "R": np.asarray(pred["R"][worst]).tolist(), "t": np.asarray(pred["t"][worst]).tolist()}
+    # Per pair, so a verdict threshold chosen later can be scored on these pairs without registering them again.
+    result["per_pair"] = {"pair": np.asarray(indices).tolist(), "rot_err": np.round(errors, 5).tolist()}
+    for evidence in ("agreement", "fitness"):
+        if evidence in pred:
+            result["per_pair"][evidence] = np.round(np.asarray(pred[evidence], np.float64), 5).tolist()
     if "agreement" in pred and max_disagreement is not None:
         result["verdict"] = verdict_summary(errors, pred["agreement"] <= max_disagreement,
                                             agreement_rule(max_disagreement))

@@ -3,6 +3,7 @@ import os
 import sys
 
 import jax
+import numpy as np
 import pytest
 
 from dit_jax import checkpoint, configs, evaluation, model, registration
@@ -44,6 +45,15 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"] == 0 and "backward_kept" in clean["DIT+ICP"]
     else:
         assert clean["DIT"]["verdict"]["extra_seconds_per_pair"] < clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"]
+    for method in ("DIT", "DIT+ICP"):
+        # Each pair's evidence is kept, so a later threshold can be scored on these pairs without rerunning them.
+        per_pair, stored = clean[method]["per_pair"], clean[method]["verdict"]
+        threshold = float(stored["rule"].split("within ")[1].split(" deg")[0])
+        rescored = evaluation.verdict_summary(np.asarray(per_pair["rot_err"]),
+                                              np.asarray(per_pair["agreement"]) <= threshold, stored["rule"])
+        assert per_pair["pair"] == [0, 1, 2, 3] and len(per_pair["rot_err"]) == 4
+        assert (rescored["passed"], rescored["failures"]) == (stored["passed"], stored["failures"])
+    assert len(clean["DIT"]["per_pair"]["fitness"]) == 4
     assert "DIT's verdict (target onto source agrees" in (out / "results.md").read_text()
     assert "DIT's verdict (fitness" in (out / "results.md").read_text()
 
