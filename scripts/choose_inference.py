@@ -88,10 +88,21 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
             found[refinement][2].append(np.full(len(errors), setting))
         print(f"{setting}: agreement gathered", flush=True)
     pooled = [s for s in batches if pool == "all" or pairs_lib.SETTINGS[s].independent] or list(batches)
-    report = {"verdict_max_disagreement": {}, "verdict_pool": pooled, "verdict_agreement_on_validation": {}}
+    report = {"verdict_max_disagreement": {}, "verdict_pool": pooled, "verdict_agreement_on_validation": {},
+              "verdict_curve": {}, "per_pair": {}}
     for refinement, (errors, agreement, settings) in found.items():
         errors, agreement, settings = map(np.concatenate, (errors, agreement, settings))
         in_pool = np.isin(settings, pooled)
+        # Kept so the choice can be examined, or made again by another rule, without registering the pairs again.
+        report["per_pair"][refinement] = {"setting": settings.tolist(), "rot_err": np.round(errors, 5).tolist(),
+                                          "agreement": np.round(agreement, 5).tolist()}
+        report["verdict_curve"][refinement] = curve = [
+            evaluation.verdict_summary(errors[in_pool], agreement[in_pool] <= t, evaluation.agreement_rule(t), RIGHT_DEG)
+            for t in AGREEMENT_GRID]
+        print(f"refine={refinement}, over the pool: threshold / trusted / of them within {RIGHT_DEG:g} deg / "
+              f"failures flagged: " + "; ".join(
+                  f"{t:g} / {c['passed']} / {c['passed_right']:.3f} / {c['failures_caught']:.3f}"
+                  for t, c in zip(AGREEMENT_GRID, curve)), flush=True)
         threshold = largest_threshold(errors[in_pool], agreement[in_pool])
         report["verdict_max_disagreement"][refinement] = threshold
         if threshold is None:
@@ -114,7 +125,7 @@ def record(path: str, report: dict) -> None:
     threshold, with what they did on validation (into its record)."""
     changes = {"verdict_max_disagreement": report["verdict_max_disagreement"],
                "verdict_agreement_choice": {k: report[k] for k in ("settings_verdict", "verdict_pool",
-                                                                   "pairs_per_setting",
+                                                                   "pairs_per_setting", "verdict_curve",
                                                                    "verdict_agreement_on_validation") if k in report}}
     if "chosen" in report:
         config = checkpoint.update_config(path, report["chosen"])
