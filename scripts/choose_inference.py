@@ -21,10 +21,13 @@ of the motion ``register`` returns: with ``best_direction`` (the default) the be
 directions.
 
     python scripts/choose_inference.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record \
-        --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 32 --out runs/verdict_choice.json
+        --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --pairs 64 --out runs/verdict_choice.json
 
 ``--verdict-only`` keeps the checkpoint's inference settings and chooses the agreement thresholds alone;
-``--record`` writes them into the checkpoint's record (the weights themselves are not touched).
+``--record`` writes them into the checkpoint's record (the weights themselves are not touched). Give the
+verdict at least 64 pairs per setting: on 32, two or three trusted failures among few trusted results can
+push every threshold but the smallest under 95 % (the sixth stage's weights: 0.25 degrees on 32, 1.5 on 64;
+docs/BENCHMARKS.md). The output keeps every pair's error and agreement and the precision curve.
 
 ``--n-iters 3 5 8`` adds the number of registration iterations to the grid; with ``--keep-gmcce`` it is the
 only thing searched (the checkpoint's GMCCE options and guard stay). With ``--record`` the chosen settings go

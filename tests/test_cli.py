@@ -177,7 +177,7 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
 def test_real_scans_right_pair_exits_0_and_wrong_pair_warns(capsys, dragon_dir):
     """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart
     (measured with the sixth stage's weights, shipped on 2026-11-28): 312 -> 336 registers within 5 degrees
-    (0.99) and registering the target onto the source agrees within 0.73 degrees (trusted up to 2.0), so the
+    (0.99) and registering the target onto the source agrees within 0.73 degrees (trusted up to 1.0), so the
     status is 0; 48 -> 72 is wrong (16.8 degrees, the two directions 7.8 apart) and the verdict says so with
     status 3 (the transform is still printed)."""
     from dit_jax.data import scans
@@ -202,8 +202,8 @@ def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
     examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured with
     the sixth stage's weights, shipped on 2026-11-28: 2.9 -> 1.10 degrees), the verdict trusts it (status 0; the
-    two directions agree within 0.54 degrees, trusted up to 4.0) and flags the network alone (status 3, 3.8
-    degrees apart, trusted up to 2.0), and --plot writes a PNG."""
+    two directions agree within 0.54 degrees, trusted up to 1.5 since 2026-11-28, 4.0 before) and flags the
+    network alone (status 3, 3.8 degrees apart, trusted up to 1.0; 2.0 before), and --plot writes a PNG."""
     from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
