@@ -100,8 +100,8 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
         report["per_pair"][refinement] = {"setting": settings.tolist(), "rot_err": np.round(errors, 5).tolist(),
                                           "agreement": np.round(agreement, 5).tolist()}
         report["verdict_curve"][refinement] = curve = [
-            evaluation.verdict_summary(errors[in_pool], agreement[in_pool] <= t, evaluation.agreement_rule(t), RIGHT_DEG)
-            for t in AGREEMENT_GRID]
+            evaluation.verdict_summary(errors[in_pool], agreement[in_pool] <= t, evaluation.agreement_rule(t),
+                                       RIGHT_DEG) for t in AGREEMENT_GRID]
         print(f"refine={refinement}, over the pool: threshold / trusted / of them within {RIGHT_DEG:g} deg / "
               f"failures flagged: " + "; ".join(
                   f"{t:g} / {c['passed']} / {c['passed_right']:.3f} / {c['failures_caught']:.3f}"

@@ -367,8 +367,9 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     # Float rounding only: one device reduces the batch in another order than two, and Adam's normalisation
     # magnifies rounding in near-zero gradients over 12 steps, up to a step of the learning rate in a single
     # parameter (the largest difference: 2.7e-3 of the largest movement on 2026-11-27, 1.7e-2 on another
-    # machine on 2026-11-28, where the whole update differed by 1.8e-3 of its norm), so the whole update is compared; other pairs, another order or other dropout
-    # masks move the params by the order of the movement itself.
+    # machine on 2026-11-28, where the whole update differed by 1.8e-3 of its norm), so the whole update is
+    # compared; other pairs, another order or other dropout masks move the params by the order of the
+    # movement itself.
     assert differ_norm <= 1e-2 * moved_norm and differ <= 0.1 * moved, (differ_norm, moved_norm, differ, moved)
     # One log, written by process 0 alone: a line per step and per validation (steps 0, 6 and 12).
     records = (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()
