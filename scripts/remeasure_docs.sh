@@ -3,7 +3,7 @@
 # ModelNet40 unseen (100 pairs per setting, and the peers' protocol), the seen split and the embedded set (50
 # per setting), the Stanford Dragon scans and the angle sweep. Baselines are taken from each directory's earlier
 # results.json where they were scored on the same pairs with the same options (evaluate.py --reuse), so after a
-# change of weights only DIT and DIT+ICP run again: about 1 h 15 min on 2 CPU cores.
+# change of weights or thresholds only DIT and DIT+ICP run again: 44 min alone on 2 CPU cores (2026-11-28).
 #
 #   bash scripts/remeasure_docs.sh [CHECKPOINT] [DATA_DIR] [SCANS_DIR]
 #
