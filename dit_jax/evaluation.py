@@ -741,6 +741,42 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     return results
 
 
+def rescore_agreement(results: dict, max_disagreement: dict) -> dict:
+    """Re-scores the agreement verdict of an :func:`evaluate` or :func:`evaluate_scans` output (its
+    ``results.json``) at new thresholds ({"none": degrees, "icp": degrees}), from the agreement each pair
+    kept: nothing is registered again, and every other figure stays as measured. DIT's and DIT+ICP's verdict
+    summaries (and, for scans, each row's ``verdict``) are replaced in place; returns ``results``.
+
+    Raises ValueError where an agreement verdict was reported without its per-pair evidence (outputs written
+    before 2026-11-28), which only a new evaluation can score."""
+    def threshold(method: str) -> float:
+        return float(max_disagreement["icp" if method == METHOD_DIT_ICP else "none"])
+
+    for setting, methods in results.get("settings", {}).items():
+        for method in (METHOD_DIT, METHOD_DIT_ICP):
+            r = methods.get(method)
+            if not r or not r.get("verdict"):
+                continue
+            if "agreement" not in r.get("per_pair", {}):
+                raise ValueError(f"{setting}/{method}: no per-pair agreement kept; evaluate again to re-score it")
+            errors, agreement = (np.asarray(r["per_pair"][k], float) for k in ("rot_err", "agreement"))
+            extra = {k: v for k, v in r["verdict"].items() if k == "extra_seconds_per_pair"}
+            r["verdict"] = verdict_summary(errors, agreement <= threshold(method),
+                                           agreement_rule(threshold(method)), r["verdict"]["right_deg"]) | extra
+    for pair_set, methods in results.get("pair_sets", {}).items():
+        for method in (METHOD_DIT, METHOD_DIT_ICP):
+            r = methods.get(method)
+            verdict = r and r["summary"].get("verdict")
+            if not verdict or not verdict["rule"].startswith("target onto source"):
+                continue  # no verdict, or the fitness verdict, whose threshold this does not move
+            for row in r["rows"]:
+                row["verdict"] = bool(row["agreement"] <= threshold(method))
+            r["summary"]["verdict"] = verdict_summary(
+                np.array([row["rot_err"] for row in r["rows"]]), np.array([row["verdict"] for row in r["rows"]]),
+                agreement_rule(threshold(method)), verdict["right_deg"])
+    return results
+
+
 # ------------------------------------------------------------------------------------------ rotation range
 
 

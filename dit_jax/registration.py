@@ -93,8 +93,11 @@ class Result:
         directions under the agreement verdict).
       refinement: "icp" where ICP refined the network's estimate, else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
-      verdict: True where the model's own evidence supports the result, False where it is probably wrong
-        (``agreement <= max_disagreement``, or with ``verdict_rule="fitness"``, ``fitness >= min_fitness``).
+      verdict: True ("trusted") where the model's own evidence confirms the result (``agreement <=
+        max_disagreement``, or with ``verdict_rule="fitness"``, ``fitness >= min_fitness``), False ("suspect")
+        where it does not: trusted results are right (within 5 degrees) about 19 times in 20, but a suspect one
+        is not necessarily wrong (on clouds that share no point most suspect DIT+ICP results are right; README,
+        "Is the result right?").
       min_fitness: the fitness verdict's threshold.
       agreement: degrees between the rotation and the inverse of the one found registering the target onto
         the source (refined alike); NaN where the fitness verdict did not measure it.
@@ -142,7 +145,7 @@ class Result:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
         if self.verdict_rule == "agreement":
             return (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
-                    f"this one's inverse (trusted up to {self.max_disagreement:.1f} deg)")
+                    f"this one's inverse (trusted up to {self.max_disagreement:g} deg)")
         return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
                 f"(trusted from {100 * self.min_fitness:.0f} %)")
 

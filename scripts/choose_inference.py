@@ -29,6 +29,13 @@ verdict as many pairs as time allows: precision sits near 95 % over a band of th
 the pick (the sixth stage's weights: 0.25 degrees on 32 pairs per setting, 3 on 48, 1.5 on 64, 0.5 on 128;
 docs/BENCHMARKS.md). The output keeps every pair's error and agreement and the precision curve.
 
+Where no threshold reaches 95 % on the pool (the network alone on the sixth stage's weights, 128 pairs), the
+smallest of the grid is taken and named in the record (``verdict_fallback``). ``--rechoose OUT.json`` makes
+the choice again from the per-pair evidence an earlier ``--out`` kept, registering nothing:
+
+    python scripts/choose_inference.py dit_jax/weights/dit-cpu-modelnet40 --rechoose runs/verdict_choice.json \
+        --record --out runs/verdict_rechoice.json
+
 ``--n-iters 3 5 8`` adds the number of registration iterations to the grid; with ``--keep-gmcce`` it is the
 only thing searched (the checkpoint's GMCCE options and guard stay). With ``--record`` the chosen settings go
 into the checkpoint's config (:func:`dit_jax.checkpoint.update_config`) and both verdicts' thresholds into its
@@ -39,6 +46,7 @@ record:
 """
 
 import argparse
+import datetime
 import itertools
 import json
 
@@ -91,14 +99,29 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
             found[refinement][2].append(np.full(len(errors), setting))
         print(f"{setting}: agreement gathered", flush=True)
     pooled = [s for s in batches if pool == "all" or pairs_lib.SETTINGS[s].independent] or list(batches)
-    report = {"verdict_max_disagreement": {}, "verdict_pool": pooled, "verdict_agreement_on_validation": {},
-              "verdict_curve": {}, "per_pair": {}}
+    per_pair = {}
     for refinement, (errors, agreement, settings) in found.items():
         errors, agreement, settings = map(np.concatenate, (errors, agreement, settings))
+        per_pair[refinement] = {"setting": settings.tolist(), "rot_err": np.round(errors, 5).tolist(),
+                                "agreement": np.round(agreement, 5).tolist()}
+    return choose_from_evidence(per_pair, pooled)
+
+
+def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
+    """The agreement thresholds per refinement from evidence already gathered: ``per_pair`` {refinement:
+    {"setting", "rot_err", "agreement"}, each (P,)}, as :func:`choose_agreement` keeps it (so a saved choice
+    can be made again, or by another rule, without registering the pairs again); ``pooled``: the settings the
+    threshold is chosen over.
+
+    Where no threshold of the grid reaches :data:`PRECISION` on the pool, the smallest one is taken (recorded
+    under ``verdict_fallback``): the verdict then trusts only near-exact agreement, as pairs that share their
+    points give, and flags nearly every result on the pool, rather than trust results that are too often wrong."""
+    report = {"verdict_max_disagreement": {}, "verdict_pool": list(pooled), "verdict_agreement_on_validation": {},
+              "verdict_curve": {}, "per_pair": per_pair, "verdict_fallback": []}
+    for refinement, evidence in per_pair.items():
+        errors, agreement = np.asarray(evidence["rot_err"], float), np.asarray(evidence["agreement"], float)
+        settings = np.asarray(evidence["setting"])
         in_pool = np.isin(settings, pooled)
-        # Kept so the choice can be examined, or made again by another rule, without registering the pairs again.
-        report["per_pair"][refinement] = {"setting": settings.tolist(), "rot_err": np.round(errors, 5).tolist(),
-                                          "agreement": np.round(agreement, 5).tolist()}
         report["verdict_curve"][refinement] = curve = [
             evaluation.verdict_summary(errors[in_pool], agreement[in_pool] <= t, evaluation.agreement_rule(t),
                                        RIGHT_DEG) for t in AGREEMENT_GRID]
@@ -107,15 +130,18 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
                   f"{t:g} / {c['passed']} / {c['passed_right']:.3f} / {c['failures_caught']:.3f}"
                   for t, c in zip(AGREEMENT_GRID, curve)), flush=True)
         threshold = largest_threshold(errors[in_pool], agreement[in_pool])
-        report["verdict_max_disagreement"][refinement] = threshold
         if threshold is None:
-            continue
+            threshold = AGREEMENT_GRID[0]
+            report["verdict_fallback"].append(refinement)
+            print(f"refine={refinement}: no threshold keeps {PRECISION:.0%} of its trusted results right; "
+                  f"the smallest, {threshold:g} deg, is taken", flush=True)
+        report["verdict_max_disagreement"][refinement] = threshold
         rule = evaluation.agreement_rule(threshold)
         report["verdict_agreement_on_validation"][refinement] = {
             "pooled": evaluation.verdict_summary(errors, agreement <= threshold, rule, RIGHT_DEG),
             "pool": evaluation.verdict_summary(errors[in_pool], agreement[in_pool] <= threshold, rule, RIGHT_DEG),
             **{s: evaluation.verdict_summary(errors[settings == s], agreement[settings == s] <= threshold, rule,
-                                             RIGHT_DEG) for s in batches}}
+                                             RIGHT_DEG) for s in dict.fromkeys(settings.tolist())}}
         print(f"refine={refinement}: agreement within {threshold} deg; "
               + evaluation.verdict_line("the pool", report["verdict_agreement_on_validation"][refinement]["pool"])
               + " " + evaluation.verdict_line("all", report["verdict_agreement_on_validation"][refinement]["pooled"]))
@@ -125,11 +151,15 @@ def choose_agreement(params, config, batches: dict, pool: str = "independent",
 def record(path: str, report: dict) -> None:
     """Writes the choice into the checkpoint at ``path``, its params untouched: the agreement thresholds
     and, where inference settings were chosen too, those settings (into its config) and the fitness
-    threshold, with what they did on validation (into its record)."""
-    changes = {"verdict_max_disagreement": report["verdict_max_disagreement"],
+    threshold, with what they did on validation (into its record). A sentence naming the new thresholds, the
+    old ones and the sample is appended to the record's free-text ``note``, so the note never contradicts them."""
+    before = checkpoint.read_extra(path)
+    thresholds = report["verdict_max_disagreement"]
+    changes = {"verdict_max_disagreement": thresholds,
                "verdict_agreement_choice": {k: report[k] for k in ("settings_verdict", "verdict_pool",
                                                                    "pairs_per_setting", "verdict_curve",
-                                                                   "verdict_agreement_on_validation") if k in report}}
+                                                                   "verdict_agreement_on_validation",
+                                                                   "verdict_fallback") if k in report}}
     if "chosen" in report:
         config = checkpoint.update_config(path, report["chosen"])
         changes["verdict_min_fitness"] = report["verdict_min_fitness"]
@@ -137,8 +167,19 @@ def record(path: str, report: dict) -> None:
                                                               "pairs_per_setting", "grid") if k in report}
         changes["inference_choice"]["verdict_on_validation"] = report.get("verdict_on_validation")
         print(f"recorded {json.dumps(report['chosen'])} in {path}'s config (n_iters {config.n_iters})")
+    old = before.get("verdict_max_disagreement") or {}
+    pool = ("the settings whose clouds share no point"
+            if all(pairs_lib.SETTINGS[s].independent for s in report.get("verdict_pool", ())) else "every setting")
+    sentence = (f"Verdict (agreement) thresholds chosen on {datetime.date.today().isoformat()} by "
+                f"scripts/choose_inference.py on {report.get('pairs_per_setting', '?')} validation pairs per setting, "
+                f"pooled over {pool}: {thresholds.get('none')} deg alone, {thresholds.get('icp')} with ICP"
+                + (f" (were {old.get('none')} and {old.get('icp')})" if old else "")
+                + (f"; no threshold kept {PRECISION:.0%} right for "
+                   f"{' and '.join({'none': 'the network alone', 'icp': 'DIT+ICP'}[r] for r in report['verdict_fallback'])}, "
+                   f"so the smallest was taken" if report.get("verdict_fallback") else "") + ".")
+    changes["note"] = (before.get("note", "") + " " + sentence).strip()
     checkpoint.update_extra(path, changes)
-    print(f"recorded the verdict thresholds in {path}")
+    print(f"recorded the verdict thresholds in {path}: {sentence}")
 
 
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
@@ -162,12 +203,29 @@ def main() -> None:
     parser.add_argument("--record", action="store_true",
                         help="write the choice into the checkpoint (settings into its config, thresholds into "
                              "its record; the params are not touched)")
+    parser.add_argument("--rechoose", default=None, metavar="JSON",
+                        help="choose the agreement thresholds again from the per-pair evidence an earlier "
+                             "--out of this script kept (registers nothing; the evidence must be this "
+                             "checkpoint's)")
     parser.add_argument("--n-iters", type=int, nargs="+", default=None,
                         help="registration iteration counts to try as well (default: the checkpoint's only)")
     parser.add_argument("--keep-gmcce", action="store_true",
                         help="keep the checkpoint's GMCCE options and guard; search only --n-iters")
     args = parser.parse_args()
 
+    if args.rechoose:
+        with open(args.rechoose) as f:
+            earlier = json.load(f)
+        pooled = earlier["verdict_pool"] if args.verdict_pool == "independent" else sorted(
+            set(earlier["per_pair"]["icp"]["setting"]))
+        report = {"checkpoint": args.checkpoint, "rechosen_from": args.rechoose,
+                  **{k: earlier[k] for k in ("settings_verdict", "pairs_per_setting") if k in earlier},
+                  **choose_from_evidence(earlier["per_pair"], pooled)}
+        with open(args.out, "w") as f:
+            json.dump(report, f, indent=2)
+        if args.record:
+            record(args.checkpoint, report)
+        return
     params, config = checkpoint.restore(args.checkpoint)
     if args.verdict_only:
         batches = training.validation_batches(args.data_dir, args.verdict_settings, count=args.pairs,

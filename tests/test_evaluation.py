@@ -45,14 +45,18 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"] == 0 and "backward_kept" in clean["DIT+ICP"]
     else:
         assert clean["DIT"]["verdict"]["extra_seconds_per_pair"] < clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"]
+    # Each pair's evidence is kept, so a later threshold can be scored on these pairs without rerunning them:
+    # at the thresholds they were written with, re-scoring changes nothing; at a negative one it trusts nothing.
+    assert clean["DIT"]["per_pair"]["pair"] == [0, 1, 2, 3] and len(clean["DIT+ICP"]["per_pair"]["agreement"]) == 4
+    written = {"none": registration.DEFAULT_MAX_DISAGREEMENT["none"], "icp": registration.DEFAULT_MAX_DISAGREEMENT["icp"]}
+    unchanged = evaluation.rescore_agreement(json.loads(json.dumps(saved)), written)
+    assert json.dumps(unchanged, sort_keys=True) == json.dumps(saved, sort_keys=True)  # (NaN != NaN as a dict value)
+    strict = evaluation.rescore_agreement(json.loads(json.dumps(saved)), {"none": -1.0, "icp": -1.0})
     for method in ("DIT", "DIT+ICP"):
-        # Each pair's evidence is kept, so a later threshold can be scored on these pairs without rerunning them.
-        per_pair, stored = clean[method]["per_pair"], clean[method]["verdict"]
-        threshold = float(stored["rule"].split("within ")[1].split(" deg")[0])
-        rescored = evaluation.verdict_summary(np.asarray(per_pair["rot_err"]),
-                                              np.asarray(per_pair["agreement"]) <= threshold, stored["rule"])
-        assert per_pair["pair"] == [0, 1, 2, 3] and len(per_pair["rot_err"]) == 4
-        assert (rescored["passed"], rescored["failures"]) == (stored["passed"], stored["failures"])
+        verdict = strict["settings"]["clean"][method]["verdict"]
+        assert verdict["passed"] == 0 and verdict["rule"].endswith("within -1 deg")
+        assert strict["settings"]["clean"][method]["rot_mae"] == clean[method]["rot_mae"]
+    assert "within -1 deg" in evaluation.markdown_tables(strict)
     assert len(clean["DIT"]["per_pair"]["fitness"]) == 4
     assert "DIT's verdict (target onto source agrees" in (out / "results.md").read_text()
     assert "DIT's verdict (fitness" in (out / "results.md").read_text()
@@ -87,6 +91,10 @@ def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
     assert all(0 <= r["rot_err"] <= 180 and 0 <= r["fitness"] <= 1 for r in rows)
     assert sorted(os.listdir(tmp_path / "out")) == ["results.json", "results.md", "success_ratio.png", "worst_skip1.png"]
     assert "| DIT |" in results["table"] and "| DIT+ICP |" in results["table"] and "3 pairs" in results["table"]
+    saved = json.loads((tmp_path / "out" / "results.json").read_text())
+    strict = evaluation.rescore_agreement(saved, {"none": -1.0, "icp": -1.0})["pair_sets"]["skip1"]
+    assert not any(r["verdict"] for r in strict["DIT"]["rows"]) and strict["DIT+ICP"]["summary"]["verdict"]["passed"] == 0
+    assert [r["rot_err"] for r in strict["DIT"]["rows"]] == [r["rot_err"] for r in rows]
 
 
 def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):

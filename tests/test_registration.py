@@ -180,7 +180,8 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
     """The default verdict registers the target onto the source as well: a shape and its moved copy come out
     the same both ways (trusted), a shape registered onto a different one does not (suspect); measured
     2026-11-28 on these four shapes (sixth stage's weights): agreement 0.00-0.01 against 12-45 degrees (10-27
-    with the fifth stage's, 20-55 with earlier weights), the threshold 2.0."""
+    with the fifth stage's, 20-55 with earlier weights); the shipped threshold for the network alone is 0.25
+    since 2026-11-28 (2.0, then 1.0, before)."""
     model_ = registration.load(refine="none")  # the network's own evidence, as measured
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     for index in range(4):
