@@ -49,6 +49,7 @@ import argparse
 import datetime
 import itertools
 import json
+import os
 
 import jax.numpy as jnp
 import numpy as np
@@ -216,8 +217,10 @@ def main() -> None:
     if args.rechoose:
         with open(args.rechoose) as f:
             earlier = json.load(f)
-        pooled = earlier["verdict_pool"] if args.verdict_pool == "independent" else sorted(
-            set(earlier["per_pair"]["icp"]["setting"]))
+        if os.path.realpath(earlier.get("checkpoint", args.checkpoint)) != os.path.realpath(args.checkpoint):
+            parser.error(f"{args.rechoose} holds the evidence of {earlier['checkpoint']}, not {args.checkpoint}")
+        settings = list(dict.fromkeys(earlier["per_pair"]["icp"]["setting"]))
+        pooled = [s for s in settings if args.verdict_pool == "all" or pairs_lib.SETTINGS[s].independent] or settings
         report = {"checkpoint": args.checkpoint, "rechosen_from": args.rechoose,
                   **{k: earlier[k] for k in ("settings_verdict", "pairs_per_setting") if k in earlier},
                   **choose_from_evidence(earlier["per_pair"], pooled)}

@@ -1,0 +1,59 @@
+"""scripts/choose_inference.py's verdict choice: the rule that sets the shipped thresholds, made again from
+kept evidence, and what it writes into a checkpoint."""
+
+import importlib.util
+import os
+
+import jax
+import numpy as np
+
+from dit_jax import checkpoint, configs, model
+
+_SPEC = importlib.util.spec_from_file_location(
+    "choose_inference", os.path.join(os.path.dirname(__file__), "..", "scripts", "choose_inference.py"))
+choose_inference = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(choose_inference)
+
+
+def _evidence(errors, agreement, settings):
+    return {"setting": list(settings), "rot_err": list(errors), "agreement": list(agreement)}
+
+
+def test_largest_threshold_keeps_95_percent_of_the_trusted_results_right():
+    # 20 right results agreeing within 0.4 deg, one failure at 0.9, 5 right ones at 1.4, 3 failures at 1.9.
+    agreement = np.r_[np.full(20, 0.4), 0.9, np.full(5, 1.4), np.full(3, 1.9)]
+    errors = np.r_[np.full(20, 1.0), 40.0, np.full(5, 1.0), np.full(3, 30.0)]
+    assert choose_inference.largest_threshold(errors, agreement) == 1.5  # 25 of 26 right; at 2.0, 25 of 29
+    errors[20:26] = 30.0  # from 0.9 on, every result is wrong
+    assert choose_inference.largest_threshold(errors, agreement) == 1.0  # 20 of 21 right; at 1.5, 20 of 26
+    assert choose_inference.largest_threshold(np.full(4, 30.0), np.full(4, 0.1)) is None
+
+
+def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_the_smallest():
+    # Shared-point pairs: all right and agreeing; independent pairs: the network alone never reaches 95 %.
+    settings = ["clean"] * 10 + ["independent_clean"] * 10
+    icp = _evidence([0.1] * 10 + [1.0] * 9 + [50.0], [0.01] * 10 + [0.3] * 9 + [2.5], settings)
+    alone = _evidence([0.1] * 10 + [1.0, 30.0] * 5, [0.01] * 10 + [0.3] * 10, settings)
+    report = choose_inference.choose_from_evidence({"none": alone, "icp": icp}, ["independent_clean"])
+    assert report["verdict_max_disagreement"] == {"none": 0.25, "icp": 2.0}
+    assert report["verdict_fallback"] == ["none"]
+    on_clean = report["verdict_agreement_on_validation"]["none"]["clean"]
+    assert on_clean["passed"] == 10 and on_clean["passed_right"] == 1.0  # near-exact agreement is still trusted
+    assert report["verdict_agreement_on_validation"]["icp"]["pool"]["failures_caught"] == 1.0
+
+
+def test_record_writes_the_thresholds_and_says_so_in_the_note(tmp_path):
+    config = configs.tiny()
+    path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config,
+                           extra={"note": "Trained somewhere.", "verdict_max_disagreement": {"none": 1.0, "icp": 1.5}})
+    before = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
+    report = {"verdict_max_disagreement": {"none": 0.25, "icp": 0.5}, "verdict_pool": ["independent_clean"],
+              "pairs_per_setting": 128, "verdict_fallback": ["none"]}
+    choose_inference.record(str(path), report)
+    extra = checkpoint.read_extra(path)
+    assert extra["verdict_max_disagreement"] == {"none": 0.25, "icp": 0.5}
+    assert extra["note"].startswith("Trained somewhere. Verdict (agreement) thresholds chosen on ")
+    assert "128 validation pairs" in extra["note"] and "(were 1.0 and 1.5)" in extra["note"]
+    assert "0.25 deg alone, 0.5 with ICP" in extra["note"] and "the network alone" in extra["note"]
+    after = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
+    assert after == before, "the params' files are untouched"
