@@ -70,6 +70,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--verdict", choices=("agreement", "fitness"), default="agreement",
                         help="agreement (default): also register TGT onto SRC and trust the result where both "
                              "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
+    parser.add_argument("--max-disagreement", type=float, default=None, metavar="DEG",
+                        help="agreement verdict: trust the result where the two registrations agree within DEG "
+                             "degrees (default: the checkpoint's; shipped: 0.5 with ICP, 0.25 with --refine none, "
+                             "strict by design; larger trusts more right results and more wrong ones, README)")
     parser.add_argument("--best-direction", choices=("on", "off"), default=None,
                         help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
                              "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: on)")
@@ -115,6 +119,11 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(f"{args.plot}: its folder does not exist")
     if args.max_points < 1:
         return _fail(f"--max-points must be positive, got {args.max_points}")
+    if args.max_disagreement is not None:
+        if not 0.0 <= args.max_disagreement <= 180.0:
+            return _fail(f"--max-disagreement must be between 0 and 180 degrees, got {args.max_disagreement:g}")
+        if args.verdict != "agreement":
+            return _fail("--max-disagreement sets the agreement verdict's threshold; it cannot go with --verdict fitness")
 
     compile_cache.from_args(args)
     from dit_jax import registration
@@ -131,6 +140,8 @@ def main(argv: list[str] | None = None) -> int:
             kwargs["n_iters"] = args.iters
         if args.best_direction is not None:
             kwargs["best_direction"] = args.best_direction == "on"
+        if args.max_disagreement is not None:
+            kwargs["max_disagreement"] = dict.fromkeys(registration.REFINEMENTS, args.max_disagreement)
         model = registration.load(args.checkpoint, **kwargs)
         try:
             result = model.register(src, tgt, refine=args.refine)

@@ -174,6 +174,28 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
         assert err == ""
 
 
+def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, pair):
+    """--max-disagreement DEG replaces the agreement threshold the checkpoint carries, for either refinement:
+    a checkpoint that trusts nothing (-1) trusts the same result at 180 (status 0, the threshold reported).
+    A value outside 0-180, or beside --verdict fitness, is refused with status 2 before any work."""
+    config = configs.tiny()
+    ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
+                           extra={"inference_points": 128, "verdict_max_disagreement": {"none": -1.0, "icp": -1.0}})
+    folder, _, _ = pair
+    for refine in ("none", "icp"):
+        code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--json",
+                             "--refine", refine, "--max-disagreement", 180)
+        report = json.loads(out)
+        assert code == 0 and err == "" and report["verdict"] == "trusted" and report["max_disagreement_deg"] == 180
+    for argv, fragment in ((("--max-disagreement", -0.5), "between 0 and 180"),
+                           (("--max-disagreement", 181), "between 0 and 180"),
+                           (("--max-disagreement", 1, "--verdict", "fitness"), "cannot go with --verdict fitness")):
+        code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
+                             "--out", tmp_path / "x.ply", *argv)
+        assert code == 2 and fragment in err and err.count("\n") == 1 and out == ""
+        assert not (tmp_path / "x.ply").exists()
+
+
 def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_closely(capsys, dragon_dir):
     """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart
     (measured with the sixth stage's weights, shipped on 2026-11-28): 48 -> 72 is wrong (16.8 degrees, the two
