@@ -22,11 +22,26 @@ import os
 import sys
 
 
-def _value(text: str):
+def _value(text: str, like=None):
+    """``text`` as a Python literal (else the string itself), checked against ``like``, the field's current
+    value: a flag takes true/false in any case (never a truthy string such as "false"), a number a number
+    (a whole one for a whole-number field)."""
+    if isinstance(like, bool):
+        word = text.strip().lower()
+        if word in ("true", "1", "yes", "on"):
+            return True
+        if word in ("false", "0", "no", "off"):
+            return False
+        raise ValueError(f"expected true or false, got {text!r}")
     try:
-        return ast.literal_eval(text)
+        value = ast.literal_eval(text)
     except (ValueError, SyntaxError):
-        return text
+        value = text
+    if isinstance(like, (int, float)) and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise ValueError(f"expected a number, got {text!r}")
+    if isinstance(like, int) and not isinstance(value, int):
+        raise ValueError(f"expected a whole number, got {text!r}")
+    return value
 
 
 def parse(argv=None):
@@ -85,12 +100,16 @@ def parse(argv=None):
         key, sep, text = item.partition("=")
         if not sep:
             parser.error(f"--set {item!r}: expected FIELD=VALUE")
-        if key.startswith("model."):
-            model_changes[key[len("model."):]] = _value(text)
-        elif key in fields:
-            changes[key] = _value(text)
-        else:
-            parser.error(f"--set {key}: no such field (fields: {', '.join(sorted(fields))}, model.*)")
+        try:
+            if key.startswith("model."):
+                name = key[len("model."):]
+                model_changes[name] = _value(text, getattr(config.model_config(), name, None))
+            elif key in fields:
+                changes[key] = _value(text, getattr(config, key))
+            else:
+                parser.error(f"--set {key}: no such field (fields: {', '.join(sorted(fields))}, model.*)")
+        except ValueError as err:
+            parser.error(f"--set {key}: {err}")
     changes["model_overrides"] = tuple(sorted(model_changes.items()))
     try:
         config = dataclasses.replace(config, **changes)

@@ -56,6 +56,10 @@ class TrainConfig:
       val_fraction: share of the training shapes held out for validation (never the test split).
       val_pairs: validation pairs evaluated (the first ones, deterministic).
       eval_every, ckpt_every: steps between validations / checkpoints (also at the end).
+      validate_at_start: validate the starting params before the first step (the first point of every
+        curve). Off where compiling the validation costs more than the point is worth: on a short GPU lease
+        it compiles a registration per setting before any training (docs/BENCHMARKS.md); its value is
+        known from the checkpoint a run starts from.
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
@@ -89,6 +93,7 @@ class TrainConfig:
     val_pairs: int = 64
     eval_every: int = 200
     ckpt_every: int = 100
+    validate_at_start: bool = True
     keep: int = 3
     seed: int = 0
     log_every: int = 10
@@ -625,7 +630,7 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
             best_val = val_metrics["network_rotation_error"]
             _save(best_mgr, state, meta(step))
 
-    if start == 0:
+    if start == 0 and config.validate_at_start:
         run_validation(0, 0)  # where training starts from: the first point of every curve
     t_last = time.time()
     step = start

@@ -15,7 +15,9 @@ with ``--seconds`` alone (then the recipe is timed first, at the cost of compili
 ``run`` first times the shared recipe for a few steps (which also compiles the validation into a shared
 persistent cache), then chooses ``max_steps`` so that every run ends inside ``--seconds`` with its
 learning-rate schedule whole, starts the runs side by side, stops any run still going at the deadline (its
-best checkpoint so far is kept), and writes to ``--out`` for each run one ``NAME.tar`` (``best/``,
+best checkpoint so far is kept, or its latest where it never validated: ``--set validate_at_start=False``
+skips the validation before the first step, whose compiling ate most of a 15-minute lease), and writes to
+``--out`` for each run one ``NAME.tar`` (``best/`` or ``checkpoints/``,
 ``metrics.jsonl``, ``train_config.json``: what ``scripts/ship_weights.py`` and
 ``dit_jax.training.export_params`` read) and a log. Each run is ``python train.py``'s ``training.train``
 with the given arguments; the data are the packed shapes (:mod:`dit_jax.data.packed`), recorded under the
@@ -109,8 +111,12 @@ def _versions(*names: str) -> dict[str, str]:
 
 
 def _bundle(workdir: str, out: str) -> None:
+    """``best/`` (else, where no validation ran yet, ``checkpoints/``), the metrics and the config, as one tar:
+    what :func:`dit_jax.training.export_params` reads."""
+    best = os.path.join(workdir, "best")
+    weights = "best" if os.path.isdir(best) and any(n.isdigit() for n in os.listdir(best)) else "checkpoints"
     with tarfile.open(out, "w") as tar:
-        for name in ("best", "metrics.jsonl", "train_config.json"):
+        for name in (weights, "metrics.jsonl", "train_config.json"):
             if os.path.exists(os.path.join(workdir, name)):
                 tar.add(os.path.join(workdir, name), arcname=name)
 
@@ -145,12 +151,13 @@ def run(args) -> int:
         return 1
     steady, first = _seconds_per_step(os.path.join(args.workdir, "calibration"))
     spent = time.time() - start
-    # Side by side the runs share the GPU and the CPUs; compile again (a new schedule), validate 9 times.
+    # Side by side the runs share the GPU and the CPUs; compile again (a new schedule), validate --validations
+    # times (and once at step 0 unless told not to).
     left = deadline - time.time() - args.margin
     per_step = steady * args.slowdown
     # the first logged interval holds one compilation; two more cloud sizes may follow in a mix
     compile_seconds = max(args.compile_seconds, 3 * 10 * first)
-    steps = int((left - compile_seconds - 9 * args.validation_seconds) / per_step)
+    steps = int((left - compile_seconds - (args.validations + 1) * args.validation_seconds) / per_step)
     steps = max(args.min_steps, steps // 50 * 50)
     print(f"calibration: {spent:.0f} s, {steady:.3f} s / step steady, {first:.2f} s / step in the first "
           f"interval; {left:.0f} s left, {compile_seconds:.0f} s for compiling -> {steps} steps", flush=True)
@@ -158,11 +165,12 @@ def run(args) -> int:
 
 
 def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) -> int:
-    every = max(10, steps // 8)
+    every = max(10, steps // max(1, args.validations))
+    ckpt_every = min(every, args.ckpt_every or every)
     procs = {}
     for name, extra in runs:
         procs[name] = _launch(name, args, [*base, *extra, f"--set=max_steps={steps}", f"--set=eval_every={every}",
-                                           f"--set=ckpt_every={every}"], args.out)
+                                           f"--set=ckpt_every={ckpt_every}"], args.out)
     for name, p in procs.items():
         try:
             p.wait(timeout=max(1.0, deadline - time.time() - args.margin / 2))
@@ -217,6 +225,12 @@ def main() -> int:
     r.add_argument("--validation-seconds", type=float, default=8.0, help="assumed, once compiled")
     r.add_argument("--margin", type=float, default=40.0, help="seconds kept for stopping and bundling")
     r.add_argument("--min-steps", type=int, default=100)
+    r.add_argument("--validations", type=int, default=8,
+                   help="validations spread over each run, the end's included (1: the end's only; each setting's "
+                        "first validation compiles its registration, minutes on a fresh GPU machine)")
+    r.add_argument("--ckpt-every", type=int, default=None,
+                   help="steps between checkpoints (default: the validations' interval); a run stopped at the "
+                        "deadline before any validation brings back its latest")
     w = sub.add_parser("worker")
     w.add_argument("--packed", required=True)
     w.add_argument("--workdir", required=True)

@@ -120,6 +120,39 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
         training.train(TINY, str(workdir), prepared_dir=prepared, progress=False)
 
 
+def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared, tiny_run):
+    """validate_at_start=False: no step-0 validation (what a short GPU lease cannot afford to compile), the
+    end's still runs. A run stopped before any validation still leaves weights: scripts/device_stage.py then
+    bundles its latest checkpoints, and export_params reads them."""
+    import importlib.util
+    import tarfile
+
+    config = dataclasses.replace(TINY, max_steps=4, validate_at_start=False)
+    training.train(config, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in records if r["split"] == "val"] == [4]
+
+    spec = importlib.util.spec_from_file_location("device_stage", ROOT / "scripts" / "device_stage.py")
+    device_stage = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(device_stage)
+    never_validated = tmp_path / "stopped"
+    shutil.copytree(tiny_run[0], never_validated)
+    shutil.rmtree(never_validated / "best")
+    device_stage._bundle(str(never_validated), str(tmp_path / "stopped.tar"))
+    with tarfile.open(tmp_path / "stopped.tar") as tar:
+        names = tar.getnames()
+        tar.extractall(tmp_path / "back", filter="data")
+    assert any(n.startswith("checkpoints/12") for n in names) and not any(n.startswith("best") for n in names)
+    from dit_jax import checkpoint
+
+    assert checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))[
+        "chosen_by"] == "checkpoints"
+    device_stage._bundle(str(tiny_run[0]), str(tmp_path / "validated.tar"))
+    with tarfile.open(tmp_path / "validated.tar") as tar:
+        assert any(n.startswith("best/") for n in tar.getnames())
+        assert not any(n.startswith("checkpoints") for n in tar.getnames())
+
+
 def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_run):
     _, whole = tiny_run  # the same run, uninterrupted
     workdir = tmp_path / "killed"
@@ -218,6 +251,14 @@ def test_train_cli_rejects_unknown_fields(capsys):
     assert "no such field" in capsys.readouterr().err
     _, config, workdir = train.parse(["--preset", "tiny", "--set", "lr=0.5", "--set", "model.n_blocks=2"])
     assert config.lr == 0.5 and config.model_config().n_blocks == 2 and workdir == "runs/tiny-clean"
+    # A flag reads true/false in any case; "false" is never a truthy string.
+    _, config, _ = train.parse(["--preset", "tiny", "--set", "differentiable=false", "--set", "validate_at_start=Off"])
+    assert config.differentiable is False and config.validate_at_start is False
+    for bad, fragment in (("differentiable=maybe", "expected true or false"), ("lr=fast", "expected a number"),
+                          ("model.n_blocks=two", "expected a number"), ("eval_every=2.5", "a whole number")):
+        with pytest.raises(SystemExit):
+            train.parse(["--preset", "tiny", "--set", bad])
+        assert fragment in capsys.readouterr().err, bad
 
 
 def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
