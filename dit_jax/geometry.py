@@ -89,6 +89,21 @@ def rotation_angle_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(sin, (np.trace(m) - 1.0) / 2.0)))
 
 
+def cube_rotations() -> np.ndarray:
+    """The 24 rotations that map a cube onto itself (3x3 signed permutation matrices of determinant +1), the
+    identity first: (24, 3, 3) float64. Every rotation lies within 62.8 degrees of one of them."""
+    import itertools
+
+    found = []
+    for order in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            matrix = np.zeros((3, 3))
+            matrix[range(3), order] = signs
+            if np.linalg.det(matrix) > 0:
+                found.append(matrix)
+    return np.stack(found)
+
+
 def gather_neighbours(features: jax.Array, idx: jax.Array) -> jax.Array:
     """Features of each point's neighbours.
 

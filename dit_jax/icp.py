@@ -219,6 +219,45 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -
     return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(other))
 
 
+#: :func:`best_start` keeps the first estimate (the unturned start's) unless another fits the clouds better
+#: by this factor (its score at most this share of the first's): a symmetric shape fits a turned copy of
+#: itself nearly as well as the truth, and where the motion is small the unturned start is the right one.
+#: Chosen on validation pairs of training shapes, three settings that share no point, turned 0-180 degrees:
+#: 0.7 keeps the unturned start's accuracy up to 30 degrees and gains most beyond (docs/BENCHMARKS.md,
+#: "Clouds at any rotation").
+START_MARGIN = 0.7
+#: The short ICP of :func:`start_scores`, which ranks the starts: pairing distances in units of the clouds' radius.
+START_DISTANCES = (0.1, 0.05)
+
+
+def start_scores(src: np.ndarray, tgt: np.ndarray, rotations: np.ndarray, translations: np.ndarray, *,
+                 scale: float = 1.0, max_points: int = 500, seed: int = 0) -> np.ndarray:
+    """How well each of several estimates of one motion lays src (N, 3) onto tgt (M, 3) after a short
+    point-to-point ICP from it (:data:`START_DISTANCES` times ``scale``): (K,) :func:`trimmed_fit` scores of
+    where the ICP ends, lower is better, for rotations (K, 3, 3) and translations (K, 3). ``max_points``: the
+    ICP and the score use a seeded random subset of this many source points."""
+    from scipy.spatial import cKDTree
+
+    src = np.asarray(src, np.float64)
+    tgt = np.asarray(tgt, np.float64)
+    tree = cKDTree(tgt)
+    scores = []
+    for rotation, translation in zip(np.asarray(rotations, np.float64), np.asarray(translations, np.float64)):
+        run = icp(src, tgt, rotation, translation, distances=tuple(scale * d for d in START_DISTANCES),
+                  max_points=max_points, seed=seed, tree=tree)
+        scores.append(trimmed_fit(src, tree, run.rotation, run.translation, seed=seed, max_points=max_points))
+    return np.asarray(scores)
+
+
+def best_start(scores: np.ndarray, margin: float = START_MARGIN) -> int:
+    """Which estimate to go on from (``register(..., rotation_search=True)``), given their
+    :func:`start_scores` (K,), the first the preferred one: the best scoring if its score is below ``margin``
+    times the first's, else the first (index 0)."""
+    scores = np.asarray(scores, np.float64)
+    best = int(np.argmin(scores))
+    return best if scores[best] < margin * scores[0] else 0
+
+
 def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
                translation_b: np.ndarray) -> float:
     """How far two motions place the points of src (N, 3) apart, on average (the clouds' units)."""

@@ -16,7 +16,10 @@ What :meth:`Registrar.register` does to a pair, in order:
    ``centring="separate"`` uses each cloud's own) and one shared scale (the largest distance of a sampled
    point from its centre), in float64;
 4. runs the jitted :func:`dit_jax.model.register` (one compilation per pair of cloud sizes: with both clouds
-   at least the model's point count, every call after the first reuses the same program);
+   at least the model's point count, every call after the first reuses the same program); with
+   ``rotation_search``, on the source turned by each of the 24 rotations of a cube, in one batch, and goes on
+   from the estimate that fits best after a short ICP (the unturned one unless another fits clearly better),
+   so that clouds at any relative rotation register;
 5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
    ``y = R x + s t' + c_y - R c_x``;
 6. with ``refine="icp"`` (the default), refines that estimate by ICP on every point of both clouds
@@ -69,6 +72,10 @@ DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
 #: directions"); on by default since the sixth training stage's weights, with which every evaluation in docs/
 #: was re-measured.
 DEFAULT_BEST_DIRECTION = True
+#: The turns of the source that ``rotation_search`` starts the network from: the 24 rotations of a cube, the
+#: identity first (:func:`dit_jax.geometry.cube_rotations`). Every rotation lies within 62.8 degrees of one, and
+#: DIT+ICP handles independently sampled clouds up to about 75 degrees from its start (README "What it reaches").
+SEARCH_TURNS = geometry.cube_rotations()
 
 
 class InputError(ValueError):
@@ -90,7 +97,7 @@ class Result:
       fitness: share of the sampled source points the estimate lays within ``fitness_radius`` point spacings
         of the target (see :func:`dit_jax.geometry.fitness`).
       seconds: wall time of the network calls (excluding sampling and a first call's compilation; both
-        directions under the agreement verdict).
+        directions under the agreement verdict; with ``rotation_search``, the starts' short ICPs too).
       refinement: "icp" where ICP refined the network's estimate, else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       verdict: True ("trusted") where the model's own evidence confirms the result (``agreement <=
@@ -105,6 +112,8 @@ class Result:
       verdict_rule: "agreement" or "fitness": which of the two decided ``verdict``.
       direction: "forward" (the source registered onto the target) or "backward" (the inverse of the target
         registered onto the source, kept by ``best_direction`` where it fits better).
+      start_turn: with ``rotation_search``, the angle (degrees) of the turn of its source that the kept
+        direction's network estimate started from; 0 for the unturned start (and without the search).
     """
 
     rotation: np.ndarray
@@ -124,6 +133,7 @@ class Result:
     max_disagreement: float = float("nan")
     verdict_rule: str = "fitness"
     direction: str = "forward"
+    start_turn: float = 0.0
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -139,7 +149,7 @@ class Result:
                 "max_disagreement_deg": None if np.isnan(self.max_disagreement) else self.max_disagreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
-                "direction": self.direction}
+                "direction": self.direction, "start_turn_deg": self.start_turn}
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
@@ -268,15 +278,20 @@ class Registrar:
       best_direction: with ICP and the agreement verdict, return whichever of the two refined registrations
         (source onto target, or the inverse of target onto source) fits the clouds better; no extra work, the
         verdict already computes both (default :data:`DEFAULT_BEST_DIRECTION`).
+      rotation_search: the default of :meth:`register`'s ``rotation_search``: run the network from the 24
+        turns of :func:`dit_jax.geometry.cube_rotations` and go on from the one that fits best
+        (:func:`dit_jax.icp.best_start`), for clouds at any relative rotation; about 24 times the network's
+        time (default False: the network handles rotations up to the training range, README "What it reaches").
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
                  min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "icp", precision: str | None = None,
                  verdict_rule: str = "agreement", max_disagreement: dict | None = None,
-                 best_direction: bool = DEFAULT_BEST_DIRECTION):
+                 best_direction: bool = DEFAULT_BEST_DIRECTION, rotation_search: bool = False):
         _check_refine(refine)
         self.refine = refine
+        self.rotation_search = bool(rotation_search)
         if centring not in ("shared", "separate"):
             raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
         self.centring = centring
@@ -296,12 +311,14 @@ class Registrar:
         if self.n_points < model_lib.min_points(self.config):
             raise ValueError(f"n_points={n_points} is below the model's minimum {model_lib.min_points(self.config)}")
 
-    def register(self, src, tgt, *, refine: str | None = None) -> Result:
+    def register(self, src, tgt, *, refine: str | None = None, rotation_search: bool | None = None) -> Result:
         """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units; see the module docs.
 
         ``refine``: "icp" refines the network's estimate by ICP on every point (step 6), "none" does not;
-        None: the Registrar's ``refine``."""
+        None: the Registrar's ``refine``. ``rotation_search``: True runs the network from 24 turned starts in
+        each direction (step 4, :meth:`_network`), for clouds at any relative rotation; None: the Registrar's."""
         refine = self.refine if refine is None else refine
+        search = self.rotation_search if rotation_search is None else bool(rotation_search)
         _check_refine(refine)
         need = model_lib.min_points(self.config)
         src = check_cloud("source", src, need)
@@ -318,21 +335,16 @@ class Registrar:
         src_n = ((src_s - src_centre) / scale).astype(np.float32)[None]
         tgt_n = ((tgt_s - tgt_centre) / scale).astype(np.float32)[None]
         started = time.perf_counter()
-        rotation, translation, extras = model_lib.register(self.params, src_n, tgt_n, self.config)
-        rotation, translation, extras = jax.device_get((rotation, translation, extras))
+        rotation, translation, extras, start = self._network(src_n, tgt_n, search)
         both_ways = self.verdict_rule == "agreement"
         if both_ways:
-            back_rotation, back_translation, _ = jax.device_get(
-                model_lib.register(self.params, tgt_n, src_n, self.config))
+            back_rotation, back_translation, _, back_start = self._network(tgt_n, src_n, search)
         seconds = time.perf_counter() - started
         # Step 5: y = R x + s t' + c_y - R c_x (and the backward motion with the clouds' roles swapped).
-        rotation = np.asarray(rotation[0], np.float64)
-        translation = scale * np.asarray(translation[0], np.float64) + tgt_centre - rotation @ src_centre
+        translation = scale * translation + tgt_centre - rotation @ src_centre
         if both_ways:
-            back_rotation = np.asarray(back_rotation[0], np.float64)
-            back_translation = (scale * np.asarray(back_translation[0], np.float64) + src_centre
-                                - back_rotation @ tgt_centre)
-        fitness = float(extras["fitness"][0])
+            back_translation = scale * back_translation + src_centre - back_rotation @ tgt_centre
+        fitness = float(extras["fitness"])
         refine_seconds = 0.0
         direction, forward_rotation = "forward", rotation
         if refine == "icp":
@@ -345,7 +357,7 @@ class Registrar:
                 back_rotation = back.rotation
                 inverse = (back.rotation.T, -back.rotation.T @ back.translation)
                 if self.best_direction and icp_lib.fits_better(src, tgt, inverse, (rotation, translation)):
-                    (rotation, translation), direction = inverse, "backward"
+                    (rotation, translation), direction, start = inverse, "backward", back_start
             # The fitness, as the model measures it, for the refined motion.
             moved = ((src_s @ rotation.T + translation) - tgt_centre) / scale
             tgt_j = jnp.asarray(tgt_n[0])
@@ -362,13 +374,39 @@ class Registrar:
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = rotation, translation
         return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
-                      correspondences=tgt_idx[np.asarray(extras["correspondences"][0])],
-                      confidence=np.asarray(extras["weights"][0], np.float64),
-                      inlier_ratio=float(extras["inlier_ratio"][0]), fitness=fitness,
+                      correspondences=tgt_idx[np.asarray(extras["correspondences"])],
+                      confidence=np.asarray(extras["weights"], np.float64),
+                      inlier_ratio=float(extras["inlier_ratio"]), fitness=fitness,
                       seconds=seconds, verdict=bool(verdict), min_fitness=self.min_fitness,
                       refinement=None if refine == "none" else refine, refine_seconds=refine_seconds,
                       agreement=agreement, max_disagreement=max_disagreement, verdict_rule=self.verdict_rule,
-                      direction=direction)
+                      direction=direction, start_turn=start)
+
+    def _network(self, src_n: np.ndarray, tgt_n: np.ndarray, search: bool):
+        """The network's estimate for one direction, in the normalised frame: ``(R (3, 3), t (3,), extras of
+        the pair, start_turn)``, float64, ``tgt_n ~ src_n @ R.T + t`` for src_n (1, N, 3), tgt_n (1, M, 3).
+
+        With ``search``, the source is turned about its centroid c by each of :data:`SEARCH_TURNS` (Q) and the
+        24 pairs go through the network in one batch; each estimate (R', t') of a turned source is one of the
+        source itself, ``R = R' Q``, ``t = t' + R' c - R c``, and :func:`dit_jax.icp.best_start` picks the one
+        to go on from (the unturned one unless another fits clearly better). ``start_turn``: the angle in
+        degrees of the turn it started from (0: unturned)."""
+        if not search:
+            rotation, translation, extras = jax.device_get(model_lib.register(self.params, src_n, tgt_n, self.config))
+            return (np.asarray(rotation[0], np.float64), np.asarray(translation[0], np.float64),
+                    {k: v[0] for k, v in extras.items()}, 0.0)
+        points = np.asarray(src_n[0], np.float64)
+        centre = points.mean(axis=0)
+        turned = (points - centre) @ SEARCH_TURNS.transpose(0, 2, 1) + centre
+        targets = np.repeat(tgt_n, len(SEARCH_TURNS), axis=0)
+        found, shifts, extras = jax.device_get(
+            model_lib.register(self.params, turned.astype(np.float32), targets, self.config))
+        found = np.asarray(found, np.float64)
+        rotations = found @ SEARCH_TURNS
+        translations = np.asarray(shifts, np.float64) + found @ centre - rotations @ centre
+        k = icp_lib.best_start(icp_lib.start_scores(points, tgt_n[0], rotations, translations, seed=self.seed))
+        return (rotations[k], translations[k], {name: v[k] for name, v in extras.items()},
+                round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6))  # 0, 90, 120 or 180
 
 
 def _check_refine(refine) -> None:

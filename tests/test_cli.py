@@ -75,6 +75,30 @@ def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
     assert f"(default: {state})" in option_help.split("--no-verdict-status")[0]
 
 
+def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, tiny_checkpoint, pair, monkeypatch):
+    """--any-rotation runs the network from the 24 turns of the source (one batch per direction) and prints
+    the turn it went on from; the JSON report carries it too."""
+    folder, _, _ = pair
+    batches = []
+    original = registration.model_lib.register
+
+    def counting(params, src, tgt, config):
+        batches.append(src.shape[0])
+        return original(params, src, tgt, config)
+
+    monkeypatch.setattr(registration.model_lib, "register", counting)
+    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none", "--any-rotation")
+    assert code == 0, err
+    assert batches == [24, 24] and "rotation search: went on from a start turned" in out
+    code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                       "--refine", "none", "--any-rotation", "--json")
+    assert code == 0 and json.loads(out)["start_turn_deg"] in {0.0, 90.0, 120.0, 180.0}
+    batches.clear()
+    run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--refine", "none")
+    assert batches == [1, 1]
+
+
 def _bad_inputs(folder):
     """(name, src path, expected fragment) for every kind of bad input the issue lists."""
     rng = np.random.default_rng(1)

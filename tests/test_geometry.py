@@ -134,3 +134,19 @@ def test_rotation_derivative_matches_finite_differences_and_stays_finite():
     for h in (jnp.eye(3), jnp.diag(jnp.array([1.0, 1.0, 0.0])), jnp.zeros((3, 3))):
         grad = jax.grad(lambda m: jnp.sum(f(m) * jnp.arange(9.0).reshape(3, 3)))(h)
         assert np.isfinite(np.asarray(grad)).all()
+
+
+def test_cube_rotations_are_the_24_proper_turns_of_a_cube_and_cover_every_rotation():
+    """``rotation_search`` starts from these: each a proper rotation, the identity first, closed under
+    composition (a group), and every rotation within 62.8 degrees of one of them."""
+    turns = geometry.cube_rotations()
+    assert turns.shape == (24, 3, 3)
+    np.testing.assert_array_equal(turns[0], np.eye(3))
+    np.testing.assert_allclose(np.einsum("kji,kjl->kil", turns, turns), np.broadcast_to(np.eye(3), turns.shape))
+    assert np.allclose(np.linalg.det(turns), 1.0)
+    flat = {tuple(t.ravel()) for t in turns}
+    assert len(flat) == 24 and all(tuple((a @ b).ravel()) in flat for a in turns for b in turns)
+    rng = np.random.default_rng(0)
+    nearest = [min(geometry.rotation_angle_deg(t.T @ r) for t in turns)
+               for r in (random_rotation(rng) for _ in range(2000))]
+    assert max(nearest) <= 62.8 and max(nearest) > 50.0

@@ -225,3 +225,24 @@ def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
     capped = icp.trimmed_fit(src, tree, rotation, shifts, cap=0.1)
     np.testing.assert_allclose(capped[:2], together[:2], rtol=1e-12)  # every counted gap is under the cap
     assert together[2] > capped[2] and capped[2] <= 0.1 ** 2  # half a radius off: far gaps count as the cap
+
+
+def test_best_start_keeps_the_first_unless_another_fits_clearly_better():
+    assert icp.best_start([1.0, 0.75, 2.0]) == 0  # within the margin: the unturned start stays
+    assert icp.best_start([1.0, 0.5, 0.8]) == 1
+    assert icp.best_start([1.0, 0.75, 2.0], margin=1.0) == 1
+    assert icp.best_start([0.0, 0.0]) == 0  # an exact first fit is never displaced
+
+
+def test_start_scores_rank_the_start_near_the_truth_first():
+    """Independently sampled halves of an asymmetric surface: an estimate 5 degrees off (its short ICP pulls
+    it in) scores better than starts 90 and 180 degrees off."""
+    points = _surface(1600, seed=4) * [1.0, 0.7, 0.45]
+    src, tgt = points[0::2], points[1::2]
+    truth = euler_zyx_to_matrix([40.0, 10.0, -20.0])
+    t = np.array([0.2, 0.1, -0.3])
+    tgt = tgt @ truth.T + t
+    starts = [euler_zyx_to_matrix(a) @ truth for a in ([90.0, 0.0, 0.0], [5.0, -3.0, 0.0], [0.0, 180.0, 0.0])]
+    scores = icp.start_scores(src, tgt, np.stack(starts), np.stack([t] * 3))
+    assert scores.shape == (3,) and np.argmin(scores) == 1
+    assert icp.best_start(scores) == 1
