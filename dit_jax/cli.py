@@ -27,7 +27,8 @@ scans about 0.5 s a pair against 6.5-11.4 alone on 2 CPU cores, both with the ve
 For clouds that may be turned further, --any-rotation starts the network from 24 turns of SRC and goes on from
 the best fitting: on independently sampled test pairs turned 120-180 degrees, 62 % within 5 degrees instead of
 0-25 % (8 pairs per angle; 2026-12-01), at 4-6 times the time; it can lose a noisy pair to a half-turn that
-fits better, so it is off by default.
+fits better, and it does not help scans that barely overlap (the dragon 48-96 degrees apart), so it is off by
+default.
 """
 
 from __future__ import annotations
