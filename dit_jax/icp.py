@@ -220,7 +220,7 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -
 
 
 #: :func:`best_start` keeps the first estimate (the unturned start's) unless another fits the clouds better
-#: by this factor (its score at most this share of the first's): a symmetric shape fits a turned copy of
+#: by this factor (its score below this share of the first's): a symmetric shape fits a turned copy of
 #: itself nearly as well as the truth, and where the motion is small the unturned start is the right one.
 #: Chosen on validation pairs of training shapes, three settings that share no point, turned 0-180 degrees:
 #: 0.7 keeps the unturned start's accuracy up to 30 degrees and gains most beyond (docs/BENCHMARKS.md,
