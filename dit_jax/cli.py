@@ -51,7 +51,7 @@ EXIT_SUSPECT = 3
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary), .xyz/.txt, .npy\n\n"
+                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary), .npy, text (.xyz .txt .csv .asc .pts)\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
     parser.add_argument("src", help="the cloud to move")
     parser.add_argument("tgt", help="the cloud to align it to")

@@ -1,4 +1,5 @@
-"""Point-cloud files: read and write .ply, .pcd, .xyz/.txt and .npy, refusing bad input with one-line errors.
+"""Point-cloud files: read and write .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) and .npy, refusing bad
+input with one-line errors.
 
 Every reader returns an (N, 3) float64 array of coordinates and raises :class:`CloudFileError` (a ValueError
 whose message names the file and the problem) for anything it cannot turn into one: a missing or unreadable
@@ -9,12 +10,15 @@ coordinates. Formats:
   ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped.
 * PCD: ``DATA ascii`` and ``DATA binary`` with fields ``x y z`` (any others skipped). ``binary_compressed`` is
   refused with the hint to re-save as binary.
-* XYZ / TXT: one point per line, whitespace or comma separated; columns after the third (normals, colours)
-  are ignored, ``#`` starts a comment.
+* Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
+  columns after the third (normals, colours, intensity) are ignored, ``#`` starts a comment, and a first
+  line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
+  ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
 
 Writers (:func:`write`) produce binary little-endian PLY (float or double as the input), binary float32 PCD
-(what PCL and Open3D read), text with enough digits to round-trip (17 for float64, 9 otherwise) and
+(what PCL and Open3D read), text with enough digits to round-trip (17 for float64, 9 otherwise; .csv
+comma-separated under an ``x,y,z`` header, .pts after the point count) and
 float32/64 NPY. They write to a temporary file in the destination's folder and rename it into place, so a
 failure leaves nothing half-written.
 """
@@ -27,7 +31,9 @@ import tempfile
 
 import numpy as np
 
-FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".npy")
+FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy")
+#: The formats read and written as text, one point per line.
+TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -58,7 +64,7 @@ def file_format(path: str | os.PathLike, kind: str = "format") -> str:
 
 def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 0,
          return_count: bool = False):
-    """Reads the points of a .ply, .pcd, .xyz, .txt or .npy file.
+    """Reads the points of a .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) or .npy file.
 
     Args:
       path: the file; its extension picks the format.
@@ -81,8 +87,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         raise CloudFileError(path, "is a directory, not a point-cloud file")
     if not os.access(path, os.R_OK):
         raise CloudFileError(path, "permission denied")
-    reader = {".ply": _read_ply, ".pcd": _read_pcd, ".xyz": _read_text, ".txt": _read_text,
-              ".npy": _read_npy}[ext]
+    reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy}.get(ext, _read_text)
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
@@ -105,7 +110,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
 
 
 def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> None:
-    """Writes (N, 3) points as .ply, .pcd (binary unless ``binary=False``), .xyz/.txt or .npy, atomically."""
+    """Writes (N, 3) points as .ply, .pcd (binary unless ``binary=False``), text or .npy, atomically."""
     path = os.fspath(path)
     ext = file_format(path)
     points = np.asarray(points)
@@ -123,8 +128,11 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
                 _write_ply(f, points, binary)
             elif ext == ".pcd":
                 _write_pcd(f, points, binary)
+            elif ext == ".csv":
+                np.savetxt(f, points, fmt=_text_format(points), delimiter=",", header="x,y,z", comments="")
             else:
-                np.savetxt(f, points, fmt=_text_format(points))
+                np.savetxt(f, points, fmt=_text_format(points), header=str(len(points)) if ext == ".pts" else "",
+                           comments="")
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes files private; a written cloud is an ordinary file
         os.replace(tmp, path)
     except BaseException:
@@ -286,14 +294,27 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
 _SEPARATOR = re.compile(r"[,\s;]+")
 
 
+def _is_header(values: list[str]) -> bool:
+    """Whether a text file's first line is a header: column names (not all numbers) or a lone point count."""
+    try:
+        [float(v) for v in values]
+    except ValueError:
+        return True
+    return len(values) == 1 and values[0].isdigit()
+
+
 def _read_text(path: str, select) -> tuple[np.ndarray, int]:
-    rows = []
+    rows, first = [], True
     with open(path, "r", encoding="utf-8", errors="strict") as f:
         for number, line in enumerate(f, 1):
             line = line.split("#", 1)[0].strip()
             if not line:
                 continue
             values = _SEPARATOR.split(line)
+            if first:
+                first = False
+                if _is_header(values):
+                    continue
             if len(values) < 3:
                 raise CloudFileError(path, f"not three coordinates: line {number} has {len(values)} value(s)")
             try:

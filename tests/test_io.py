@@ -16,7 +16,8 @@ def cloud() -> np.ndarray:
 
 
 @pytest.mark.parametrize("name,binary", [("a.ply", True), ("a.ply", False), ("a.pcd", True), ("a.pcd", False),
-                                         ("a.xyz", False), ("a.txt", False), ("a.npy", True)])
+                                         ("a.xyz", False), ("a.txt", False), ("a.csv", False), ("a.asc", False),
+                                         ("a.pts", False), ("a.npy", True)])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_round_trip_every_format(tmp_path, cloud, name, binary, dtype):
     points = cloud.astype(dtype)
@@ -71,6 +72,24 @@ def test_big_endian_ply(tmp_path, cloud):
 def test_text_with_comments_commas_and_extra_columns(tmp_path):
     (tmp_path / "p.txt").write_text("# x,y,z,r,g,b\n1,2,3,0,0,0\n\n4, 5, 6, 1, 1, 1  # last\n")
     np.testing.assert_array_equal(io.read(tmp_path / "p.txt"), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_text_headers_as_other_tools_write_them(tmp_path):
+    """A first line of column names (CSV, CloudCompare's ``//X,Y,Z``) or a lone point count (.pts) is
+    skipped; the same on a later line, or a first line of one or two numbers, is an error."""
+    for name, text in [("names.csv", "x,y,z,intensity\n1,2,3,7\n4,5,6,8\n"),
+                       ("cc.asc", "//X,Y,Z,R,G,B\n1 2 3 0 0 0\n4 5 6 0 0 0\n"),
+                       ("scan.pts", "2\n1 2 3 -1500 10 20 30\n4 5 6 -1400 10 20 30\n")]:
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(io.read(tmp_path / name), [[1, 2, 3], [4, 5, 6]], err_msg=name)
+    (tmp_path / "two_headers.csv").write_text("x,y,z\nX,Y,Z\n1,2,3\n")
+    _bad(tmp_path / "two_headers.csv", "line 2 is not numbers")
+    (tmp_path / "short.xyz").write_text("1.5 2\n1 2 3\n")
+    _bad(tmp_path / "short.xyz", "not three coordinates", "line 1")
+    io.write(tmp_path / "w.csv", np.eye(3))
+    assert (tmp_path / "w.csv").read_text().splitlines()[:2] == ["x,y,z", "1,0,0"]
+    io.write(tmp_path / "w.pts", np.eye(3))
+    assert (tmp_path / "w.pts").read_text().splitlines()[0] == "3"
 
 
 def test_max_points_reads_a_seeded_subset(tmp_path, cloud):
