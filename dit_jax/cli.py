@@ -68,7 +68,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="refuse clouds above --max-points instead of reading a random subset")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--refine", choices=("none", "icp"), default="icp",
-                        help="icp (default): refine the network's estimate by ICP on every point; "
+                        help="icp (default): refine the network's estimate by ICP on the full clouds; "
                              "none: the network alone (faster, less accurate)")
     parser.add_argument("--any-rotation", action="store_true",
                         help="for clouds at any relative rotation: start the network from 24 turns of SRC "

@@ -118,7 +118,7 @@ def backward_agreement(params, config, dataset: pairs_lib.PairDataset, indices: 
 
 def refine_dit(dit: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None, *,
                truth_fit: bool = True) -> dict:
-    """DIT's estimates (from :func:`predict_dit`) refined by ICP on every point of each pair, as
+    """DIT's estimates (from :func:`predict_dit`) refined by ICP on the full clouds of each pair, as
     ``register(refine="icp")`` does; ``seconds`` counts both stages. ``beats_truth`` (P,) bool (with
     ``truth_fit``): the refined motion fits the clouds better than the true one
     (:func:`dit_jax.icp.fits_better`)."""

@@ -50,6 +50,11 @@ MAX_SHIFT = 0.5
 TRANSLATION_SEARCH = (0.3, 0.1, 3)
 #: Source points (a seeded random subset) that score the translation grid of :func:`refine`.
 GRID_POINTS = 500
+#: :func:`refine` pairs its source points (at most ``max_points``, 2,000) with a seeded random subset of at
+#: most this many target points: denser targets only slow the k-d tree. On scans of the Stanford Dragon
+#: thickened to a million points, refining on the whole target took 5-7 times as long for the same result
+#: within 0.1 degrees (docs/BENCHMARKS.md, "Dense scans"); the dragon's own 42,000-point scans are used whole.
+TARGET_POINTS = 50_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,7 +278,7 @@ def _translation_offsets(span: float, step: float) -> np.ndarray:
 
 def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
            scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT,
-           rounds: int = 2, max_points: int = 2_000,
+           rounds: int = 2, max_points: int = 2_000, max_target_points: int | None = TARGET_POINTS,
            translation_search: tuple[float, float, int] | None = TRANSLATION_SEARCH) -> ICPResult:
     """DIT's refinement of a global estimate: the best fit among several ICP runs and the estimate itself.
 
@@ -291,8 +296,8 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`; ``rounds`` (at least 1) stops
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
-    this many source points (the target is used whole), which bounds the time on large scans;
-    ``translation_search``: (span, step, starts) in units of ``scale``, or None for the plain descent.
+    this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
+    target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in units of ``scale``, or None for the plain descent.
     Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
     """
     from scipy.spatial import cKDTree
@@ -300,6 +305,8 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     start = (np.asarray(rotation, np.float64), np.asarray(translation, np.float64))
+    if max_target_points and len(tgt) > max_target_points:
+        tgt = tgt[np.sort(np.random.default_rng(seed).choice(len(tgt), max_target_points, replace=False))]
     tree = cKDTree(tgt)
     finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
     score = lambda r, t: trimmed_fit(src, tree, r, t, seed=seed, max_points=max_points)

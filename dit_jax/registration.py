@@ -22,8 +22,9 @@ What :meth:`Registrar.register` does to a pair, in order:
    so that clouds at any relative rotation register;
 5. maps the transform back: with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and ``y' = R x' + t'``,
    ``y = R x + s t' + c_y - R c_x``;
-6. with ``refine="icp"`` (the default), refines that estimate by ICP on every point of both clouds
-   (:func:`dit_jax.icp.refine`: the best trimmed fit among several ICP runs, :data:`dit_jax.icp.REFINE_CANDIDATES`,
+6. with ``refine="icp"`` (the default), refines that estimate by ICP on the full clouds (a seeded random
+   2,000 of the source's points and up to 50,000 of the target's, :data:`dit_jax.icp.TARGET_POINTS`;
+   :func:`dit_jax.icp.refine`: the best trimmed fit among several ICP runs, :data:`dit_jax.icp.REFINE_CANDIDATES`,
    from the estimate and from the best offsets of a translation grid, distances times ``s``, chosen on
    validation pairs), and recomputes the fitness for the refined motion;
 7. judges the result (the verdict; ``verdict_rule="agreement"``, the default): the same steps 4-6 register the
@@ -314,7 +315,7 @@ class Registrar:
     def register(self, src, tgt, *, refine: str | None = None, rotation_search: bool | None = None) -> Result:
         """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units; see the module docs.
 
-        ``refine``: "icp" refines the network's estimate by ICP on every point (step 6), "none" does not;
+        ``refine``: "icp" refines the network's estimate by ICP on the full clouds (step 6), "none" does not;
         None: the Registrar's ``refine``. ``rotation_search``: True runs the network from 24 turned starts in
         each direction (step 4, :meth:`_network`), for clouds at any relative rotation; None: the Registrar's."""
         refine = self.refine if refine is None else refine
