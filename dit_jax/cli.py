@@ -8,7 +8,8 @@
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical) ends with one line on stderr naming the file and the
 problem, exit status 2, and no output file. Clouds above ``--max-points`` are read as a random subset of that
-many points (say ``--no-downsample`` to refuse them instead).
+many points (say ``--no-downsample`` to refuse them instead). Where one cloud is ten or more times the size
+of the other, a warning asks whether both are in the same units (a rigid motion cannot rescale).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
 well, and the result is trusted where the two motions agree closely (``--verdict fitness``: where enough of
@@ -37,6 +38,7 @@ import argparse
 import json
 import os
 import sys
+import warnings
 
 import numpy as np
 
@@ -154,10 +156,19 @@ def main(argv: list[str] | None = None) -> int:
             kwargs["max_disagreement"] = dict.fromkeys(registration.REFINEMENTS, args.max_disagreement)
         model = registration.load(args.checkpoint, **kwargs)
         try:
-            result = model.register(src, tgt, refine=args.refine)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", registration.SizeMismatchWarning)
+                result = model.register(src, tgt, refine=args.refine)
         except registration.InputError as err:  # name the files, not "source"/"target"
             message = str(err).replace("source:", f"{args.src}:", 1).replace("target:", f"{args.tgt}:", 1)
             return _fail(message)
+        for warning in caught:
+            if issubclass(warning.category, registration.SizeMismatchWarning):
+                message = (str(warning.message).replace("source", "\0", 1).replace("target", "\1", 1)
+                           .replace("\0", args.src).replace("\1", args.tgt))
+                print(f"{PROG}: warning: {message}", file=sys.stderr)
+            else:
+                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
         if args.out is not None:
             io.write(args.out, result.apply(src))
         if args.plot is not None:

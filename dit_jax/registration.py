@@ -45,6 +45,7 @@ import functools
 import importlib.resources
 import os
 import time
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -79,8 +80,18 @@ DEFAULT_BEST_DIRECTION = True
 SEARCH_TURNS = geometry.cube_rotations()
 
 
+#: :meth:`Registrar.register` warns (:class:`SizeMismatchWarning`) where one cloud's radius (the largest
+#: distance of one of its points from its centroid) is this many times the other's: two views of one
+#: object differ far less, clouds in millimetres and metres 1000 times, and a rigid motion cannot rescale.
+SIZE_RATIO_WARNING = 10.0
+
+
 class InputError(ValueError):
     """A cloud handed to :meth:`Registrar.register` that DIT cannot register; the message names it."""
+
+
+class SizeMismatchWarning(UserWarning):
+    """The two clouds differ in size far more than views of one object do: most likely different units."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -331,6 +342,7 @@ class Registrar:
             src_centre = tgt_centre = np.concatenate([src_s, tgt_s]).mean(axis=0)
         else:
             src_centre, tgt_centre = src_s.mean(axis=0), tgt_s.mean(axis=0)
+        _warn_on_size_mismatch(src, tgt)
         scale = max(float(np.linalg.norm(src_s - src_centre, axis=1).max()),
                     float(np.linalg.norm(tgt_s - tgt_centre, axis=1).max()))
         src_n = ((src_s - src_centre) / scale).astype(np.float32)[None]
@@ -408,6 +420,18 @@ class Registrar:
         k = icp_lib.best_start(icp_lib.start_scores(points, tgt_n[0], rotations, translations, seed=self.seed))
         return (rotations[k], translations[k], {name: v[k] for name, v in extras.items()},
                 round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6))  # 0, 90, 120 or 180
+
+
+def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
+    """Warns where the radius of src (N, 3) or tgt (M, 3) is :data:`SIZE_RATIO_WARNING` times the other's."""
+    radius = [float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) for c in (src, tgt)]
+    big = int(radius[1] > radius[0])
+    ratio = radius[big] / radius[1 - big]
+    if ratio >= SIZE_RATIO_WARNING:
+        names = ("source", "target")
+        warnings.warn(f"{names[big]} is {ratio:,.0f} times the size of {names[1 - big]} (radius {radius[big]:.4g} "
+                      f"against {radius[1 - big]:.4g}): are both in the same units, and free of stray far-off points? "
+                      "A rigid motion cannot rescale one onto the other", SizeMismatchWarning, stacklevel=3)
 
 
 def _check_refine(refine) -> None:

@@ -160,6 +160,22 @@ def test_large_clouds_are_downsampled_unless_refused(capsys, tmp_path, tiny_chec
     assert code == 2 and "above the limit of 400" in err and err.count("\n") == 1
 
 
+def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tiny_checkpoint, pair):
+    """A target in millimetres against a source in metres (1000 times the size): one warning line naming both
+    files; the transform is still printed and the status is the verdict's. Same-size clouds give none."""
+    folder, _, tgt = pair
+    io.write(tmp_path / "tgt_mm.pcd", tgt * 1000.0)
+    code, out, err = run(capsys, folder / "src.ply", tmp_path / "tgt_mm.pcd", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none")
+    assert code == 0 and "rotation" in out
+    (line,) = [line for line in err.splitlines() if "same units" in line]
+    assert line.startswith(f"dit-register: warning: {tmp_path / 'tgt_mm.pcd'} is 1,000 times the size of "
+                           f"{folder / 'src.ply'}")
+    _, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                    "--refine", "none")
+    assert "same units" not in err
+
+
 def test_console_script_exit_status(tmp_path):
     """The installed entry point, as a user runs it: no traceback, status 2."""
     proc = subprocess.run([sys.executable, "-m", "dit_jax.cli", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],

@@ -94,6 +94,22 @@ def test_one_compilation_for_every_cloud_size_above_the_model_size(tiny_registra
     assert model.register._cache_size() - before <= 1
 
 
+def test_clouds_whose_sizes_differ_tenfold_warn(tiny_registrar):
+    """Most likely different units: a warning saying which cloud is larger and by how much; views of one
+    object, a few times apart in size, register without one."""
+    import warnings
+
+    rng = np.random.default_rng(4)
+    cloud = rng.normal(size=(300, 3))
+    with pytest.warns(registration.SizeMismatchWarning, match=r"^source is 1,000 times the size of target"):
+        tiny_registrar.register(cloud * 1000.0, cloud)
+    with pytest.warns(registration.SizeMismatchWarning, match=r"^target is 25 times the size of source"):
+        tiny_registrar.register(cloud, cloud * 25.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", registration.SizeMismatchWarning)
+        tiny_registrar.register(cloud, cloud[:100] * 3.0)
+
+
 def test_result_matrix_and_apply_agree(tiny_registrar):
     rng = np.random.default_rng(3)
     result = tiny_registrar.register(rng.normal(size=(200, 3)), rng.normal(size=(200, 3)))
