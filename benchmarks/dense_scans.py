@@ -34,7 +34,8 @@ def thicken(points: np.ndarray, copies: int, rng: np.random.Generator) -> np.nda
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scans", default="../shared/data/stanford_dragon_stand")
-    parser.add_argument("--pairs", type=int, default=5, help="the first N pairs of adjacent scans")
+    parser.add_argument("--pairs", type=int, default=5, help="the first N pairs of scans")
+    parser.add_argument("--skip", type=int, default=1, help="pairs of scans this many apart (1: adjacent, 24 degrees)")
     parser.add_argument("--thicken", type=int, nargs="+", default=[1, 4, 24], help="copies of each scan")
     parser.add_argument("--refine-pairs", type=int, default=3,
                         help="pairs on which the thickest clouds are also refined alone at each --target-points")
@@ -46,12 +47,12 @@ def main() -> None:
     from dit_jax import geometry, icp, registration
     from dit_jax.data import scans
 
-    pairs = scans.scan_pairs(scans.load_scans(args.scans), skip=1)[:args.pairs]
+    pairs = scans.scan_pairs(scans.load_scans(args.scans), skip=args.skip)[:args.pairs]
     model = registration.load()
     network_only = registration.load(refine="none", verdict_rule="fitness")
     error = lambda rotation, pair: geometry.rotation_angle_deg(rotation @ pair.rotation.T)
     print(f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs; {len(pairs)} pairs of "
-          f"{os.path.basename(os.path.normpath(args.scans))} scans about 24 degrees apart; "
+          f"{os.path.basename(os.path.normpath(args.scans))} scans, skip {args.skip}; "
           f"icp.TARGET_POINTS = {icp.TARGET_POINTS:,}\n")
     print("| points per scan | `register()` s per pair (median, max) | of which ICP | rotation error (deg), "
           "median / max | trusted |\n|---|---|---|---|---|")
@@ -74,6 +75,8 @@ def main() -> None:
               f"{trusted} of {len(pairs)} |", flush=True)
         thickest = {"copies": copies, "clouds": clouds}
 
+    if not args.refine_pairs:
+        return
     print(f"\n`icp.refine`, one direction from the network's estimate, clouds of {thickest['copies']} copies:\n")
     print("| pair | target points | refine s | rotation error (deg) |\n|---|---|---|---|")
     caps = args.target_points if args.target_points is not None else [icp.TARGET_POINTS, 0]

@@ -24,7 +24,8 @@ independently, as real scans are, rotations up to about 75 degrees as it ships, 
 it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 0.12 degrees (14 of 15
 pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 2.05
 with --refine none (docs/eval_stanford_dragon, 2026-11-28). --refine none is faster (on those 42,000-point
-scans about 0.5 s a pair against 6.5-11.4 alone on 2 CPU cores, both with the verdict's second registration).
+scans about 0.5 s a pair against 5.6-8.9 s, medians, on 2 CPU cores, both with the verdict's second
+registration; 2026-12-01).
 For clouds that may be turned further, --any-rotation starts the network from 24 turns of SRC and goes on from
 the best fitting: on independently sampled test pairs turned 120-180 degrees, 62 % within 5 degrees instead of
 0-25 % (8 pairs per angle; 2026-12-01), at 4-6 times the time; it can lose a noisy pair to a half-turn that
@@ -53,7 +54,8 @@ EXIT_SUSPECT = 3
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary), .npy, text (.xyz .txt .csv .asc .pts)\n\n"
+                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary), .npy, "
+                                            "text (.xyz .txt .csv .asc .pts)\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
     parser.add_argument("src", help="the cloud to move")
     parser.add_argument("tgt", help="the cloud to align it to")

