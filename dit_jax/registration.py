@@ -12,9 +12,10 @@ What :meth:`Registrar.register` does to a pair, in order:
 2. resamples each cloud to the model's point count by farthest-point sampling (seeded; clouds above
    ``fps_pool`` points are first thinned to ``fps_pool`` uniformly at random, which keeps the cost linear);
    clouds with fewer points than that are used whole;
-3. moves both into the unit sphere with one shared offset (the centroid of the two sampled clouds together;
-   ``centring="separate"`` uses each cloud's own) and one shared scale (the largest distance of a sampled
-   point from its centre), in float64;
+3. moves both into the unit sphere with one shared offset (the centroid of the two sampled clouds together,
+   as in training; with the default ``centring="auto"`` each cloud's own where the two lie more than
+   :data:`FAR_APART` radii apart, and always with ``centring="separate"``) and one shared scale (the largest
+   distance of a sampled point from its centre), in float64;
 4. runs the jitted :func:`dit_jax.model.register` (one compilation per pair of cloud sizes: with both clouds
    at least the model's point count, every call after the first reuses the same program); with
    ``rotation_search``, on the source turned by each of the 24 rotations of a cube, in one batch, and goes on
@@ -65,6 +66,8 @@ SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
 DEFAULT_MIN_FITNESS = 0.5
 #: What :meth:`Registrar.register` can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
 REFINEMENTS = ("none", "icp")
+#: Where :meth:`Registrar.register` centres the two clouds (step 3 above; :data:`FAR_APART`).
+CENTRINGS = ("auto", "shared", "separate")
 #: How :meth:`Registrar.register` judges a result (step 7 above).
 VERDICTS = ("agreement", "fitness")
 #: The agreement verdict's thresholds (degrees between the result and the inverse of the target-onto-source
@@ -83,6 +86,14 @@ DEFAULT_BEST_DIRECTION = True
 SEARCH_TURNS = geometry.cube_rotations()
 
 
+#: ``centring="auto"`` (:class:`Registrar`) centres each cloud on its own centroid where the two sampled clouds'
+#: centroids lie more than this many times the larger one's radius apart, else both on their common centroid.
+#: Centred together, clouds far apart shrink to two specks in the unit sphere: a dragon pair moved 1000 scan
+#: sizes apart came back suspect, a million apart 177 degrees off, where each on its own centroid stays right;
+#: up to 30 sizes (60 radii) both work, and a few radii apart the common centroid did a little better with ICP
+#: on independently sampled ModelNet40 halves (docs/BENCHMARKS.md, "Clouds far apart"). Training offsets the
+#: target by up to 0.87 radii.
+FAR_APART = 10.0
 #: :meth:`Registrar.register` warns (:class:`SizeMismatchWarning`) where one cloud's radius (the largest
 #: distance of one of its points from its centroid) is this many times the other's: two views of one
 #: object differ far less, clouds in millimetres and metres 1000 times, and a rigid motion cannot rescale.
@@ -276,8 +287,10 @@ class Registrar:
       seed: farthest-point sampling's start (results are deterministic for a given seed).
       fps_pool: clouds above this many points are thinned at random to it before farthest-point sampling.
       centring: "shared" moves both clouds by the centroid of the two together (the clouds keep their offset,
-        as in training, where targets sit up to 0.5 radii away); "separate" moves each to its own centroid,
-        for clouds that lie far apart (more than about half their size) in the caller's frame.
+        as in training, where targets sit up to 0.87 radii away); "separate" moves each to its own centroid,
+        for clouds that lie far apart in the caller's frame; "auto" (the default): "separate" where the
+        sampled clouds' centroids lie more than :data:`FAR_APART` times the larger radius apart, else
+        "shared" (every pair measured in docs/ is "shared" either way).
       min_fitness: with ``verdict_rule="fitness"``, a result whose fitness (the share of sampled source points
         it lays onto the target) is below this gets ``verdict=False``.
       refine: the default of :meth:`register`'s ``refine``: "icp" (the default: on every setting and data set
@@ -300,15 +313,15 @@ class Registrar:
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
-                 seed: int = 0, fps_pool: int = 50_000, centring: str = "shared",
+                 seed: int = 0, fps_pool: int = 50_000, centring: str = "auto",
                  min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "icp", precision: str | None = None,
                  verdict_rule: str = "agreement", max_disagreement: dict | None = None,
                  best_direction: bool = DEFAULT_BEST_DIRECTION, rotation_search: bool = False):
         _check_refine(refine)
         self.refine = refine
         self.rotation_search = bool(rotation_search)
-        if centring not in ("shared", "separate"):
-            raise ValueError(f"centring must be 'shared' or 'separate', got {centring!r}")
+        if centring not in CENTRINGS:
+            raise ValueError(f"centring must be one of {', '.join(map(repr, CENTRINGS))}, got {centring!r}")
         self.centring = centring
         if verdict_rule not in VERDICTS:
             raise ValueError(f"verdict_rule must be one of {', '.join(map(repr, VERDICTS))}, got {verdict_rule!r}")
@@ -341,10 +354,13 @@ class Registrar:
         src_idx = farthest_point_sample(src, self.n_points, seed=self.seed, pool=self.fps_pool)
         tgt_idx = farthest_point_sample(tgt, self.n_points, seed=self.seed + 1, pool=self.fps_pool)
         src_s, tgt_s = src[src_idx], tgt[tgt_idx]
-        if self.centring == "shared":
+        src_centre, tgt_centre = src_s.mean(axis=0), tgt_s.mean(axis=0)
+        centring = self.centring
+        if centring == "auto":
+            radius = max(float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) for c in (src_s, tgt_s))
+            centring = "separate" if np.linalg.norm(src_centre - tgt_centre) > FAR_APART * radius else "shared"
+        if centring == "shared":
             src_centre = tgt_centre = np.concatenate([src_s, tgt_s]).mean(axis=0)
-        else:
-            src_centre, tgt_centre = src_s.mean(axis=0), tgt_s.mean(axis=0)
         _warn_on_size_mismatch(src, tgt)
         scale = max(float(np.linalg.norm(src_s - src_centre, axis=1).max()),
                     float(np.linalg.norm(tgt_s - tgt_centre, axis=1).max()))

@@ -110,6 +110,29 @@ def test_clouds_whose_sizes_differ_tenfold_warn(tiny_registrar):
         tiny_registrar.register(cloud, cloud[:100] * 3.0)
 
 
+def test_clouds_far_apart_are_centred_each_on_its_own(dragon_dir):
+    """A pair of dragon scans 24 degrees apart, the target moved a million scan sizes off: centred together
+    (``centring="shared"``) the two shrink to specks in the unit sphere and the network turns the source
+    about 177 degrees the wrong way (measured 2026-12-01); the default ``"auto"`` centres each on its own
+    there and lands where the unmoved pair does (network alone, 1-2 degrees), which it leaves centred
+    together, as in training (the same result as ``"shared"``, bit for bit)."""
+    from dit_jax.data import scans
+
+    pair = scans.scan_pairs(scans.load_scans(dragon_dir), skip=1)[0]
+    offset = np.array([1e6 * np.ptp(pair.source, axis=0).max(), 0.0, 0.0])
+    options = {"refine": "none", "verdict_rule": "fitness"}
+    auto, shared = registration.load(**options), registration.load(centring="shared", **options)
+    assert auto.centring == "auto"
+    far = auto.register(pair.source, pair.target + offset)
+    assert _rotation_error_deg(far.rotation, pair.rotation) < 5.0
+    assert np.linalg.norm(far.translation - pair.translation - offset) < 0.05 * offset[0] / 1e6
+    assert _rotation_error_deg(shared.register(pair.source, pair.target + offset).rotation, pair.rotation) > 30.0
+    near_auto, near_shared = auto.register(pair.source, pair.target), shared.register(pair.source, pair.target)
+    np.testing.assert_array_equal(near_auto.matrix, near_shared.matrix)
+    with pytest.raises(ValueError, match="centring must be one of"):
+        registration.load(centring="middle")
+
+
 def test_result_matrix_and_apply_agree(tiny_registrar):
     rng = np.random.default_rng(3)
     result = tiny_registrar.register(rng.normal(size=(200, 3)), rng.normal(size=(200, 3)))
