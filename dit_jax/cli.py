@@ -7,8 +7,11 @@
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical) ends with one line on stderr naming the file and the
-problem, exit status 2, and no output file. Clouds above ``--max-points`` are read as a random subset of that
-many points (say ``--no-downsample`` to refuse them instead). Where one cloud is ten or more times the size
+problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf coordinates out
+instead (depth cameras mark pixels without a return so) and says how many. Clouds above ``--max-points`` are
+read as a random subset of that many points (say ``--no-downsample`` to refuse them instead). A mesh (a CAD
+model to find in a scan, say) is read as points sampled uniformly over its surface, so ``--out`` writes those
+points moved; apply the printed matrix to the mesh itself. Where one cloud is ten or more times the size
 of the other, a warning asks whether both are in the same units (a rigid motion cannot rescale).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
@@ -43,7 +46,7 @@ import warnings
 
 import numpy as np
 
-from dit_jax import compile_cache
+from dit_jax import compile_cache, io
 
 PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
@@ -54,11 +57,12 @@ EXIT_SUSPECT = 3
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary), .npy, "
-                                            "text (.xyz .txt .csv .asc .pts)\n\n"
+                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
+                                            ".npy, text (.xyz .txt .csv .asc .pts);\nmeshes (.obj .off .stl) "
+                                            f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
-    parser.add_argument("src", help="the cloud to move")
-    parser.add_argument("tgt", help="the cloud to align it to")
+    parser.add_argument("src", help="the cloud (or mesh) to move")
+    parser.add_argument("tgt", help="the cloud (or mesh) to align it to")
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
     parser.add_argument("--out", default=None, help="write SRC moved onto TGT here (format by extension)")
@@ -70,6 +74,9 @@ def _parser() -> argparse.ArgumentParser:
                         help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
     parser.add_argument("--no-downsample", action="store_true",
                         help="refuse clouds above --max-points instead of reading a random subset")
+    parser.add_argument("--drop-nonfinite", action="store_true",
+                        help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
+                             "files' pixels without a return) instead of refusing the file")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--refine", choices=("none", "icp"), default="icp",
                         help="icp (default): refine the network's estimate by ICP on the full clouds; "
@@ -101,9 +108,15 @@ def _fail(message: str) -> int:
 
 
 def _read(path: str, args) -> np.ndarray:
-    from dit_jax import io
-
-    points, total = io.read(path, max_points=args.max_points, seed=args.seed, return_count=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", io.NonFiniteWarning)
+        points, total = io.read(path, max_points=args.max_points, seed=args.seed, return_count=True,
+                                drop_nonfinite=args.drop_nonfinite)
+    for warning in caught:
+        if issubclass(warning.category, io.NonFiniteWarning):
+            print(f"{PROG}: note: {warning.message}", file=sys.stderr)
+        else:
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     if total > len(points):
         if args.no_downsample:
             raise io.CloudFileError(path, f"{total:,} points, above the limit of {args.max_points:,} "
@@ -115,7 +128,6 @@ def _read(path: str, args) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from dit_jax import io
 
     if args.out is not None:  # checked before any work, so a bad --out costs nothing
         try:

@@ -3,13 +3,13 @@ input with one-line errors.
 
 Every reader returns an (N, 3) float64 array of coordinates and raises :class:`CloudFileError` (a ValueError
 whose message names the file and the problem) for anything it cannot turn into one: a missing or unreadable
-file, an unknown extension, a malformed header, values that are NaN or Inf, or rows that are not three
-coordinates. Formats:
+file, an unknown extension, a malformed header, values that are NaN or Inf (``drop_nonfinite=True`` leaves
+those points out instead), or rows that are not three coordinates. Formats:
 
 * PLY: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``; the ``x``, ``y``, ``z`` properties of the
   ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped.
-* PCD: ``DATA ascii`` and ``DATA binary`` with fields ``x y z`` (any others skipped). ``binary_compressed`` is
-  refused with the hint to re-save as binary.
+* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python: about a second per
+  10 MB of fields) with fields ``x y z`` (any others skipped).
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third (normals, colours, intensity) are ignored, ``#`` starts a comment, and a first
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
@@ -28,10 +28,15 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+import warnings
 
 import numpy as np
 
 FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy")
+#: Meshes, read (not written) as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`).
+MESH_FORMATS = (".obj", ".off", ".stl")
+#: How many surface points :func:`read` samples from a mesh: far more than registration samples from a cloud.
+MESH_POINTS = 100_000
 #: The formats read and written as text, one point per line.
 TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
 
@@ -53,48 +58,74 @@ class CloudFileError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
-def file_format(path: str | os.PathLike, kind: str = "format") -> str:
-    """The lower-case extension of ``path`` if it is one of :data:`FORMATS`, else :class:`CloudFileError`."""
+class NonFiniteWarning(UserWarning):
+    """Points with a NaN or Inf coordinate were left out of a file read with ``drop_nonfinite=True``."""
+
+    def __init__(self, path: str | os.PathLike, dropped: int, rows: int):
+        self.path, self.dropped, self.rows = os.fspath(path), dropped, rows
+        super().__init__(f"{self.path}: left out {dropped:,} of {rows:,} points with NaN or Inf coordinates")
+
+
+def file_format(path: str | os.PathLike, kind: str = "format", formats: tuple[str, ...] = FORMATS) -> str:
+    """The lower-case extension of ``path`` if it is one of ``formats``, else :class:`CloudFileError`."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
-    if ext not in FORMATS:
+    if ext not in formats:
         raise CloudFileError(path, f"unknown {kind} {ext or '(no extension)'!r}; expected one of "
-                                   f"{', '.join(FORMATS)}")
+                                   f"{', '.join(formats)}")
     return ext
 
 
 def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 0,
-         return_count: bool = False):
-    """Reads the points of a .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) or .npy file.
+         return_count: bool = False, drop_nonfinite: bool = False, mesh_points: int = MESH_POINTS):
+    """Reads the points of a .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) or .npy file, or samples a mesh.
 
     Args:
       path: the file; its extension picks the format.
       max_points: files with more points than this give a uniform random subset of ``max_points`` of them
         (seeded by ``seed``, file order kept); binary PLY/PCD and NPY files never load the other rows.
       return_count: also return how many points the file holds.
+      mesh_points: a mesh (.obj, .off, .stl; see :func:`read_mesh`) gives this many points (at most
+        ``max_points``) sampled uniformly over its surface area, seeded by ``seed``: a CAD model's vertices
+        crowd at its edges and leave its faces bare, unlike any scan. An OBJ file without faces gives its
+        vertices, as a cloud. ``points_in_file`` is then the number sampled.
+      drop_nonfinite: leave out points with a NaN or Inf coordinate instead of refusing the file, with a
+        :class:`NonFiniteWarning` that says how many. Depth cameras and organized PCD files mark pixels
+        without a return by NaN; elsewhere such values usually mean a broken export, hence the default. The
+        file's every row is read to find them (``max_points`` then samples among the finite ones), and
+        ``points_in_file`` counts only the finite ones.
 
     Returns:
       points: (N, 3) float64, all finite; with ``return_count`` the pair ``(points, points_in_file)``.
 
     Raises:
       CloudFileError: the file is missing, unreadable, of an unknown format, malformed, not three coordinates
-        per point, or holds NaN or Inf values.
+        per point, or holds NaN or Inf values (unless ``drop_nonfinite``, and then only where no point is
+        finite).
     """
     path = os.fspath(path)
-    ext = file_format(path)
+    ext = file_format(path, formats=FORMATS + MESH_FORMATS)
     if not os.path.exists(path):
         raise CloudFileError(path, "no such file")
     if os.path.isdir(path):
         raise CloudFileError(path, "is a directory, not a point-cloud file")
     if not os.access(path, os.R_OK):
         raise CloudFileError(path, "permission denied")
-    reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy}.get(ext, _read_text)
+    if ext in MESH_FORMATS:
+        if mesh_points < 1:
+            raise ValueError(f"mesh_points must be positive, got {mesh_points}")
+        n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
+        def reader(path_, select_):
+            return _read_mesh_as_points(path_, select_, n_samples, seed)
+    else:
+        reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy}.get(ext, _read_text)
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
         return np.sort(np.random.default_rng(seed).choice(count, max_points, replace=False))
 
     try:
-        points, total = reader(path, select)
+        # Sampling before the finite points are known could keep too few of them, so dropping reads all rows.
+        points, total = reader(path, (lambda count: None) if drop_nonfinite else select)
     except CloudFileError:
         raise
     except (OSError, ValueError, UnicodeDecodeError, EOFError) as err:
@@ -103,9 +134,20 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
     if points.ndim != 2 or points.shape[1] != 3:
         raise CloudFileError(path, f"expected N x 3 coordinates, got an array of shape {points.shape}")
     bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
+    if bad.any() and not drop_nonfinite:
         raise CloudFileError(path, f"{int(bad.sum())} of {len(points)} points have NaN or Inf coordinates "
-                                   f"(first at row {int(np.argmax(bad))})")
+                                   f"(first at row {int(np.argmax(bad))}); to leave them out, read with "
+                                   f"drop_nonfinite=True (dit-register --drop-nonfinite)")
+    if drop_nonfinite:
+        if bad.all():
+            raise CloudFileError(path, f"all {len(points)} points have NaN or Inf coordinates")
+        if bad.any():
+            warnings.warn(NonFiniteWarning(path, int(bad.sum()), len(points)), stacklevel=2)
+            points = points[~bad]
+        total = len(points)
+        rows_kept = select(total)
+        if rows_kept is not None:
+            points = points[rows_kept]
     return (points, total) if return_count else points
 
 
@@ -287,8 +329,83 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
         points = np.stack([table[f"{names[c]}_{c}"][:, 0].astype(np.float64) for c in cols], axis=1)
         return points, count
     if data == "binary_compressed":
-        raise CloudFileError(path, "PCD 'DATA binary_compressed' is not supported; re-save it as binary or ascii")
+        return _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count, select), count
     raise CloudFileError(path, f"unknown PCD DATA type {data!r}")
+
+
+def _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count, select) -> np.ndarray:
+    """The x, y, z columns of a ``DATA binary_compressed`` PCD file (what PCL and Open3D write compressed).
+
+    After the header: the compressed and the decompressed size (uint32 each), then LZF-compressed data that
+    holds each field's values for all points in turn (field by field, not point by point).
+    """
+    with open(path, "rb") as f:
+        f.seek(offset)
+        sizes_raw = f.read(8)
+        if len(sizes_raw) < 8:
+            raise CloudFileError(path, "PCD file ends before its compressed data")
+        packed, unpacked = np.frombuffer(sizes_raw, "<u4")
+        data = f.read(int(packed))
+    if len(data) < packed:
+        raise CloudFileError(path, f"PCD file ends before its {packed} bytes of compressed data")
+    widths = [s * k for s, k in zip(sizes, counts)]
+    if unpacked != count * sum(widths):
+        raise CloudFileError(path, f"PCD header says {count} points of {sum(widths)} bytes, the compressed data "
+                                   f"holds {unpacked} bytes")
+    raw = _lzf_decompress(data, int(unpacked), path)
+    starts = np.cumsum([0] + widths)[:-1] * count
+    columns = []
+    for c in cols:
+        try:
+            dtype = np.dtype("<" + _PCD_TYPES[(types[c], sizes[c])])
+        except KeyError:
+            raise CloudFileError(path, f"unsupported PCD TYPE/SIZE of field {names[c]}: "
+                                       f"{types[c]}{sizes[c]}") from None
+        columns.append(np.frombuffer(raw, dtype, count=count, offset=int(starts[c])).astype(np.float64))
+    points = np.stack(columns, axis=1) if count else np.zeros((0, 3))
+    rows_kept = select(count)
+    return points if rows_kept is None else points[rows_kept]
+
+
+def _lzf_decompress(data: bytes, size: int, path: str) -> bytes:
+    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format; pure Python, about 1 s per
+    10 MB of output on one core).
+
+    The stream is a sequence of tokens, each opened by a control byte: below 32, a literal run of that many
+    bytes plus one; otherwise a back reference whose length (plus two) is the top three bits, extended by one
+    more byte where they are all set, and whose distance (minus one) is the low five bits followed by a byte.
+    """
+    out = bytearray()
+    pos, end = 0, len(data)
+    try:
+        while pos < end:
+            ctrl = data[pos]
+            pos += 1
+            if ctrl < 32:
+                if pos + ctrl + 1 > end:
+                    raise IndexError
+                out += data[pos:pos + ctrl + 1]
+                pos += ctrl + 1
+                continue
+            length = ctrl >> 5
+            if length == 7:
+                length += data[pos]
+                pos += 1
+            start = len(out) - ((ctrl & 0x1F) << 8) - data[pos] - 1
+            pos += 1
+            length += 2
+            if start < 0:
+                raise IndexError
+            if len(out) - start >= length:
+                out += out[start:start + length]
+            else:  # the reference overlaps what it writes: its bytes repeat with the distance as period
+                period = out[start:]
+                out += (period * (length // len(period) + 1))[:length]
+    except IndexError:
+        raise CloudFileError(path, "PCD compressed data is corrupt") from None
+    if len(out) != size:
+        raise CloudFileError(path, f"PCD compressed data unpacks to {len(out)} bytes, not {size}")
+    return bytes(out)
 
 
 _SEPARATOR = re.compile(r"[,\s;]+")
@@ -334,6 +451,167 @@ def _read_npy(path: str, select) -> tuple[np.ndarray, int]:
         raise CloudFileError(path, f"expected real numbers, got dtype {array.dtype}")
     rows_kept = select(len(array))
     return np.asarray(array if rows_kept is None else array[rows_kept], dtype=np.float64), len(array)
+
+
+# ------------------------------------------------------------------------------------------------ meshes
+
+
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices and triangles of an .obj, .off or .stl (ASCII or binary) mesh.
+
+    Polygons are split into triangle fans; OBJ's texture and normal indices, groups and materials, and OFF's
+    colours, are ignored.
+
+    Returns:
+      vertices: (V, 3) float64.
+      triangles: (F, 3) int64 indices into ``vertices`` (F may be 0: an OBJ file of vertices alone).
+
+    Raises:
+      CloudFileError: the file is missing, unreadable, of another format, malformed, or a face names a vertex
+        it does not have.
+    """
+    path = os.fspath(path)
+    ext = file_format(path, kind="mesh format", formats=MESH_FORMATS)
+    if not os.path.isfile(path):
+        raise CloudFileError(path, "no such file" if not os.path.exists(path) else "is not a file")
+    reader = {".obj": _read_obj, ".off": _read_off, ".stl": _read_stl}[ext]
+    try:
+        vertices, triangles = reader(path)
+    except CloudFileError:
+        raise
+    except (OSError, ValueError, IndexError, UnicodeDecodeError) as err:
+        raise CloudFileError(path, f"unreadable {ext[1:].upper()} file ({_first_line(err)})") from None
+    vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
+    triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= len(vertices)):
+        raise CloudFileError(path, f"a face names a vertex the file does not have (it has {len(vertices)})")
+    return vertices, triangles
+
+
+def sample_surface(vertices: np.ndarray, triangles: np.ndarray, n: int, *, seed: int = 0) -> np.ndarray:
+    """``n`` points uniformly distributed over a triangle mesh's surface area.
+
+    Args:
+      vertices: (V, 3).
+      triangles: (F, 3) vertex indices, F >= 1.
+      n: how many points.
+      seed: seeds the choice of triangles (by area) and the points within them.
+
+    Returns:
+      (n, 3) float64 points.
+
+    Raises:
+      ValueError: the triangles have no area (every one degenerate) or a non-finite one.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    if not np.isfinite(area).all():
+        raise ValueError("the mesh has triangles with NaN or Inf vertices")
+    if not area.sum() > 0:
+        raise ValueError(f"the mesh's {len(triangles)} triangles have no area")
+    rng = np.random.default_rng(seed)
+    chosen = rng.choice(len(triangles), size=n, p=area / area.sum())
+    u, v = rng.random((2, n))
+    outside = u + v > 1  # reflect into the triangle rather than draw again, so each triangle is filled evenly
+    u, v = np.where(outside, 1 - u, u), np.where(outside, 1 - v, v)
+    return a[chosen] + u[:, None] * (b - a)[chosen] + v[:, None] * (c - a)[chosen]
+
+
+def _read_mesh_as_points(path: str, select, n_samples: int, seed: int) -> tuple[np.ndarray, int]:
+    vertices, triangles = read_mesh(path)
+    if not len(vertices):
+        raise CloudFileError(path, "the mesh has no vertices")
+    if not len(triangles):  # an OBJ point cloud
+        rows_kept = select(len(vertices))
+        return (vertices if rows_kept is None else vertices[rows_kept]), len(vertices)
+    try:
+        return sample_surface(vertices, triangles, n_samples, seed=seed), n_samples
+    except ValueError as err:
+        raise CloudFileError(path, str(err)) from None
+
+
+def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(F, 3) triangles splitting each polygon (``counts[i]`` consecutive entries of ``corners``) into a fan."""
+    per_polygon = np.maximum(counts - 2, 0)  # a "face" of one or two corners has no area: nothing
+    polygon = np.repeat(np.arange(len(counts)), per_polygon)
+    first = (np.cumsum(counts) - counts)[polygon]
+    step = np.arange(len(polygon)) - (np.cumsum(per_polygon) - per_polygon)[polygon] + 1
+    return np.stack([corners[first], corners[first + step], corners[first + step + 1]], axis=1)
+
+
+def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
+    vertex_words, corner_words, counts, defined = [], [], [], []
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        for number, line in enumerate(f, 1):
+            if "#" in line:
+                line = line.split("#", 1)[0]
+            if line[:2] not in ("v ", "f ", "v\t", "f\t"):
+                continue  # texture coordinates, normals, groups, materials, lines, blank
+            words = line.split()
+            if words[0] == "v":
+                if len(words) < 4:
+                    raise CloudFileError(path, f"line {number}: a vertex needs three coordinates")
+                vertex_words.append(words[1:4])
+            else:
+                corner_words.extend(word.partition("/")[0] for word in words[1:])
+                counts.append(len(words) - 1)
+                defined.append(len(vertex_words))
+    vertices = np.asarray(vertex_words, np.float64).reshape(-1, 3)
+    corners = np.asarray(corner_words, dtype=np.int64)
+    defined = np.repeat(np.asarray(defined, np.int64), counts)
+    # 1-based, or negative: counted back from the last vertex defined before the face
+    corners = np.where(corners > 0, corners - 1, defined + corners)
+    if ((corners < 0) | (corners >= defined)).any():  # index 0 lands here too: defined + 0
+        raise CloudFileError(path, "a face names a vertex not defined before it")
+    return vertices, _fans(corners, np.asarray(counts, np.int64))
+
+
+def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        lines = [words for words in (line.split("#", 1)[0].split() for line in f) if words]
+    keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", lines[0][0], re.IGNORECASE) if lines else None
+    if keyword is None:
+        raise CloudFileError(path, "not an OFF file (no OFF header)" if not lines or "OFF" not in lines[0][0]
+                             else f"OFF variant {lines[0][0]!r} is not supported")
+    # Counts follow the keyword on its line (ModelNet's files even write "OFF490 518 0"), or on the next.
+    counts = ([keyword[2]] if keyword[2] else []) + lines[0][1:]
+    body = lines[1:]
+    if not counts and body:
+        counts, body = body[0], body[1:]
+    if len(counts) < 2:
+        raise CloudFileError(path, "OFF header without vertex and face counts")
+    n_vertices, n_faces = int(counts[0]), int(counts[1])
+    if len(body) < n_vertices + n_faces:
+        raise CloudFileError(path, f"OFF file ends before its {n_vertices} vertices and {n_faces} faces")
+    vertices = np.asarray([words[:3] for words in body[:n_vertices]], np.float64).reshape(-1, 3)
+    faces = body[n_vertices:n_vertices + n_faces]
+    sizes = np.asarray([int(words[0]) for words in faces], np.int64)
+    if any(len(words) <= size for words, size in zip(faces, sizes)):
+        raise CloudFileError(path, "an OFF face lists fewer corners than its count")
+    # a face's colour, if any, follows its corners on its line
+    corners = np.asarray([word for words, size in zip(faces, sizes) for word in words[1:size + 1]], np.int64)
+    return vertices, _fans(corners, sizes)
+
+
+def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        head = f.read(84)
+    count = int(np.frombuffer(head[80:84], "<u4")[0]) if len(head) == 84 else -1
+    if count >= 0 and size == 84 + 50 * count:  # binary: exact size; some binary files also start "solid"
+        record = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+        corners = np.fromfile(path, record, count=count, offset=84)["corners"].reshape(-1, 3)
+    elif head.lstrip().lower().startswith(b"solid"):
+        with open(path, "r", encoding="ascii", errors="replace") as f:
+            rows = [line.split()[1:4] for line in f if line.lstrip().lower().startswith("vertex")]
+        if len(rows) % 3:
+            raise CloudFileError(path, f"ASCII STL with {len(rows)} vertices, not three per facet")
+        corners = np.asarray(rows, np.float64).reshape(-1, 3)
+    else:
+        raise CloudFileError(path, "not an STL file (neither 'solid' text nor a binary file of its size)")
+    # STL repeats each corner in every facet that uses it; sampling needs no shared vertices
+    return corners.astype(np.float64), np.arange(len(corners)).reshape(-1, 3)
 
 
 # ----------------------------------------------------------------------------------------------- writers

@@ -24,6 +24,8 @@ import zipfile
 
 import numpy as np
 
+from dit_jax import io
+
 N_POINTS = 1024
 QUANT = 32767  # stored coordinates are int16 in units of 1 / QUANT
 OUT_DIR = pathlib.Path(__file__).resolve().parents[1] / "dit_jax" / "data" / "embedded"
@@ -111,19 +113,6 @@ def read_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
     return verts, tris
 
 
-def sample_surface(verts: np.ndarray, tris: np.ndarray, n: int, seed: int) -> np.ndarray | None:
-    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    if not np.isfinite(area).all() or area.sum() <= 0:
-        return None
-    rng = np.random.default_rng(seed)
-    chosen = rng.choice(len(tris), size=n, p=area / area.sum())
-    u, v = rng.random((2, n))
-    flip = u + v > 1
-    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
-    return a[chosen] + u[:, None] * (b - a)[chosen] + v[:, None] * (c - a)[chosen]
-
-
 def normalise(points: np.ndarray) -> np.ndarray:
     points = points - points.mean(axis=0)
     return points / np.max(np.linalg.norm(points, axis=1))
@@ -145,8 +134,9 @@ def build(furniture_dir: pathlib.Path) -> None:
                     verts = verts @ np.asarray(entry["modelRotation"].split(), np.float64).reshape(3, 3).T
                 verts = verts[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # y up -> z up (a rotation)
                 seed = int.from_bytes(hashlib.sha256(model_id.encode()).digest()[:8], "little")
-                points = sample_surface(verts, tris, N_POINTS, seed) if len(tris) else None
-                if points is None:
+                try:
+                    points = io.sample_surface(verts, tris, N_POINTS, seed=seed)
+                except ValueError:  # no triangles, or none with an area
                     print(f"skipped {model_id}: no surface", file=sys.stderr)
                     continue
                 records.append(dict(id=model_id, name=entry["name"], points=normalise(points),

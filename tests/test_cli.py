@@ -106,8 +106,8 @@ def _bad_inputs(folder):
     cases.append(("missing", folder / "nope.ply", "no such file"))
     (folder / "garbage.ply").write_bytes(b"\x00" * 64)
     cases.append(("unreadable", folder / "garbage.ply", "not a PLY file"))
-    (folder / "cloud.stl").write_text("solid x\n")
-    cases.append(("unknown format", folder / "cloud.stl", "unknown format"))
+    (folder / "cloud.las").write_text("LASF")
+    cases.append(("unknown format", folder / "cloud.las", "unknown format"))
     nan = rng.normal(size=(300, 3))
     nan[5, 0] = np.nan
     io.write(folder / "nan.npy", nan)
@@ -158,6 +158,48 @@ def test_large_clouds_are_downsampled_unless_refused(capsys, tmp_path, tiny_chec
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
                        "--max-points", 400, "--no-downsample")
     assert code == 2 and "above the limit of 400" in err and err.count("\n") == 1
+
+
+def test_nonfinite_points_refused_unless_left_out(capsys, tmp_path, tiny_checkpoint, pair):
+    """A target with NaN rows, as an organized PCD file marks pixels without a return: refused with the flag
+    named, or registered without them after one note that says how many were left out."""
+    folder, _, tgt = pair
+    holes = np.concatenate([tgt, np.full((200, 3), np.nan)])[np.random.default_rng(0).permutation(800)]
+    io.write(tmp_path / "holes.pcd", holes)
+    code, _, err = run(capsys, folder / "src.ply", tmp_path / "holes.pcd", "--checkpoint", tiny_checkpoint)
+    assert code == 2 and "200 of 800 points have NaN or Inf" in err and "--drop-nonfinite" in err
+    code, out, err = run(capsys, folder / "src.ply", tmp_path / "holes.pcd", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none", "--drop-nonfinite", "--max-points", 500)
+    assert code == 0 and "rotation" in out, err
+    assert err.splitlines() == [
+        f"dit-register: note: {folder / 'src.ply'}: 600 points, above --max-points; using a random 500",
+        f"dit-register: note: {tmp_path / 'holes.pcd'}: left out 200 of 800 points with NaN or Inf coordinates",
+        f"dit-register: note: {tmp_path / 'holes.pcd'}: 600 points, above --max-points; using a random 500"]
+
+
+def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, tiny_checkpoint, pair):
+    """An OBJ mesh (a bumpy sphere as a latitude-longitude grid) as SRC: sampled at io.MESH_POINTS (capped by
+    --max-points), registered, and --out writes the samples moved; a mesh cannot be an output."""
+    folder, _, _ = pair
+    theta, phi = np.meshgrid(np.linspace(0.1, np.pi - 0.1, 20), np.linspace(0, 2 * np.pi, 40, endpoint=False),
+                             indexing="ij")
+    d = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    vertices = d * (1 + 0.2 * np.sin(3 * d[:, :1]) * np.cos(2 * d[:, 1:2])) * 20.0 + 300.0
+    index = np.arange(20 * 40).reshape(20, 40)
+    quads = np.stack([index[:-1], np.roll(index, -1, 1)[:-1], np.roll(index, -1, 1)[1:], index[1:]], -1)
+    (tmp_path / "mesh.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices.tolist())
+                                       + "".join(f"f {' '.join(str(i + 1) for i in q)}\n" for q in quads.reshape(-1, 4)))
+    code, out, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none", "--max-points", 3000, "--out", tmp_path / "moved.ply")
+    assert code == 0 and "128 of 3000 source points" in out and err == "", err
+    rows = [line for line in out.splitlines() if line.strip().startswith("[")]
+    matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
+    samples = io.read(tmp_path / "mesh.obj", max_points=3000)  # the same seed: the same samples
+    np.testing.assert_allclose(io.read(tmp_path / "moved.ply"), samples @ matrix[:3, :3].T + matrix[:3, 3],
+                               atol=1e-4)
+    code, _, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                       "--out", tmp_path / "moved.obj")
+    assert code == 2 and "unknown output format '.obj'" in err
 
 
 def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tiny_checkpoint, pair):

@@ -119,8 +119,8 @@ def test_missing_file_directory_and_unknown_format(tmp_path):
     _bad(tmp_path / "none.ply", "no such file")
     os.mkdir(tmp_path / "dir.ply")
     _bad(tmp_path / "dir.ply", "directory")
-    (tmp_path / "c.obj").write_text("v 1 2 3\n")
-    _bad(tmp_path / "c.obj", "unknown format", ".ply")
+    (tmp_path / "c.las").write_text("v 1 2 3\n")
+    _bad(tmp_path / "c.las", "unknown format", ".ply", ".obj")
     (tmp_path / "noext").write_text("1 2 3\n")
     _bad(tmp_path / "noext", "unknown format")
 
@@ -144,6 +144,128 @@ def test_nan_and_inf_are_refused(tmp_path, cloud, name, bad_value):
     points[17, 1] = bad_value
     io.write(tmp_path / name, points)
     _bad(tmp_path / name, "NaN or Inf", "row 17")
+
+
+@pytest.mark.parametrize("name", ["n.ply", "n.pcd", "n.xyz", "n.npy"])
+def test_nonfinite_points_are_left_out_on_request(tmp_path, cloud, name):
+    points = cloud.copy()
+    points[::3] = np.nan  # an organized cloud's pixels without a return
+    points[1, 2] = np.inf
+    io.write(tmp_path / name, points)
+    finite = np.isfinite(points).all(axis=1)
+    with pytest.warns(io.NonFiniteWarning, match=f"left out {(~finite).sum()} of 257 points"):
+        back, total = io.read(tmp_path / name, drop_nonfinite=True, return_count=True)
+    assert total == finite.sum()
+    np.testing.assert_allclose(back, points[finite], rtol=1e-7)
+    with pytest.warns(io.NonFiniteWarning):  # the subset is drawn among the finite points: all of them are
+        sub, total = io.read(tmp_path / name, drop_nonfinite=True, return_count=True, max_points=100)
+    assert sub.shape == (100, 3) and total == finite.sum() and np.isfinite(sub).all()
+    assert (sub[:, None] == back[None]).all(axis=2).any(axis=1).all()
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning where nothing is left out
+        io.write(tmp_path / ("whole" + name[1:]), cloud)
+        np.testing.assert_allclose(io.read(tmp_path / ("whole" + name[1:]), drop_nonfinite=True), cloud, rtol=1e-7)
+    io.write(tmp_path / name, np.full((5, 3), np.nan))
+    _bad(tmp_path / name, "NaN or Inf", "row 0", "drop_nonfinite")
+    with pytest.raises(io.CloudFileError, match="all 5 points have NaN or Inf"):
+        io.read(tmp_path / name, drop_nonfinite=True)
+
+
+def test_compressed_pcd_as_open3d_writes_it(tmp_path, cloud):
+    o3d = pytest.importorskip("open3d", reason="writing compressed PCD files needs open3d (the test extra)")
+    points = np.concatenate([cloud, np.zeros((300, 3)), cloud[:50]])  # runs and repeats: back references
+    o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    o3d_cloud.colors = o3d.utility.Vector3dVector(np.random.default_rng(2).uniform(size=points.shape))
+    path = str(tmp_path / "c.pcd")
+    assert o3d.io.write_point_cloud(path, o3d_cloud, write_ascii=False, compressed=True)
+    assert b"DATA binary_compressed" in open(path, "rb").read(400)
+    np.testing.assert_array_equal(io.read(path), points.astype(np.float32))
+    np.testing.assert_array_equal(io.read(path, max_points=20, seed=3), io.read(path)[
+        np.sort(np.random.default_rng(3).choice(len(points), 20, replace=False))])
+
+
+def test_lzf_back_references_that_overlap_what_they_write():
+    # literal "ab"; 6 + 2 bytes from 2 back (short form); 7 + 3 + 2 bytes from 1 back (long form)
+    data = bytes([1]) + b"ab" + bytes([6 << 5, 1]) + bytes([7 << 5, 3, 0])
+    assert io._lzf_decompress(data, 2 + 8 + 12, "x") == b"ab" + b"abababab" + b"b" * 12
+    with pytest.raises(io.CloudFileError, match="unpacks to 22 bytes, not 23"):
+        io._lzf_decompress(data, 23, "x")
+
+
+def _box_mesh_files(tmp_path):
+    """A 2 x 1 x 0.5 box (area 7) as OBJ (quads, one face by negative indices), OFF (ModelNet's header) and
+    ASCII and binary STL."""
+    corners = np.array([[x, y, z] for x in (0, 2) for y in (0, 1) for z in (0, 0.5)], float)
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    obj = "# a box\no box\n" + "".join(f"v {x:g} {y:g} {z:g}\n" for x, y, z in corners) + "vt 0 0\nvn 0 0 1\n"
+    obj += "".join(f"f {' '.join(f'{i + 1}/1/1' for i in quad)}\n" for quad in quads[:-1])
+    obj += f"f {' '.join(str(i - 8) for i in quads[-1])}\n"
+    (tmp_path / "box.obj").write_text(obj)
+    off = f"OFF{len(corners)} {len(quads)} 0\n" + "".join(f"{x:g} {y:g} {z:g}\n" for x, y, z in corners)
+    off += "".join(f"4 {' '.join(map(str, quad))} 255 0 0\n" for quad in quads)  # with a colour
+    (tmp_path / "box.off").write_text(off)
+    triangles = np.array([[q[0], q[i], q[i + 1]] for q in quads for i in (1, 2)])
+    stl = "solid box\n" + "".join("facet normal 0 0 0\nouter loop\n" + "".join(
+        f"vertex {x:g} {y:g} {z:g}\n" for x, y, z in corners[t]) + "endloop\nendfacet\n" for t in triangles)
+    (tmp_path / "box_ascii.stl").write_text(stl + "endsolid box\n")
+    record = np.zeros(len(triangles), [("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+    record["corners"] = corners[triangles]
+    (tmp_path / "box.stl").write_bytes(b"solid: binary files may start so too".ljust(80) +
+                                       np.uint32(len(triangles)).tobytes() + record.tobytes())
+    return corners, ["box.obj", "box.off", "box_ascii.stl", "box.stl"]
+
+
+def test_meshes_are_sampled_uniformly_over_their_surface(tmp_path):
+    corners, names = _box_mesh_files(tmp_path)
+    for name in names:
+        vertices, triangles = io.read_mesh(tmp_path / name)
+        assert triangles.shape == (12, 3), name
+        a, b, c = (vertices[triangles[:, i]] for i in range(3))
+        assert np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2 == pytest.approx(7.0), name
+        points, count = io.read(tmp_path / name, mesh_points=14_000, seed=1, return_count=True)
+        assert points.shape == (14_000, 3) and count == 14_000
+        on_face = np.isclose(points, 0).any(axis=1) | np.isclose(points, [2, 1, 0.5]).any(axis=1)
+        assert on_face.all() and (points >= 0).all() and (points <= [2, 1, 0.5]).all()
+        top = np.isclose(points[:, 2], 0.5).mean()  # a face of area 2 of the 7
+        assert top == pytest.approx(2 / 7, abs=0.015), name
+        np.testing.assert_array_equal(points, io.read(tmp_path / name, mesh_points=14_000, seed=1))
+        assert io.read(tmp_path / name, max_points=500).shape == (500, 3)  # max_points caps the samples
+    assert not np.array_equal(io.read(tmp_path / names[0], seed=1), io.read(tmp_path / names[0], seed=2))
+
+
+def test_meshes_written_by_open3d(tmp_path):
+    o3d = pytest.importorskip("open3d", reason="cross-checking mesh formats needs open3d (the test extra)")
+    mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=12)
+    mesh.compute_triangle_normals()  # STL needs them
+    for name in ("s.obj", "s.off", "s.stl"):
+        assert o3d.io.write_triangle_mesh(str(tmp_path / name), mesh)
+        vertices, triangles = io.read_mesh(tmp_path / name)
+        back = o3d.io.read_triangle_mesh(str(tmp_path / name))
+        np.testing.assert_allclose(vertices[triangles], np.asarray(back.vertices)[np.asarray(back.triangles)],
+                                   atol=1e-6)
+
+
+def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path, cloud):
+    (tmp_path / "cloud.obj").write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in cloud.tolist()))
+    np.testing.assert_array_equal(io.read(tmp_path / "cloud.obj"), cloud)
+    assert io.read(tmp_path / "cloud.obj", max_points=10).shape == (10, 3)
+    bad_meshes = {
+        "later.obj": ("v 0 0 0\nf 1 2 3\nv 1 0 0\nv 0 1 0\n", "a face names a vertex not defined before it"),
+        "zero.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "not defined"),
+        "flat.obj": ("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n", "no area"),
+        "short.off": ("OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "ends before its 4 vertices and 2 faces"),
+        "far.off": ("OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "a face names a vertex the file does not have"),
+        "four.off": ("4OFF\n", "OFF variant '4OFF' is not supported"),
+        "empty.stl": ("solid empty\nendsolid empty\n", "no vertices"),
+    }
+    for name, (text, fragment) in bad_meshes.items():
+        (tmp_path / name).write_text(text)
+        _bad(tmp_path / name, fragment)
+    (tmp_path / "junk.stl").write_bytes(os.urandom(200))
+    _bad(tmp_path / "junk.stl", "not an STL file")
+    with pytest.raises(io.CloudFileError, match="unknown format '.obj'"):
+        io.write(tmp_path / "out.obj", cloud)  # meshes are read, not written
 
 
 def test_not_three_coordinates(tmp_path):
@@ -173,9 +295,15 @@ def test_malformed_and_truncated_files(tmp_path, cloud):
     _bad(tmp_path / "cut.pcd", "ends before its 257 points")
     (tmp_path / "words.xyz").write_text("1 2 3\nx y z\n")
     _bad(tmp_path / "words.xyz", "line 2 is not numbers")
-    (tmp_path / "c.pcd").write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\n"
-                                    "POINTS 1\nDATA binary_compressed\n")
-    _bad(tmp_path / "c.pcd", "binary_compressed", "re-save")
+    header = b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary_compressed\n"
+    (tmp_path / "c.pcd").write_bytes(header)
+    _bad(tmp_path / "c.pcd", "ends before its compressed data")
+    (tmp_path / "c.pcd").write_bytes(header + np.array([13, 12], "<u4").tobytes() + b"\x0f" + bytes(12))
+    _bad(tmp_path / "c.pcd", "corrupt")  # a literal run longer than the data left, or
+    (tmp_path / "c.pcd").write_bytes(header + np.array([2, 12], "<u4").tobytes() + b"\x20\x05")
+    _bad(tmp_path / "c.pcd", "corrupt")  # a reference before the start
+    (tmp_path / "c.pcd").write_bytes(header + np.array([13, 16], "<u4").tobytes() + b"\x0b" + bytes(12))
+    _bad(tmp_path / "c.pcd", "says 1 points of 12 bytes")
     (tmp_path / "noend.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\n")
     _bad(tmp_path / "noend.ply", "end_header")
 
