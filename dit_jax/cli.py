@@ -6,8 +6,8 @@
     dit-register scan_a.ply scan_b.ply --refine none --plot check.png   # the network alone; a picture
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
-three coordinates per point, all points identical) ends with one line on stderr naming the file and the
-problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf coordinates out
+three coordinates per point, all points identical or on one line) ends with one line on stderr naming the file
+and the problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf coordinates out
 instead (depth cameras mark pixels without a return so) and says how many. Clouds above ``--max-points`` are
 read as a random subset of that many points (say ``--no-downsample`` to refuse them instead). A mesh (a CAD
 model to find in a scan, say) is read as points sampled uniformly over its surface, so ``--out`` writes those

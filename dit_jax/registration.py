@@ -274,6 +274,13 @@ def check_cloud(name: str, points, min_points: int) -> np.ndarray:
     extent = float(np.ptp(array, axis=0).max())
     if extent <= 1e-9 * max(1.0, float(np.abs(array).max())):
         raise InputError(f"{name}: all {len(array)} points are the same point")
+    # A line leaves the rotation about itself undetermined, whatever the other cloud. Its spread across the
+    # line is zero up to rounding; a millionth of the spread along it is a line in float32, the network's type.
+    centred = array - array.mean(axis=0)
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))  # ascending
+    if spread[1] <= 1e-6 * spread[2]:
+        raise InputError(f"{name}: its {len(array)} points lie on one line, so no rotation about that line "
+                         f"can be told from another")
     return array
 
 

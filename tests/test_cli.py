@@ -122,10 +122,12 @@ def _bad_inputs(folder):
     cases.append(("not three coordinates", folder / "two.npy", "not three coordinates"))
     io.write(folder / "same.pcd", np.tile([[1.0, 2.0, 3.0]], (300, 1)))
     cases.append(("identical points", folder / "same.pcd", "same point"))
+    io.write(folder / "line.xyz", np.linspace(0, 1, 300)[:, None] * [1.0, 2.0, 3.0])
+    cases.append(("a line", folder / "line.xyz", "lie on one line"))
     return cases
 
 
-@pytest.mark.parametrize("case", range(8))
+@pytest.mark.parametrize("case", range(9))
 def test_bad_input_exits_2_with_one_line_and_no_output(capsys, tmp_path, tiny_checkpoint, pair, case):
     folder, _, _ = pair
     name, bad, fragment = _bad_inputs(tmp_path)[case]

@@ -73,6 +73,8 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
     (np.where(np.arange(300).reshape(100, 3) == 7, np.inf, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
     (np.random.default_rng(0).normal(size=(5, 3)), "needs at least"),
     (np.tile([[1000.0, 2.0, 3.0]], (100, 1)), "same point"),
+    (np.linspace(0, 1, 100)[:, None] * [3.0, -1.0, 2.0] + [1000.0, 2.0, 3.0], "lie on one line"),
+    (np.repeat([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 50, axis=0), "lie on one line"),
 ])
 def test_bad_clouds_are_refused_with_their_name(tiny_registrar, bad, fragment):
     good = np.random.default_rng(1).normal(size=(100, 3))
