@@ -58,7 +58,8 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
-                                            ".npy, text (.xyz .txt .csv .asc .pts);\nmeshes (.obj .off .stl) "
+                                            ".npy, text (.xyz .txt .csv .asc .pts), .las (read);\n"
+                                            "meshes (.obj .off .stl) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
     parser.add_argument("src", help="the cloud (or mesh) to move")
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.out is not None:  # checked before any work, so a bad --out costs nothing
         try:
-            io.file_format(args.out, kind="output format")
+            io.file_format(args.out, kind="output format", formats=io.WRITE_FORMATS)
         except io.CloudFileError as err:
             return _fail(str(err))
         if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):

@@ -1,5 +1,5 @@
-"""Point-cloud files: read and write .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) and .npy, refusing bad
-input with one-line errors.
+"""Point-cloud files: read and write .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) and .npy, read .las and
+meshes (.obj, .off, .stl), refusing bad input with one-line errors.
 
 Every reader returns an (N, 3) float64 array of coordinates and raises :class:`CloudFileError` (a ValueError
 whose message names the file and the problem) for anything it cannot turn into one: a missing or unreadable
@@ -15,6 +15,9 @@ those points out instead), or rows that are not three coordinates. Formats:
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
   ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
+* LAS (read only): ASPRS LAS 1.0-1.4, every point data format, memory-mapped; X, Y, Z scaled and offset as the
+  header says. Compressed LAZ is refused with the hint to decompress it.
+* Meshes (read only, :data:`MESH_FORMATS`): .obj, .off and .stl, sampled uniformly over their surface.
 
 Writers (:func:`write`) produce binary little-endian PLY (float or double as the input), binary float32 PCD
 (what PCL and Open3D read), text with enough digits to round-trip (17 for float64, 9 otherwise; .csv
@@ -32,7 +35,9 @@ import warnings
 
 import numpy as np
 
-FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy")
+FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".las")
+#: The formats :func:`write` writes: all but LAS, which is read only.
+WRITE_FORMATS = tuple(f for f in FORMATS if f != ".las")
 #: Meshes, read (not written) as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`).
 MESH_FORMATS = (".obj", ".off", ".stl")
 #: How many surface points :func:`read` samples from a mesh: far more than registration samples from a cloud.
@@ -117,7 +122,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         def reader(path_, select_):
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     else:
-        reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy}.get(ext, _read_text)
+        reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las}.get(ext, _read_text)
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
@@ -154,7 +159,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
 def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> None:
     """Writes (N, 3) points as .ply, .pcd (binary unless ``binary=False``), text or .npy, atomically."""
     path = os.fspath(path)
-    ext = file_format(path)
+    ext = file_format(path, formats=WRITE_FORMATS)
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
@@ -283,6 +288,30 @@ def _read_ply(path: str, select) -> tuple[np.ndarray, int]:
     start = offset + sum(e[1] * record(e[2]).itemsize for e in elements[:index])
     table = _binary_records(path, record(props), start, count, select, "PLY file ends before its {} vertices")
     return np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1), count
+
+
+def _read_las(path: str, select) -> tuple[np.ndarray, int]:
+    """LAS 1.0-1.4 (ASPRS), any point data format: each record opens with X, Y, Z as int32, in units of the
+    header's scale, from its offset. LAZ (compressed) is refused."""
+    with open(path, "rb") as f:
+        header = f.read(375)
+    if len(header) < 227 or header[:4] != b"LASF":
+        raise CloudFileError(path, "not a LAS file (no LASF signature)")
+    version = (header[24], header[25])
+    data_offset = int(np.frombuffer(header, "<u4", 1, 96)[0])
+    point_format, record_length = header[104], int(np.frombuffer(header, "<u2", 1, 105)[0])
+    if point_format & 0xC0:  # LAZ marks compressed records in the top bits of the format
+        raise CloudFileError(path, "compressed LAS (LAZ) is not supported; decompress it first (laszip)")
+    count = int(np.frombuffer(header, "<u4", 1, 107)[0])
+    if version >= (1, 4) and len(header) >= 255:  # 1.4 keeps a 64-bit count; the legacy one may be 0
+        count = max(count, int(np.frombuffer(header, "<u8", 1, 247)[0]))
+    scale = np.frombuffer(header, "<f8", 3, 131)
+    offset = np.frombuffer(header, "<f8", 3, 155)
+    if record_length < 12:
+        raise CloudFileError(path, f"LAS point records of {record_length} bytes cannot hold X, Y, Z")
+    record = np.dtype({"names": ["xyz"], "formats": [("<i4", 3)], "offsets": [0], "itemsize": record_length})
+    table = _binary_records(path, record, data_offset, count, select, "LAS file ends before its {} points")
+    return table["xyz"] * scale + offset, count
 
 
 def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:

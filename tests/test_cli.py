@@ -106,8 +106,8 @@ def _bad_inputs(folder):
     cases.append(("missing", folder / "nope.ply", "no such file"))
     (folder / "garbage.ply").write_bytes(b"\x00" * 64)
     cases.append(("unreadable", folder / "garbage.ply", "not a PLY file"))
-    (folder / "cloud.las").write_text("LASF")
-    cases.append(("unknown format", folder / "cloud.las", "unknown format"))
+    (folder / "cloud.e57").write_text("ASTM-E57")
+    cases.append(("unknown format", folder / "cloud.e57", "unknown format"))
     nan = rng.normal(size=(300, 3))
     nan[5, 0] = np.nan
     io.write(folder / "nan.npy", nan)

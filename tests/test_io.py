@@ -119,8 +119,8 @@ def test_missing_file_directory_and_unknown_format(tmp_path):
     _bad(tmp_path / "none.ply", "no such file")
     os.mkdir(tmp_path / "dir.ply")
     _bad(tmp_path / "dir.ply", "directory")
-    (tmp_path / "c.las").write_text("v 1 2 3\n")
-    _bad(tmp_path / "c.las", "unknown format", ".ply", ".obj")
+    (tmp_path / "c.e57").write_text("v 1 2 3\n")
+    _bad(tmp_path / "c.e57", "unknown format", ".ply", ".las", ".obj")
     (tmp_path / "noext").write_text("1 2 3\n")
     _bad(tmp_path / "noext", "unknown format")
 
@@ -191,6 +191,33 @@ def test_lzf_back_references_that_overlap_what_they_write():
     assert io._lzf_decompress(data, 2 + 8 + 12, "x") == b"ab" + b"abababab" + b"b" * 12
     with pytest.raises(io.CloudFileError, match="unpacks to 22 bytes, not 23"):
         io._lzf_decompress(data, 23, "x")
+
+
+@pytest.mark.parametrize("version,point_format", [("1.2", 0), ("1.2", 3), ("1.4", 6), ("1.4", 8)])
+def test_las_files_as_laspy_writes_them(tmp_path, cloud, version, point_format):
+    laspy = pytest.importorskip("laspy", reason="writing LAS files needs laspy (the test extra)")
+    header = laspy.LasHeader(point_format=point_format, version=version)
+    header.scales, header.offsets = [0.001, 0.001, 0.0001], [1000.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud.T
+    las.write(str(tmp_path / "a.las"))
+    back = laspy.read(str(tmp_path / "a.las"))
+    expected = np.stack([back.x, back.y, back.z], axis=1)
+    np.testing.assert_array_equal(io.read(tmp_path / "a.las"), expected)
+    np.testing.assert_allclose(expected, cloud, atol=5e-4)  # the scale's rounding
+    rows = np.sort(np.random.default_rng(4).choice(len(cloud), 50, replace=False))
+    np.testing.assert_array_equal(io.read(tmp_path / "a.las", max_points=50, seed=4), expected[rows])
+    data = bytearray((tmp_path / "a.las").read_bytes())
+    data[104] |= 0x80  # how LAZ marks its compressed records
+    (tmp_path / "b.las").write_bytes(bytes(data))
+    _bad(tmp_path / "b.las", "LAZ", "not supported")
+    data[104] &= 0x3F
+    (tmp_path / "c.las").write_bytes(bytes(data[:-40]))
+    _bad(tmp_path / "c.las", f"ends before its {len(cloud)} points")
+    (tmp_path / "d.las").write_bytes(b"LASX" + bytes(data[4:]))
+    _bad(tmp_path / "d.las", "not a LAS file")
+    with pytest.raises(io.CloudFileError, match="unknown format '.las'"):
+        io.write(tmp_path / "e.las", cloud)  # read only
 
 
 def _box_mesh_files(tmp_path):
