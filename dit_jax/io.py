@@ -8,8 +8,8 @@ those points out instead), or rows that are not three coordinates. Formats:
 
 * PLY: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``; the ``x``, ``y``, ``z`` properties of the
   ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped.
-* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python: about a second per
-  10 MB of fields) with fields ``x y z`` (any others skipped).
+* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python: 0.1-0.8 s for a
+  million points, docs/BENCHMARKS.md "Reading files") with fields ``x y z`` (any others skipped).
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third (normals, colours, intensity) are ignored, ``#`` starts a comment, and a first
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
@@ -144,7 +144,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
                                    f"(first at row {int(np.argmax(bad))}); to leave them out, read with "
                                    f"drop_nonfinite=True (dit-register --drop-nonfinite)")
     if drop_nonfinite:
-        if bad.all():
+        if len(points) and bad.all():
             raise CloudFileError(path, f"all {len(points)} points have NaN or Inf coordinates")
         if bad.any():
             warnings.warn(NonFiniteWarning(path, int(bad.sum()), len(points)), stacklevel=2)
@@ -397,8 +397,8 @@ def _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count,
 
 
 def _lzf_decompress(data: bytes, size: int, path: str) -> bytes:
-    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format; pure Python, about 1 s per
-    10 MB of output on one core).
+    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format; pure Python: 0.1-0.8 s for 12-15 MB
+    of output, depending on how many short repeats it holds).
 
     The stream is a sequence of tokens, each opened by a control byte: below 32, a literal run of that many
     bytes plus one; otherwise a back reference whose length (plus two) is the top three bits, extended by one
@@ -442,6 +442,7 @@ _SEPARATOR = re.compile(r"[,\s;]+")
 
 def _is_header(values: list[str]) -> bool:
     """Whether a text file's first line is a header: column names (not all numbers) or a lone point count."""
+    values = [v for v in values if v]  # a trailing separator leaves an empty value
     try:
         [float(v) for v in values]
     except ValueError:
@@ -450,6 +451,39 @@ def _is_header(values: list[str]) -> bool:
 
 
 def _read_text(path: str, select) -> tuple[np.ndarray, int]:
+    points = _read_text_fast(path)
+    if points is None:
+        points = _read_text_by_line(path)
+    rows_kept = select(len(points))
+    return (points if rows_kept is None else points[rows_kept]), len(points)
+
+
+def _read_text_fast(path: str) -> np.ndarray | None:
+    """The points of a regular text file by NumPy's C parser (five times faster than Python's), or None where
+    the file is anything else (a short row, a mixed separator, bad bytes): the line-by-line reader then reads
+    it or says which line is wrong."""
+    try:
+        with open(path, "r", encoding="utf-8", errors="strict") as f:
+            lines = (line.split("#", 1)[0].strip() for line in f)
+            numbered = ((number, line) for number, line in enumerate(lines, 1) if line)
+            number, line = next(numbered, (0, ""))
+            skip = number - 1
+            if line and _is_header(_SEPARATOR.split(line)):
+                skip = number
+                line = next(numbered, (0, ""))[1]  # the separator is the data's, not the header's
+        if not line:
+            return np.zeros((0, 3))
+        delimiter = "," if "," in line else ";" if ";" in line else None
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": the line-by-line reader decides
+            points = np.loadtxt(path, dtype=np.float64, comments="#", delimiter=delimiter, skiprows=skip,
+                                usecols=(0, 1, 2), ndmin=2, encoding="utf-8")
+    except (ValueError, UnicodeDecodeError, IndexError):
+        return None
+    return points
+
+
+def _read_text_by_line(path: str) -> np.ndarray:
     rows, first = [], True
     with open(path, "r", encoding="utf-8", errors="strict") as f:
         for number, line in enumerate(f, 1):
@@ -467,9 +501,7 @@ def _read_text(path: str, select) -> tuple[np.ndarray, int]:
                 rows.append([float(v) for v in values[:3]])
             except ValueError:
                 raise CloudFileError(path, f"line {number} is not numbers: {line[:60]!r}") from None
-    points = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-    rows_kept = select(len(points))
-    return (points if rows_kept is None else points[rows_kept]), len(points)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
 
 
 def _read_npy(path: str, select) -> tuple[np.ndarray, int]:

@@ -295,6 +295,26 @@ def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path
         io.write(tmp_path / "out.obj", cloud)  # meshes are read, not written
 
 
+def test_text_files_read_alike_by_both_readers(tmp_path):
+    """NumPy's parser reads regular files; the line-by-line reader the rest. Both give the same points."""
+    files = {
+        "a.xyz": "1 2 3\n4\t5 6 7\n\n",  # tabs, a fourth column, a blank line
+        "b.csv": "x,y,z\n1, 2, 3\n4,5,6\n",
+        "c.txt": "# from CloudCompare\n\n//X,Y,Z\n1;2;3;9\n4;5;6;9 # a comment\n",
+        "d.csv": "1,2,3,\n4,5,6,\n",  # a trailing separator is no header
+        "e.xyz": "1,2,3\n4 5 6\n",  # separators mixed: line by line only
+    }
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+        np.testing.assert_array_equal(io.read(tmp_path / name), [[1, 2, 3], [4, 5, 6]], err_msg=name)
+        by_line = io._read_text_by_line(str(tmp_path / name))
+        np.testing.assert_array_equal(by_line, [[1, 2, 3], [4, 5, 6]], err_msg=name)
+        fast = io._read_text_fast(str(tmp_path / name))
+        assert (fast is None) == (name == "e.xyz") and (fast is None or np.array_equal(fast, by_line)), name
+    (tmp_path / "empty.xyz").write_text("# nothing\n")
+    assert io.read(tmp_path / "empty.xyz", drop_nonfinite=True).shape == (0, 3)
+
+
 def test_not_three_coordinates(tmp_path):
     np.save(tmp_path / "two.npy", np.zeros((10, 2)))
     _bad(tmp_path / "two.npy", "not three coordinates", "(10, 2)")
