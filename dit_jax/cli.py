@@ -103,40 +103,49 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _fail(message: str) -> int:
-    print(f"{PROG}: error: {' '.join(str(message).split())}", file=sys.stderr)
+def _fail(message: str, prog: str = PROG) -> int:
+    print(f"{prog}: error: {' '.join(str(message).split())}", file=sys.stderr)
     return 2
 
 
-def _read(path: str, args) -> np.ndarray:
+def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", io.NonFiniteWarning)
         points, total = io.read(path, max_points=args.max_points, seed=args.seed, return_count=True,
                                 drop_nonfinite=args.drop_nonfinite)
     for warning in caught:
         if issubclass(warning.category, io.NonFiniteWarning):
-            print(f"{PROG}: note: {warning.message}", file=sys.stderr)
+            print(f"{prog}: note: {warning.message}", file=sys.stderr)
         else:
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     if total > len(points):
         if args.no_downsample:
             raise io.CloudFileError(path, f"{total:,} points, above the limit of {args.max_points:,} "
                                           f"(--max-points); drop --no-downsample to use a random subset")
-        print(f"{PROG}: note: {path}: {total:,} points, above --max-points; using a random {len(points):,}",
+        print(f"{prog}: note: {path}: {total:,} points, above --max-points; using a random {len(points):,}",
               file=sys.stderr)
     return points
+
+
+def _output_problem(path: str | None) -> str | None:
+    """What is wrong with an --out path (a format not written, a missing folder), or None."""
+    if path is None:
+        return None
+    try:
+        io.file_format(path, kind="output format", formats=io.WRITE_FORMATS)
+    except io.CloudFileError as err:
+        return str(err)
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        return f"{path}: its folder does not exist"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
 
-    if args.out is not None:  # checked before any work, so a bad --out costs nothing
-        try:
-            io.file_format(args.out, kind="output format", formats=io.WRITE_FORMATS)
-        except io.CloudFileError as err:
-            return _fail(str(err))
-        if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
-            return _fail(f"{args.out}: its folder does not exist")
+    problem = _output_problem(args.out)  # checked before any work, so a bad --out costs nothing
+    if problem:
+        return _fail(problem)
     if args.plot is not None:
         if not args.plot.lower().endswith(".png"):
             return _fail(f"--plot {args.plot}: expected a .png file name")
@@ -154,6 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     from dit_jax import registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.convert import ConversionError
+    from dit_jax.geometry import rotation_angle_deg
 
     try:
         src = _read(args.src, args)
@@ -197,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
             print(result.matrix)
-        angle = np.degrees(np.arccos(np.clip((np.trace(result.rotation) - 1) / 2, -1, 1)))
+        angle = rotation_angle_deg(result.rotation)
         print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} "
               f"(units of the input)")
         print(f"{'trusted' if result.verdict else 'suspect'}: {result.evidence()}")
@@ -213,6 +223,114 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: warning: the result is not confirmed and may be wrong: {result.evidence()}", file=sys.stderr)
         return 0 if args.no_verdict_status else EXIT_SUSPECT
     return 0
+
+
+SERIES_PROG = "dit-register-series"
+
+
+def _series_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=SERIES_PROG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Register a series of scans, each onto the one before, and print every scan's pose in the "
+                    "first one's frame (dit_jax.series).",
+        epilog="Prints each scan's 4x4 pose (x_first = R x_scan + t) and each link's verdict. With --loop the "
+               "last scan is registered onto the first too and the loop's gap (the motion left after going "
+               "once around it) is spread over the links. Exit status 3 where a link is suspect or the loop's "
+               f"gap exceeds {LOOP_GAP_WARNING_DEG:g} degrees (a link is then most likely wrong); 2 on bad input.")
+    parser.add_argument("scans", nargs="+", help="the scans (or meshes) in the order they were taken, at least 2")
+    parser.add_argument("--loop", action="store_true",
+                        help="the last scan overlaps the first (a full turn): close the loop")
+    parser.add_argument("--checkpoint", default=None,
+                        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
+    parser.add_argument("--out", default=None, help="write every scan moved into the first one's frame, as one cloud")
+    parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
+    parser.add_argument("--refine", choices=("none", "icp"), default="icp",
+                        help="icp (default) or none: the network alone for every link")
+    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
+                        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
+    parser.add_argument("--no-downsample", action="store_true",
+                        help="refuse clouds above --max-points instead of reading a random subset")
+    parser.add_argument("--drop-nonfinite", action="store_true",
+                        help="leave out points with NaN or Inf coordinates instead of refusing the file")
+    parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-verdict-status", action="store_true",
+                        help=f"exit 0 even when a link is suspect or the loop's gap is large (else {EXIT_SUSPECT})")
+    compile_cache.add_arguments(parser)
+    return parser
+
+
+#: ``dit-register-series`` warns where the loop's rotation gap exceeds this many degrees: the links' own errors
+#: (a few tenths of a degree each on the dragon's scans) sum to far less.
+LOOP_GAP_WARNING_DEG = 5.0
+
+
+def series_main(argv: list[str] | None = None) -> int:
+    """``dit-register-series SCAN SCAN [SCAN ...] [--loop]``: see :func:`_series_parser`."""
+    args = _series_parser().parse_args(argv)
+    fail = lambda message: _fail(message, SERIES_PROG)  # noqa: E731
+    if len(args.scans) < (3 if args.loop else 2):
+        return fail(f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
+                    f"got {len(args.scans)}")
+    problem = _output_problem(args.out)
+    if problem:
+        return fail(problem)
+    if args.max_points < 1:
+        return fail(f"--max-points must be positive, got {args.max_points}")
+    compile_cache.from_args(args)
+    from tqdm import tqdm
+
+    from dit_jax import registration, series
+    from dit_jax.checkpoint import CheckpointError
+    from dit_jax.geometry import rotation_angle_deg
+    from dit_jax.convert import ConversionError
+
+    try:
+        clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
+        model = registration.load(args.checkpoint, seed=args.seed)
+        n_links = len(clouds) - 1 + bool(args.loop)
+        with tqdm(total=n_links, desc="links", unit="link", file=sys.stderr,
+                  disable=args.no_progress or not sys.stderr.isatty()) as bar:
+            try:
+                result = series.register_series(model, clouds, loop=args.loop, refine=args.refine,
+                                                 progress=lambda done, total: bar.update(1))
+            except registration.InputError as err:
+                return fail(str(err))
+        if args.out is not None:
+            io.write(args.out, result.merged(clouds))
+    except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
+        return fail(str(err))
+
+    pairs = [(k + 1, k) for k in range(len(clouds) - 1)] + ([(0, len(clouds) - 1)] if args.loop else [])
+    names = args.scans
+    if args.json:
+        report = {"scans": names, "poses": result.poses.tolist(), "out": args.out,
+                  "links": [{"source": names[a], "target": names[b]} | link.to_json()
+                            for (a, b), link in zip(pairs, result.links)],
+                  "loop_gap_deg": None if np.isnan(result.loop_gap_deg) else result.loop_gap_deg,
+                  "loop_gap": None if np.isnan(result.loop_gap) else result.loop_gap}
+        print(json.dumps(report, indent=2))
+    else:
+        with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
+            for name, pose in zip(names, result.poses):
+                print(f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
+                      f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame")
+                print(pose)
+        for (a, b), link in zip(pairs, result.links):
+            print(f"{names[a]} onto {names[b]}: {'trusted' if link.verdict else 'suspect'}: {link.evidence()}")
+        if args.loop:
+            print(f"loop: gap {result.loop_gap_deg:.3f} deg and {result.loop_gap:.6g} (units of the input) "
+                  f"before closing, spread over {n_links} links")
+        if args.out is not None:
+            print(f"wrote {args.out}")
+    problems = [f"{names[a]} onto {names[b]} is not confirmed" for (a, b), link in zip(pairs, result.links)
+                if not link.verdict]
+    if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:
+        problems.append(f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
+                        f"a link is most likely wrong")
+    for problem in problems:
+        print(f"{SERIES_PROG}: warning: {problem}", file=sys.stderr)
+    return EXIT_SUSPECT if problems and not args.no_verdict_status else 0
 
 
 if __name__ == "__main__":

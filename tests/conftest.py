@@ -77,6 +77,21 @@ def dragon_dir() -> pathlib.Path:
     return DRAGON_DIR
 
 
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory) -> str:
+    """An untrained tiny network's checkpoint whose verdict trusts everything: for tests of the command line
+    and the file handling around the network, not of its accuracy."""
+    import jax
+
+    from dit_jax import checkpoint, configs, model
+
+    config = configs.tiny()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny"
+    return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
+                           extra={"inference_points": 128, "verdict_min_fitness": 0.0,
+                                  "verdict_max_disagreement": {"none": 180.0, "icp": 180.0}})
+
+
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A uniformly random rotation (det +1) from the QR of a Gaussian matrix."""
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))

@@ -16,16 +16,6 @@ from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
 @pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory) -> str:
-    config = configs.tiny()
-    path = tmp_path_factory.mktemp("ckpt") / "tiny"
-    # An untrained network: its verdict would be "suspect"; these tests are about everything else.
-    return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_min_fitness": 0.0,
-                                  "verdict_max_disagreement": {"none": 180.0, "icp": 180.0}})
-
-
-@pytest.fixture(scope="module")
 def pair(tmp_path_factory):
     """A smooth surface (a bumpy sphere) and the same surface moved, shuffled, as two files."""
     rng = np.random.default_rng(0)

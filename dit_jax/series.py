@@ -1,0 +1,133 @@
+"""A series of scans into one frame: each scan registered onto the one before, the motions chained, and, where
+the series closes on itself (a turntable, a walk around an object), the loop's gap spread over its links.
+
+    from dit_jax import io, registration, series
+    scans = [io.read(p) for p in paths]                     # in the order they were taken
+    result = series.register_series(registration.load(), scans, loop=True)
+    result.poses          # (K, 4, 4): scan k's points into scan 0's frame
+    result.merged(scans)  # one cloud
+
+Pairwise registration errors add up along a chain; a closed loop measures their sum (``loop_gap_deg``: the
+rotation of the chained motions around the loop, which would be the identity without error) and
+:func:`close_loop` takes it back out, a share per link, as a least-squares pose graph over one cycle does.
+A link the verdict does not confirm is reported (``suspect_links``), not dropped: the chain needs every link.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from dit_jax import geometry
+
+
+@dataclasses.dataclass(frozen=True)
+class SeriesResult:
+    """Scans of a series in one frame.
+
+    Attributes:
+      poses: (K, 4, 4) float64: scan k's points into scan 0's frame (``x0 = R_k x_k + t_k``; poses[0] = I),
+        after loop closure where the series was registered as a loop.
+      links: the registrations, one :class:`dit_jax.registration.Result` per link: scan k + 1 onto scan k for
+        k = 0..K-2, then (loop) scan 0 onto scan K-1.
+      loop_gap_deg: the rotation (degrees) left after going once around the loop on the links' motions; 0
+        for a perfect loop, NaN without one. Each link's share of the correction is this over the link count.
+      loop_gap: the translation left after going once around the loop, its rotation taken out, in the
+        input's units; NaN without a loop.
+    """
+
+    poses: np.ndarray
+    links: tuple
+    loop_gap_deg: float = float("nan")
+    loop_gap: float = float("nan")
+
+    @property
+    def suspect_links(self) -> list[int]:
+        """Indices (into ``links``) of the links whose verdict is negative."""
+        return [k for k, link in enumerate(self.links) if not link.verdict]
+
+    def apply(self, clouds: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Each (N_k, 3) cloud moved into scan 0's frame."""
+        if len(clouds) != len(self.poses):
+            raise ValueError(f"{len(clouds)} clouds for a series of {len(self.poses)}")
+        return [np.asarray(c, np.float64) @ pose[:3, :3].T + pose[:3, 3] for c, pose in zip(clouds, self.poses)]
+
+    def merged(self, clouds: Sequence[np.ndarray]) -> np.ndarray:
+        """(sum N_k, 3): every cloud moved into scan 0's frame, in order."""
+        return np.concatenate(self.apply(clouds))
+
+
+def chain(motions: np.ndarray) -> np.ndarray:
+    """Poses from consecutive motions: (K-1, 4, 4) motions, motion k moving scan k + 1 onto scan k, give
+    (K, 4, 4) poses of every scan in scan 0's frame (pose 0 = I, pose k+1 = pose k @ motion k)."""
+    motions = np.asarray(motions, np.float64)
+    poses = [np.eye(4)]
+    for motion in motions:
+        poses.append(poses[-1] @ motion)
+    return np.stack(poses)
+
+
+def close_loop(motions: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Poses of a closed series: K motions around the loop (motion k moves scan k + 1 onto scan k, the last
+    scan 0 onto scan K-1), whose product would be the identity without error.
+
+    The chained poses miss the start by the loop's gap. Rotations: pose k is turned back by k / K of the gap's
+    rotation (its axis-angle vector), so every link takes the same share. Translations: given those rotations,
+    each link's translation constrains two poses linearly; over one cycle with equal weights the least-squares
+    solution subtracts k / K of the summed translation residual from pose k.
+
+    Returns:
+      poses: (K, 4, 4), pose 0 the identity.
+      gap_deg: the loop's rotation gap in degrees before closure.
+      gap: its translation gap (the norm of the summed residual), in the motions' units.
+    """
+    from scipy.spatial.transform import Rotation
+
+    motions = np.asarray(motions, np.float64)
+    k_links = len(motions)
+    around = chain(motions)  # K + 1 poses; the last is scan 0 again, off by the gap
+    gap_rotation = around[-1, :3, :3]
+    gap_deg = geometry.rotation_angle_deg(gap_rotation)
+    turn_back = Rotation.from_matrix(gap_rotation).as_rotvec()
+    poses = np.tile(np.eye(4), (k_links, 1, 1))
+    for k in range(k_links):
+        share = Rotation.from_rotvec(-turn_back * k / k_links).as_matrix()
+        poses[k, :3, :3] = share @ around[k, :3, :3]
+    # Link k says t_{k+1} = t_k + R_k tau_k (with t_K = t_0 = 0): the steps below, re-turned, sum to the gap.
+    steps = np.stack([poses[k, :3, :3] @ motions[k, :3, 3] for k in range(k_links)])
+    residual = steps.sum(axis=0)
+    for k in range(1, k_links):
+        poses[k, :3, 3] = steps[:k].sum(axis=0) - residual * k / k_links
+    return poses, gap_deg, float(np.linalg.norm(residual))
+
+
+def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = False, refine: str | None = None,
+                    progress: Callable[[int, int], None] | None = None) -> SeriesResult:
+    """Registers each cloud onto the one before it and puts them all in the first one's frame.
+
+    Args:
+      registrar: a :class:`dit_jax.registration.Registrar` (``registration.load()``).
+      clouds: K >= 2 (N_k, 3) clouds in the order they were taken, so that neighbours overlap.
+      loop: the last also overlaps the first (a turntable's full turn): register it onto the last as well
+        and close the loop (:func:`close_loop`). Needs K >= 3.
+      refine: passed to ``registrar.register`` (None: its default, ICP).
+      progress: called as ``progress(done, total)`` after each link.
+
+    Returns :class:`SeriesResult`.
+    """
+    if len(clouds) < 2 or (loop and len(clouds) < 3):
+        raise ValueError(f"a series needs at least {3 if loop else 2} clouds{' for a loop' if loop else ''}, "
+                         f"got {len(clouds)}")
+    pairs = [(k + 1, k) for k in range(len(clouds) - 1)] + ([(0, len(clouds) - 1)] if loop else [])
+    links = []
+    for done, (source, target) in enumerate(pairs, 1):
+        links.append(registrar.register(clouds[source], clouds[target], refine=refine))
+        if progress is not None:
+            progress(done, len(pairs))
+    motions = np.stack([link.matrix for link in links])
+    if loop:
+        poses, gap_deg, gap = close_loop(motions)
+        return SeriesResult(poses, tuple(links), gap_deg, gap)
+    return SeriesResult(chain(motions), tuple(links))

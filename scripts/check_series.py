@@ -1,0 +1,93 @@
+"""A real scan series into one frame: every scan of a Stanford .conf series registered onto the one before,
+chained, and the loop closed (`dit_jax.series`), against the poses the .conf records.
+
+    python scripts/check_series.py --scans ../shared/data/stanford_dragon_stand [--refine icp] [--plot F.png]
+
+Prints a markdown table, per scan: its rotation error in the first scan's frame and how far its points land
+from where the true pose puts them, chained and with the loop closed, and the link that reaches it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from dit_jax import geometry, registration, series
+from dit_jax.data import scans as scan_data
+
+
+def pose_errors(poses: np.ndarray, truth: np.ndarray, clouds) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation errors (degrees) of (K, 4, 4) poses against the truth, and how far each scan's points land
+    from where the true pose puts them (mean distance): the merged cloud's error, which a pose's translation
+    alone (at the scanner's origin, far from the object) does not measure."""
+    rotation = np.array([geometry.rotation_angle_deg(p[:3, :3].T @ q[:3, :3]) for p, q in zip(poses, truth)])
+    offsets = [np.linalg.norm(c @ (p[:3, :3] - q[:3, :3]).T + (p[:3, 3] - q[:3, 3]), axis=1).mean()
+               for p, q, c in zip(poses, truth, clouds)]
+    return rotation, np.array(offsets)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scans", required=True, help="a directory of scans with a Stanford .conf")
+    parser.add_argument("--refine", choices=("icp", "none"), default="icp")
+    parser.add_argument("--plot", default=None, help="also plot each scan's errors, chained and closed, here (PNG)")
+    args = parser.parse_args()
+
+    scans = scan_data.load_scans(args.scans)
+    truth = np.stack([np.linalg.inv(scans[0].pose) @ s.pose for s in scans])
+    clouds = [s.points for s in scans]
+    start = time.perf_counter()
+    result = series.register_series(registration.load(), clouds, loop=True, refine=args.refine,
+                                    progress=lambda done, total: print(f"link {done} of {total}", flush=True))
+    seconds = time.perf_counter() - start
+    chained = series.chain(np.stack([link.matrix for link in result.links[:-1]]))
+    extent = float(np.linalg.norm(np.ptp(clouds[0], axis=0)))
+    rot_chain, shift_chain = pose_errors(chained, truth, clouds)
+    rot_loop, shift_loop = pose_errors(result.poses, truth, clouds)
+
+    print(f"\n{len(scans)} scans, {len(result.links)} links, {seconds:.0f} s; loop gap {result.loop_gap_deg:.3f} deg "
+          f"and {result.loop_gap:.5f} ({result.loop_gap / extent:.4f} of the first scan's diagonal)\n")
+    # link k moves scan k + 1 (scan 0 for the loop's last link) onto scan k
+    link_truth = [np.linalg.inv(truth[k]) @ truth[(k + 1) % len(scans)] for k in range(len(result.links))]
+    link_errors = [geometry.rotation_angle_deg(link.rotation.T @ t[:3, :3])
+                   for link, t in zip(result.links, link_truth)]
+    print("| scan | link into it: verdict / its own error (deg) | chained: deg / points off | loop closed: deg / "
+          "points off |\n|---|---|---|---|")
+    for k, scan in enumerate(scans):
+        link = f"link from {scans[-1].name}: " if k == 0 else ""
+        k_link = (k - 1) % len(scans)
+        verdict = "trusted" if result.links[k_link].verdict else "suspect"
+        print(f"| {scan.name} | {link}{verdict} / {link_errors[k_link]:.2f} | {rot_chain[k]:.2f} / "
+              f"{shift_chain[k]:.5f} | {rot_loop[k]:.2f} / {shift_loop[k]:.5f} |")
+    for name, rot, shift in (("chained", rot_chain, shift_chain), ("loop closed", rot_loop, shift_loop)):
+        print(f"{name}: rotation error median {np.median(rot):.2f}, max {rot.max():.2f} deg; points off by "
+              f"median {np.median(shift):.5f}, max {shift.max():.5f} (diagonal {extent:.4f})")
+    print(f"suspect links: {result.suspect_links}")
+
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+        for ax, (what, chain_err, loop_err) in zip(axes, (("rotation error (deg)", rot_chain, rot_loop),
+                                                          ("points off (mean distance)", shift_chain, shift_loop))):
+            ax.plot(chain_err, "o-", label="chained")
+            ax.plot(loop_err, "s-", label=f"loop closed (gap {result.loop_gap_deg:.2f} deg)")
+            for k in result.suspect_links:  # link k reaches scan k + 1 (the loop's own link, scan 0 again)
+                ax.axvline((k + 1) % len(scans), color="0.8", zorder=0)
+            ax.set_xlabel("scan (grey: reached by a suspect link)")
+            ax.set_ylabel(what)
+            ax.grid(alpha=0.3)
+        axes[0].legend()
+        fig.suptitle(f"{len(scans)} scans of {args.scans.rstrip('/').split('/')[-1]} in the first one's frame, "
+                     f"against the .conf's poses")
+        fig.savefig(args.plot, dpi=110, bbox_inches="tight")
+        print(f"wrote {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
