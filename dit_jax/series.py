@@ -9,7 +9,8 @@ the series closes on itself (a turntable, a walk around an object), the loop's g
 
 Pairwise registration errors add up along a chain; a closed loop measures their sum (``loop_gap_deg``: the
 rotation of the chained motions around the loop, which would be the identity without error) and
-:func:`close_loop` takes it back out, a share per link, as a least-squares pose graph over one cycle does.
+:func:`close_loop` takes it back out, a share per link (its rotation first, then the translations by least
+squares over the cycle).
 A link the verdict does not confirm is reported (``suspect_links``), not dropped: the chain needs every link.
 """
 
