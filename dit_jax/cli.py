@@ -10,9 +10,10 @@ three coordinates per point, all points identical or on one line) ends with one 
 and the problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf coordinates out
 instead (depth cameras mark pixels without a return so) and says how many. Clouds above ``--max-points`` are
 read as a random subset of that many points (say ``--no-downsample`` to refuse them instead). A mesh (a CAD
-model to find in a scan, say) is read as points sampled uniformly over its surface, so ``--out`` writes those
-points moved; apply the printed matrix to the mesh itself. Where one cloud is ten or more times the size
-of the other, a warning asks whether both are in the same units (a rigid motion cannot rescale).
+model to find in a scan, say) is read as points sampled uniformly over its surface; ``--out`` with the mesh's
+own extension writes the mesh itself moved (normals turned, all else kept), with another the moved samples.
+Where one cloud is ten or more times the size of the other, a warning asks whether both are in the same units
+(a rigid motion cannot rescale).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
 well, and the result is trusted where the two motions agree closely (``--verdict fitness``: where enough of
@@ -66,7 +67,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("tgt", help="the cloud (or mesh) to align it to")
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
-    parser.add_argument("--out", default=None, help="write SRC moved onto TGT here (format by extension)")
+    parser.add_argument("--out", default=None,
+                        help="write SRC moved onto TGT here (format by extension; a mesh SRC as a mesh of its format)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.add_argument("--points", type=int, default=None,
                         help="points per cloud the network sees (default: the checkpoint's)")
@@ -127,14 +129,21 @@ def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     return points
 
 
-def _output_problem(path: str | None) -> str | None:
-    """What is wrong with an --out path (a format not written, a missing folder), or None."""
+def _output_problem(path: str | None, mesh_source: str | None = None) -> str | None:
+    """What is wrong with an --out path (a format not written, a missing folder), or None. A mesh format is
+    written only as ``mesh_source`` moved, which must be a mesh of that format."""
     if path is None:
         return None
-    try:
-        io.file_format(path, kind="output format", formats=io.WRITE_FORMATS)
-    except io.CloudFileError as err:
-        return str(err)
+    ext = os.path.splitext(path)[1].lower()
+    if ext in io.MESH_FORMATS:
+        if mesh_source is None or os.path.splitext(mesh_source)[1].lower() != ext:
+            return (f"{path}: a {ext} mesh is written only as SRC moved, where SRC is a {ext} mesh; "
+                    f"choose one of {', '.join(io.WRITE_FORMATS)} for the moved points")
+    else:
+        try:
+            io.file_format(path, kind="output format", formats=io.WRITE_FORMATS)
+        except io.CloudFileError as err:
+            return str(err)
     if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
         return f"{path}: its folder does not exist"
     return None
@@ -143,7 +152,7 @@ def _output_problem(path: str | None) -> str | None:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
 
-    problem = _output_problem(args.out)  # checked before any work, so a bad --out costs nothing
+    problem = _output_problem(args.out, args.src)  # checked before any work, so a bad --out costs nothing
     if problem:
         return _fail(problem)
     if args.plot is not None:
@@ -194,7 +203,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{PROG}: warning: {message}", file=sys.stderr)
             else:
                 warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
-        if args.out is not None:
+        if args.out is not None and args.out.lower().endswith(io.MESH_FORMATS):
+            io.move_mesh_file(args.src, args.out, result.rotation, result.translation)
+        elif args.out is not None:
             io.write(args.out, result.apply(src))
         if args.plot is not None:
             result.plot(args.plot, src, tgt, title=f"{os.path.basename(args.src)} onto {os.path.basename(args.tgt)}")

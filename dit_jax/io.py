@@ -28,6 +28,7 @@ failure leaves nothing half-written.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import tempfile
@@ -163,23 +164,84 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    with _atomic_file(path) as f:
+        if ext == ".npy":
+            np.save(f, points if points.dtype in (np.float32, np.float64) else points.astype(np.float64))
+        elif ext == ".ply":
+            _write_ply(f, points, binary)
+        elif ext == ".pcd":
+            _write_pcd(f, points, binary)
+        elif ext == ".csv":
+            np.savetxt(f, points, fmt=_text_format(points), delimiter=",", header="x,y,z", comments="")
+        else:
+            np.savetxt(f, points, fmt=_text_format(points), header=str(len(points)) if ext == ".pts" else "",
+                       comments="")
+
+
+def move_mesh_file(source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray,
+                   translation: np.ndarray) -> None:
+    """Writes the mesh file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``, in the
+    same format, atomically: vertices moved and normals turned, every other line or byte as it was (OBJ's
+    texture coordinates, groups and materials, OFF's colours, STL's header and attributes).
+
+    Args:
+      source, destination: .obj, .off or .stl paths of the same format.
+      rotation: (3, 3); translation: (3,) (a :class:`dit_jax.registration.Result`'s).
+
+    Raises:
+      CloudFileError: ``source`` is not a mesh :func:`read_mesh` reads, or ``destination`` has another format.
+    """
+    source, destination = os.fspath(source), os.fspath(destination)
+    read_mesh(source)  # refuses what it cannot read, before anything is written
+    ext = file_format(source, kind="mesh format", formats=MESH_FORMATS)
+    if os.path.splitext(destination)[1].lower() != ext:
+        raise CloudFileError(destination, f"a moved {ext} mesh is written as {ext} (the source's format)")
+    rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
+    move = lambda xyz: xyz @ rotation.T + translation  # noqa: E731
+    with _atomic_file(destination) as out:
+        if ext == ".stl" and not _stl_is_ascii(source):
+            with open(source, "rb") as f:
+                head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
+            records["corners"] = move(records["corners"].astype(np.float64))
+            records["normal"] = records["normal"].astype(np.float64) @ rotation.T
+            out.write(head + records.tobytes())
+            return
+        with open(source, "r", encoding="utf-8", errors="surrogateescape") as f:
+            lines = f.readlines()
+        for number in _mesh_coordinate_lines(source, ext, lines):
+            code, hash_, comment = lines[number].partition("#")
+            ending = lines[number][len(lines[number].rstrip("\r\n")):]
+            words = code.split()
+            kind = words[0].lower()
+            start = {"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(kind, 0)  # OFF: the coordinates first
+            xyz = np.asarray(words[start:start + 3], np.float64)
+            xyz = xyz @ rotation.T if kind in ("vn", "facet") else move(xyz)
+            words[start:start + 3] = [repr(float(v)) for v in xyz]
+            lines[number] = " ".join(words) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
+        out.write("".join(lines).encode("utf-8", errors="surrogateescape"))
+
+
+def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
+    """Indices of the lines of a text mesh that hold a vertex or a normal."""
+    if ext == ".obj":
+        return [i for i, line in enumerate(lines) if line.split()[:1] in (["v"], ["vn"])]
+    if ext == ".stl":
+        return [i for i, line in enumerate(lines)
+                if [w.lower() for w in line.split()[:2]][:1] == ["vertex"]
+                or [w.lower() for w in line.split()[:2]] == ["facet", "normal"]]
+    return _off_layout(path, lines)[0]
+
+
+@contextlib.contextmanager
+def _atomic_file(path: str):
+    """A binary file object whose contents replace ``path`` only once the block ends without an error."""
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise CloudFileError(path, f"folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=ext, dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.splitext(path)[1], dir=folder)
     try:
         with os.fdopen(fd, "wb") as f:
-            if ext == ".npy":
-                np.save(f, points if points.dtype in (np.float32, np.float64) else points.astype(np.float64))
-            elif ext == ".ply":
-                _write_ply(f, points, binary)
-            elif ext == ".pcd":
-                _write_pcd(f, points, binary)
-            elif ext == ".csv":
-                np.savetxt(f, points, fmt=_text_format(points), delimiter=",", header="x,y,z", comments="")
-            else:
-                np.savetxt(f, points, fmt=_text_format(points), header=str(len(points)) if ext == ".pts" else "",
-                           comments="")
+            yield f
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes files private; a written cloud is an ordinary file
         os.replace(tmp, path)
     except BaseException:
@@ -628,41 +690,58 @@ def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
     return vertices, _fans(corners, np.asarray(counts, np.int64))
 
 
-def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
-        lines = [words for words in (line.split("#", 1)[0].split() for line in f) if words]
-    keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", lines[0][0], re.IGNORECASE) if lines else None
+def _off_layout(path: str, text_lines: list[str]) -> tuple[list[int], list[int], list[list[str]]]:
+    """Where an OFF file's vertices and faces are: the indices (into ``text_lines``) of its vertex lines and of
+    its face lines, and every line's words (comments and blank lines hold none)."""
+    words = [line.split("#", 1)[0].split() for line in text_lines]
+    data = [i for i, w in enumerate(words) if w]
+    keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", words[data[0]][0], re.IGNORECASE) if data else None
     if keyword is None:
-        raise CloudFileError(path, "not an OFF file (no OFF header)" if not lines or "OFF" not in lines[0][0]
-                             else f"OFF variant {lines[0][0]!r} is not supported")
+        raise CloudFileError(path, "not an OFF file (no OFF header)" if not data or "OFF" not in words[data[0]][0]
+                             else f"OFF variant {words[data[0]][0]!r} is not supported")
     # Counts follow the keyword on its line (ModelNet's files even write "OFF490 518 0"), or on the next.
-    counts = ([keyword[2]] if keyword[2] else []) + lines[0][1:]
-    body = lines[1:]
+    counts = ([keyword[2]] if keyword[2] else []) + words[data[0]][1:]
+    body = data[1:]
     if not counts and body:
-        counts, body = body[0], body[1:]
+        counts, body = words[body[0]], body[1:]
     if len(counts) < 2:
         raise CloudFileError(path, "OFF header without vertex and face counts")
     n_vertices, n_faces = int(counts[0]), int(counts[1])
     if len(body) < n_vertices + n_faces:
         raise CloudFileError(path, f"OFF file ends before its {n_vertices} vertices and {n_faces} faces")
-    vertices = np.asarray([words[:3] for words in body[:n_vertices]], np.float64).reshape(-1, 3)
-    faces = body[n_vertices:n_vertices + n_faces]
-    sizes = np.asarray([int(words[0]) for words in faces], np.int64)
-    if any(len(words) <= size for words, size in zip(faces, sizes)):
+    return body[:n_vertices], body[n_vertices:n_vertices + n_faces], words
+
+
+def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
+    with open(path, "r", encoding="utf-8", errors="replace") as f:
+        vertex_lines, face_lines, words = _off_layout(path, f.readlines())
+    vertices = np.asarray([words[i][:3] for i in vertex_lines], np.float64).reshape(-1, 3)
+    faces = [words[i] for i in face_lines]
+    sizes = np.asarray([int(w[0]) for w in faces], np.int64)
+    if any(len(w) <= size for w, size in zip(faces, sizes)):
         raise CloudFileError(path, "an OFF face lists fewer corners than its count")
     # a face's colour, if any, follows its corners on its line
-    corners = np.asarray([word for words, size in zip(faces, sizes) for word in words[1:size + 1]], np.int64)
+    corners = np.asarray([word for w, size in zip(faces, sizes) for word in w[1:size + 1]], np.int64)
     return vertices, _fans(corners, sizes)
 
 
-def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
-    size = os.path.getsize(path)
+_STL_RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
+
+
+def _stl_is_ascii(path: str) -> bool:
+    """Binary STL files have exactly 84 + 50 * count bytes (some also open with "solid"); ASCII ones do not."""
     with open(path, "rb") as f:
         head = f.read(84)
     count = int(np.frombuffer(head[80:84], "<u4")[0]) if len(head) == 84 else -1
-    if count >= 0 and size == 84 + 50 * count:  # binary: exact size; some binary files also start "solid"
-        record = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
-        corners = np.fromfile(path, record, count=count, offset=84)["corners"].reshape(-1, 3)
+    return not (count >= 0 and os.path.getsize(path) == 84 + 50 * count)
+
+
+def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
+    with open(path, "rb") as f:
+        head = f.read(84)
+    if not _stl_is_ascii(path):
+        count = int(np.frombuffer(head[80:84], "<u4")[0])
+        corners = np.fromfile(path, _STL_RECORD, count=count, offset=84)["corners"].reshape(-1, 3)
     elif head.lstrip().lower().startswith(b"solid"):
         with open(path, "r", encoding="ascii", errors="replace") as f:
             rows = [line.split()[1:4] for line in f if line.lstrip().lower().startswith("vertex")]

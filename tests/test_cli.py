@@ -189,9 +189,16 @@ def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, t
     samples = io.read(tmp_path / "mesh.obj", max_points=3000)  # the same seed: the same samples
     np.testing.assert_allclose(io.read(tmp_path / "moved.ply"), samples @ matrix[:3, :3].T + matrix[:3, 3],
                                atol=1e-4)
-    code, _, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                       "--out", tmp_path / "moved.obj")
-    assert code == 2 and "unknown output format '.obj'" in err
+    code, out, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none", "--max-points", 3000, "--out", tmp_path / "moved.obj")
+    assert code == 0 and f"wrote {tmp_path / 'moved.obj'}" in out, err
+    moved_vertices, _ = io.read_mesh(tmp_path / "moved.obj")  # the same registration: the same matrix
+    np.testing.assert_allclose(moved_vertices, vertices @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-4)
+    for other, fragment in (("moved.stl", "a .stl mesh is written only as SRC moved, where SRC is a .stl"),
+                            ("moved.las", "unknown output format '.las'")):
+        code, _, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                           "--out", tmp_path / other)
+        assert code == 2 and err.count("\n") == 1 and fragment in err, err
 
 
 def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tiny_checkpoint, pair):

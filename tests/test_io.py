@@ -261,6 +261,35 @@ def test_meshes_are_sampled_uniformly_over_their_surface(tmp_path):
     assert not np.array_equal(io.read(tmp_path / names[0], seed=1), io.read(tmp_path / names[0], seed=2))
 
 
+def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    _, names = _box_mesh_files(tmp_path)
+    rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([5.0, -1.0, 0.25])
+    for name in names:
+        moved = tmp_path / f"moved_{name}"
+        io.move_mesh_file(tmp_path / name, moved, rotation, translation)
+        vertices, triangles = io.read_mesh(tmp_path / name)
+        moved_vertices, moved_triangles = io.read_mesh(moved)
+        np.testing.assert_array_equal(moved_triangles, triangles)
+        exact = name.endswith(("obj", "off", "ascii.stl"))  # text keeps float64; binary STL is float32
+        np.testing.assert_allclose(moved_vertices, vertices @ rotation.T + translation, atol=1e-12 if exact else 1e-5)
+    text = (tmp_path / "moved_box.obj").read_text().splitlines()
+    original = (tmp_path / "box.obj").read_text().splitlines()
+    assert [line for line in text if not line.startswith(("v ", "vn "))] == \
+        [line for line in original if not line.startswith(("v ", "vn "))]  # faces, groups, texture coordinates
+    (normal,) = [np.array(line.split()[1:], float) for line in text if line.startswith("vn ")]
+    np.testing.assert_allclose(normal, rotation @ [0, 0, 1], atol=1e-12)  # turned, not moved
+    assert all(line.endswith(" 255 0 0") for line in (tmp_path / "moved_box.off").read_text().splitlines()[-6:])
+    assert (tmp_path / "moved_box.stl").read_bytes()[:84] == (tmp_path / "box.stl").read_bytes()[:84]
+    with pytest.raises(io.CloudFileError, match="written as .obj"):
+        io.move_mesh_file(tmp_path / "box.obj", tmp_path / "x.stl", rotation, translation)
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nf 1 2 3\n")
+    with pytest.raises(io.CloudFileError, match="not defined"):
+        io.move_mesh_file(tmp_path / "bad.obj", tmp_path / "x.obj", rotation, translation)
+    assert not (tmp_path / "x.obj").exists() and not list(tmp_path.glob(".tmp-*"))
+
+
 def test_meshes_written_by_open3d(tmp_path):
     o3d = pytest.importorskip("open3d", reason="cross-checking mesh formats needs open3d (the test extra)")
     mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=12)
@@ -271,6 +300,10 @@ def test_meshes_written_by_open3d(tmp_path):
         back = o3d.io.read_triangle_mesh(str(tmp_path / name))
         np.testing.assert_allclose(vertices[triangles], np.asarray(back.vertices)[np.asarray(back.triangles)],
                                    atol=1e-6)
+        io.move_mesh_file(tmp_path / name, tmp_path / f"moved_{name}", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
+        moved = o3d.io.read_triangle_mesh(str(tmp_path / f"moved_{name}"))  # Open3D still reads it
+        np.testing.assert_allclose(np.asarray(moved.vertices)[np.asarray(moved.triangles)],
+                                   vertices[triangles][..., [1, 2, 0]] + [1.0, 2.0, 3.0], atol=1e-5)
 
 
 def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path, cloud):
