@@ -179,8 +179,8 @@ def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, t
     vertices = d * (1 + 0.2 * np.sin(3 * d[:, :1]) * np.cos(2 * d[:, 1:2])) * 20.0 + 300.0
     index = np.arange(20 * 40).reshape(20, 40)
     quads = np.stack([index[:-1], np.roll(index, -1, 1)[:-1], np.roll(index, -1, 1)[1:], index[1:]], -1)
-    (tmp_path / "mesh.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices.tolist())
-                                       + "".join(f"f {' '.join(str(i + 1) for i in q)}\n" for q in quads.reshape(-1, 4)))
+    faces = "".join(f"f {' '.join(str(i + 1) for i in q)}\n" for q in quads.reshape(-1, 4))
+    (tmp_path / "mesh.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices.tolist()) + faces)
     code, out, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
                          "--refine", "none", "--max-points", 3000, "--out", tmp_path / "moved.ply")
     assert code == 0 and "128 of 3000 source points" in out and err == "", err
