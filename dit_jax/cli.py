@@ -7,13 +7,14 @@
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical or on one line) ends with one line on stderr naming the file
-and the problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf coordinates out
-instead (depth cameras mark pixels without a return so) and says how many. Clouds above ``--max-points`` are
-read as a random subset of that many points (say ``--no-downsample`` to refuse them instead). A mesh (a CAD
-model to find in a scan, say) is read as points sampled uniformly over its surface; ``--out`` with the mesh's
-own extension writes the mesh itself moved (normals turned, all else kept), with another the moved samples.
-Where one cloud is ten or more times the size of the other, a warning asks whether both are in the same units
-(a rigid motion cannot rescale).
+and the problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves points with NaN or Inf
+coordinates out instead (depth cameras mark pixels without a return so) and says how many. Clouds above
+``--max-points`` are read as a random subset of that many points (say ``--no-downsample`` to refuse them
+instead). A mesh (a CAD model to find in a scan, say) is read as points sampled uniformly over its surface;
+``--out`` with the mesh's own extension writes the mesh itself moved (normals turned, all else kept), with
+another the moved samples. Where one cloud is ten or more times the size of the other, a warning asks whether
+both are in the same units (a rigid motion cannot rescale). ``dit-register-series`` registers a whole series
+of scans into one frame (see its ``--help``).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
 well, and the result is trusted where the two motions agree closely (``--verdict fitness``: where enough of
