@@ -135,8 +135,10 @@ def test_bad_checkpoint_and_output_path(capsys, tmp_path, pair):
     folder, _, _ = pair
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tmp_path / "none")
     assert code == 2 and err.count("\n") == 1 and "none" in err
-    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.stl")
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.e57")
     assert code == 2 and "unknown output format" in err
+    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.stl")
+    assert code == 2 and "a .stl mesh is written only as SRC moved" in err  # a cloud SRC has no mesh to move
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "no" / "a.ply")
     assert code == 2 and "folder does not exist" in err
 
