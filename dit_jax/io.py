@@ -197,38 +197,37 @@ def move_mesh_file(source: str | os.PathLike, destination: str | os.PathLike, ro
     if os.path.splitext(destination)[1].lower() != ext:
         raise CloudFileError(destination, f"a moved {ext} mesh is written as {ext} (the source's format)")
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
-    move = lambda xyz: xyz @ rotation.T + translation  # noqa: E731
     with _atomic_file(destination) as out:
         if ext == ".stl" and not _stl_is_ascii(source):
             with open(source, "rb") as f:
                 head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
-            records["corners"] = move(records["corners"].astype(np.float64))
+            records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
             records["normal"] = records["normal"].astype(np.float64) @ rotation.T
             out.write(head + records.tobytes())
             return
         with open(source, "r", encoding="utf-8", errors="surrogateescape") as f:
             lines = f.readlines()
-        for number in _mesh_coordinate_lines(source, ext, lines):
-            code, hash_, comment = lines[number].partition("#")
-            ending = lines[number][len(lines[number].rstrip("\r\n")):]
-            words = code.split()
-            kind = words[0].lower()
-            start = {"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(kind, 0)  # OFF: the coordinates first
-            xyz = np.asarray(words[start:start + 3], np.float64)
-            xyz = xyz @ rotation.T if kind in ("vn", "facet") else move(xyz)
-            words[start:start + 3] = [repr(float(v)) for v in xyz]
-            lines[number] = " ".join(words) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
+        numbers = _mesh_coordinate_lines(source, ext, lines)
+        parts = [lines[n].partition("#") for n in numbers]
+        words = [code.split() for code, _, _ in parts]
+        starts = [{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(w[0].lower(), 0) for w in words]  # OFF: 0
+        xyz = np.asarray([w[k:k + 3] for w, k in zip(words, starts)], np.float64).reshape(-1, 3)
+        normal = np.asarray([w[0].lower() in ("vn", "facet") for w in words], bool)
+        xyz = xyz @ rotation.T + np.where(normal[:, None], 0.0, translation)  # normals turn, points move
+        for n, w, k, (_, hash_, comment), values in zip(numbers, words, starts, parts, xyz.tolist()):
+            ending = lines[n][len(lines[n].rstrip("\r\n")):]
+            w[k:k + 3] = map(repr, values)
+            lines[n] = " ".join(w) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
         out.write("".join(lines).encode("utf-8", errors="surrogateescape"))
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
     """Indices of the lines of a text mesh that hold a vertex or a normal."""
     if ext == ".obj":
-        return [i for i, line in enumerate(lines) if line.split()[:1] in (["v"], ["vn"])]
+        return [i for i, line in enumerate(lines) if line.startswith(("v ", "vn ", "v\t", "vn\t"))]
     if ext == ".stl":
         return [i for i, line in enumerate(lines)
-                if [w.lower() for w in line.split()[:2]][:1] == ["vertex"]
-                or [w.lower() for w in line.split()[:2]] == ["facet", "normal"]]
+                if line.lstrip()[:6].lower() == "vertex" or line.lstrip()[:5].lower() == "facet"]
     return _off_layout(path, lines)[0]
 
 
