@@ -153,5 +153,32 @@ def pytest_configure(config):
         config.option.maxschedchunk = 1
 
 
+#: Tests outside those modules that take 15 s or more on two loaded cores (`--durations`, 2026-12-02): started
+#: next, longest first, so that neither worker is left with one of them while the other has nothing to do.
+_LONG_TESTS = (
+    "test_other_widths_depths_and_point_counts_are_checked",
+    "test_real_scans_refined_by_icp_land_within_a_few_degrees",
+    "test_remat_gives_the_same_gradients_with_dropout",
+    "test_rotation_search_registers_pairs_far_beyond_the_training_range",
+    "test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict",
+    "test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape",
+    "test_evaluate_cli_uses_the_shipped_weights_by_default",
+    "test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options",
+    "test_refine_and_plot_on_the_readme_example_pair",
+    "test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_closely",
+    "test_a_second_dit_register_reuses_the_first_ones_programs",
+    "test_evaluate_end_to_end_writes_tables_json_and_plots",
+    "test_register_under_jit_and_vmap_with_n_not_m",
+    "test_command_line_exit_status",
+    "test_angle_sweep_reports_every_angle",
+)
+
+
 def pytest_collection_modifyitems(session, config, items):
-    items.sort(key=lambda item: item.path.name not in _SLOW_MODULES)  # stable: order kept otherwise
+    def order(item):
+        if item.path.name in _SLOW_MODULES:
+            return 0
+        name = item.originalname
+        return 1 + _LONG_TESTS.index(name) if name in _LONG_TESTS else 1 + len(_LONG_TESTS)
+
+    items.sort(key=order)  # stable: order kept otherwise
