@@ -294,8 +294,8 @@ def series_main(argv: list[str] | None = None) -> int:
 
     from dit_jax import registration, series
     from dit_jax.checkpoint import CheckpointError
-    from dit_jax.geometry import rotation_angle_deg
     from dit_jax.convert import ConversionError
+    from dit_jax.geometry import rotation_angle_deg
 
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
@@ -313,7 +313,7 @@ def series_main(argv: list[str] | None = None) -> int:
     except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
         return fail(str(err))
 
-    pairs = [(k + 1, k) for k in range(len(clouds) - 1)] + ([(0, len(clouds) - 1)] if args.loop else [])
+    pairs = result.pairs
     names = args.scans
     if args.json:
         report = {"scans": names, "poses": result.poses.tolist(), "out": args.out,

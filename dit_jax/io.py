@@ -88,7 +88,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
     Args:
       path: the file; its extension picks the format.
       max_points: files with more points than this give a uniform random subset of ``max_points`` of them
-        (seeded by ``seed``, file order kept); binary PLY/PCD and NPY files never load the other rows.
+        (seeded by ``seed``, file order kept); binary PLY/PCD, LAS and NPY files never load the other rows.
       return_count: also return how many points the file holds.
       mesh_points: a mesh (.obj, .off, .stl; see :func:`read_mesh`) gives this many points (at most
         ``max_points``) sampled uniformly over its surface area, seeded by ``seed``: a CAD model's vertices

@@ -364,7 +364,8 @@ class Registrar:
         src_centre, tgt_centre = src_s.mean(axis=0), tgt_s.mean(axis=0)
         centring = self.centring
         if centring == "auto":
-            radius = max(float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) for c in (src_s, tgt_s))
+            radius = max(float(np.linalg.norm(c - centre, axis=1).max())
+                         for c, centre in ((src_s, src_centre), (tgt_s, tgt_centre)))
             centring = "separate" if np.linalg.norm(src_centre - tgt_centre) > FAR_APART * radius else "shared"
         if centring == "shared":
             src_centre = tgt_centre = np.concatenate([src_s, tgt_s]).mean(axis=0)

@@ -45,6 +45,11 @@ class SeriesResult:
     loop_gap: float = float("nan")
 
     @property
+    def pairs(self) -> list[tuple[int, int]]:
+        """(source, target) indices of each link, in the order of ``links`` (see :func:`link_pairs`)."""
+        return link_pairs(len(self.poses), loop=len(self.links) == len(self.poses))
+
+    @property
     def suspect_links(self) -> list[int]:
         """Indices (into ``links``) of the links whose verdict is negative."""
         return [k for k, link in enumerate(self.links) if not link.verdict]
@@ -58,6 +63,12 @@ class SeriesResult:
     def merged(self, clouds: Sequence[np.ndarray]) -> np.ndarray:
         """(sum N_k, 3): every cloud moved into scan 0's frame, in order."""
         return np.concatenate(self.apply(clouds))
+
+
+def link_pairs(n_clouds: int, loop: bool) -> list[tuple[int, int]]:
+    """(source, target) of each link of a series of ``n_clouds``: cloud k + 1 onto cloud k, then (``loop``)
+    cloud 0 onto the last."""
+    return [(k + 1, k) for k in range(n_clouds - 1)] + ([(0, n_clouds - 1)] if loop else [])
 
 
 def chain(motions: np.ndarray) -> np.ndarray:
@@ -168,7 +179,7 @@ def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = Fal
     if len(clouds) < 2 or (loop and len(clouds) < 3):
         raise ValueError(f"a series needs at least {3 if loop else 2} clouds{' for a loop' if loop else ''}, "
                          f"got {len(clouds)}")
-    pairs = [(k + 1, k) for k in range(len(clouds) - 1)] + ([(0, len(clouds) - 1)] if loop else [])
+    pairs = link_pairs(len(clouds), loop)
     links = []
     for done, (source, target) in enumerate(pairs, 1):
         links.append(registrar.register(clouds[source], clouds[target], refine=refine))

@@ -83,8 +83,7 @@ def main() -> None:
 
     print(f"\n{len(scans)} scans, {len(result.links)} links, {seconds:.0f} s; loop gap {result.loop_gap_deg:.3f} deg "
           f"and {result.loop_gap:.5f} ({result.loop_gap / extent:.4f} of the first scan's diagonal)\n")
-    # link k moves scan k + 1 (scan 0 for the loop's last link) onto scan k
-    link_truth = [np.linalg.inv(truth[k]) @ truth[(k + 1) % len(scans)] for k in range(len(result.links))]
+    link_truth = [np.linalg.inv(truth[target]) @ truth[source] for source, target in result.pairs]
     link_errors = [geometry.rotation_angle_deg(link.rotation.T @ t[:3, :3])
                    for link, t in zip(result.links, link_truth)]
     print("| scan | link into it: verdict / its own error (deg) | chained: deg / points off | loop closed: deg / "

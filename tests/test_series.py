@@ -98,7 +98,7 @@ def test_register_series_links_neighbours_and_merges_into_the_first_frame():
     done = []
     result = series.register_series(registrar, clouds, loop=True, refine="none",
                                     progress=lambda d, n: done.append((d, n)))
-    assert [c[:2] for c in registrar.calls] == [(1, 0), (2, 1), (3, 2), (4, 3), (0, 4)]
+    assert [c[:2] for c in registrar.calls] == [(1, 0), (2, 1), (3, 2), (4, 3), (0, 4)] == result.pairs
     assert {c[2] for c in registrar.calls} == {"none"} and done[-1] == (5, 5)
     np.testing.assert_allclose(result.poses, truth, atol=1e-9)
     assert result.suspect_links == [2]  # the link from scan 3
