@@ -11,9 +11,10 @@ and the problem, exit status 2, and no output file. ``--drop-nonfinite`` leaves 
 coordinates out instead (depth cameras mark pixels without a return so) and says how many. Clouds above
 ``--max-points`` are read as a random subset of that many points (say ``--no-downsample`` to refuse them
 instead). A mesh (a CAD model to find in a scan, say) is read as points sampled uniformly over its surface;
-``--out`` with the mesh's own extension writes the mesh itself moved (normals turned, all else kept), with
-another the moved samples. Where one cloud is ten or more times the size of the other, a warning asks whether
-both are in the same units (a rigid motion cannot rescale). ``dit-register-series`` registers a whole series
+``--out`` with SRC's own extension writes the mesh itself moved (normals turned, all else kept), with
+another the moved samples; a PLY cloud is written so too, every point, colour and normal kept. Where one
+cloud is ten or more times the size of the other, a warning asks whether both are in the same units (a
+rigid motion cannot rescale). ``dit-register-series`` registers a whole series
 of scans into one frame (see its ``--help``).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
@@ -61,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
                                             ".npy, text (.xyz .txt .csv .asc .pts), .las (read);\n"
-                                            "meshes (.obj .off .stl) "
+                                            "meshes (.obj .off .stl, .ply with faces) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
     parser.add_argument("src", help="the cloud (or mesh) to move")
@@ -69,7 +70,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
     parser.add_argument("--out", default=None,
-                        help="write SRC moved onto TGT here (format by extension; a mesh SRC as a mesh of its format)")
+                        help="write SRC moved onto TGT here (format by extension; with SRC's own extension, a mesh or "
+                             "PLY SRC is written whole: faces, colours and normals kept)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.add_argument("--points", type=int, default=None,
                         help="points per cloud the network sees (default: the checkpoint's)")
@@ -136,7 +138,7 @@ def _output_problem(path: str | None, mesh_source: str | None = None) -> str | N
     if path is None:
         return None
     ext = os.path.splitext(path)[1].lower()
-    if ext in io.MESH_FORMATS:
+    if ext in io.MESH_FORMATS and ext not in io.WRITE_FORMATS:
         if mesh_source is None or os.path.splitext(mesh_source)[1].lower() != ext:
             return (f"{path}: a {ext} mesh is written only as SRC moved, where SRC is a {ext} mesh; "
                     f"choose one of {', '.join(io.WRITE_FORMATS)} for the moved points")
@@ -148,6 +150,13 @@ def _output_problem(path: str | None, mesh_source: str | None = None) -> str | N
     if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
         return f"{path}: its folder does not exist"
     return None
+
+
+def _moves_file(src: str, out: str) -> bool:
+    """Whether --out is SRC's own file moved (a mesh, or a PLY cloud with all its points and properties) rather
+    than the points read from it."""
+    ext = os.path.splitext(out)[1].lower()
+    return ext in io.MESH_FORMATS and os.path.splitext(src)[1].lower() == ext
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -204,8 +213,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{PROG}: warning: {message}", file=sys.stderr)
             else:
                 warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
-        if args.out is not None and args.out.lower().endswith(io.MESH_FORMATS):
-            io.move_mesh_file(args.src, args.out, result.rotation, result.translation)
+        if args.out is not None and _moves_file(args.src, args.out):
+            io.move_file(args.src, args.out, result.rotation, result.translation)
         elif args.out is not None:
             io.write(args.out, result.apply(src))
         if args.plot is not None:

@@ -1,5 +1,5 @@
 """Point-cloud files: read and write .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) and .npy, read .las and
-meshes (.obj, .off, .stl), refusing bad input with one-line errors.
+meshes (.obj, .off, .stl, .ply), refusing bad input with one-line errors.
 
 Every reader returns an (N, 3) float64 array of coordinates and raises :class:`CloudFileError` (a ValueError
 whose message names the file and the problem) for anything it cannot turn into one: a missing or unreadable
@@ -7,7 +7,8 @@ file, an unknown extension, a malformed header, values that are NaN or Inf (``dr
 those points out instead), or rows that are not three coordinates. Formats:
 
 * PLY: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``; the ``x``, ``y``, ``z`` properties of the
-  ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped.
+  ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped. A PLY file
+  with faces (a ``face`` element with ``vertex_indices``) is a mesh, sampled as the others are.
 * PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python: 0.1-0.8 s for a
   million points, docs/BENCHMARKS.md "Reading files") with fields ``x y z`` (any others skipped).
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
@@ -17,7 +18,8 @@ those points out instead), or rows that are not three coordinates. Formats:
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
 * LAS (read only): ASPRS LAS 1.0-1.4, every point data format, memory-mapped; X, Y, Z scaled and offset as the
   header says. Compressed LAZ is refused with the hint to decompress it.
-* Meshes (read only, :data:`MESH_FORMATS`): .obj, .off and .stl, sampled uniformly over their surface.
+* Meshes (:data:`MESH_FORMATS`): .obj, .off, .stl and PLY with faces, sampled uniformly over their surface.
+  :func:`move_file` writes a mesh (or a PLY cloud) moved, in its own format, every other byte kept.
 
 Writers (:func:`write`) produce binary little-endian PLY (float or double as the input), binary float32 PCD
 (what PCL and Open3D read), text with enough digits to round-trip (17 for float64, 9 otherwise; .csv
@@ -33,16 +35,19 @@ import os
 import re
 import tempfile
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
 FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".las")
 #: The formats :func:`write` writes: all but LAS, which is read only.
 WRITE_FORMATS = tuple(f for f in FORMATS if f != ".las")
-#: Meshes, read (not written) as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`).
-MESH_FORMATS = (".obj", ".off", ".stl")
+#: Meshes, read as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`) and written
+#: only as a mesh file moved (:func:`move_file`). A PLY or OBJ file without faces is a cloud.
+MESH_FORMATS = (".obj", ".off", ".stl", ".ply")
 #: How many surface points :func:`read` samples from a mesh: far more than registration samples from a cloud.
 MESH_POINTS = 100_000
+_READ_FORMATS = FORMATS + tuple(f for f in MESH_FORMATS if f not in FORMATS)
 #: The formats read and written as text, one point per line.
 TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
 
@@ -90,10 +95,10 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
       max_points: files with more points than this give a uniform random subset of ``max_points`` of them
         (seeded by ``seed``, file order kept); binary PLY/PCD, LAS and NPY files never load the other rows.
       return_count: also return how many points the file holds.
-      mesh_points: a mesh (.obj, .off, .stl; see :func:`read_mesh`) gives this many points (at most
-        ``max_points``) sampled uniformly over its surface area, seeded by ``seed``: a CAD model's vertices
-        crowd at its edges and leave its faces bare, unlike any scan. An OBJ file without faces gives its
-        vertices, as a cloud. ``points_in_file`` is then the number sampled.
+      mesh_points: a mesh (.obj, .off, .stl, a PLY with faces; see :func:`read_mesh`) gives this many points
+        (at most ``max_points``) sampled uniformly over its surface area, seeded by ``seed``: a CAD model's
+        vertices crowd at its edges and leave its faces bare, unlike any scan. ``points_in_file`` is then the
+        number sampled. An OBJ or PLY file without faces gives its vertices, as a cloud.
       drop_nonfinite: leave out points with a NaN or Inf coordinate instead of refusing the file, with a
         :class:`NonFiniteWarning` that says how many. Depth cameras and organized PCD files mark pixels
         without a return by NaN; elsewhere such values usually mean a broken export, hence the default. The
@@ -109,21 +114,27 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         finite).
     """
     path = os.fspath(path)
-    ext = file_format(path, formats=FORMATS + MESH_FORMATS)
+    ext = file_format(path, formats=_READ_FORMATS)
     if not os.path.exists(path):
         raise CloudFileError(path, "no such file")
     if os.path.isdir(path):
         raise CloudFileError(path, "is a directory, not a point-cloud file")
     if not os.access(path, os.R_OK):
         raise CloudFileError(path, "permission denied")
-    if ext in MESH_FORMATS:
-        if mesh_points < 1:
-            raise ValueError(f"mesh_points must be positive, got {mesh_points}")
-        n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
+    if mesh_points < 1:
+        raise ValueError(f"mesh_points must be positive, got {mesh_points}")
+    n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
+    if ext == ".ply":
+        def reader(path_, select_):
+            layout = _ply_layout(path_)
+            if layout.faces() is None:
+                return _read_ply(path_, select_, layout)
+            return _read_mesh_as_points(path_, select_, n_samples, seed)
+    elif ext in MESH_FORMATS:
         def reader(path_, select_):
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     else:
-        reader = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las}.get(ext, _read_text)
+        reader = {".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las}.get(ext, _read_text)
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
@@ -178,33 +189,36 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
                        comments="")
 
 
-def move_mesh_file(source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray,
-                   translation: np.ndarray) -> None:
-    """Writes the mesh file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``, in the
-    same format, atomically: vertices moved and normals turned, every other line or byte as it was (OBJ's
-    texture coordinates, groups and materials, OFF's colours, STL's header and attributes).
+def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray,
+              translation: np.ndarray) -> None:
+    """Writes the mesh or PLY file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``,
+    in the same format, atomically: vertices moved and normals turned, every other line or byte as it was
+    (OBJ's texture coordinates, groups and materials, OFF's colours, STL's header and attributes, PLY's
+    colours, faces and other elements; a PLY cloud keeps all its points).
 
     Args:
-      source, destination: .obj, .off or .stl paths of the same format.
+      source, destination: .obj, .off, .stl or .ply paths of the same format.
       rotation: (3, 3); translation: (3,) (a :class:`dit_jax.registration.Result`'s).
 
     Raises:
-      CloudFileError: ``source`` is not a mesh :func:`read_mesh` reads, or ``destination`` has another format.
+      CloudFileError: ``source`` is not a file :func:`read_mesh` reads, ``destination`` has another format,
+        or a PLY file stores its coordinates as integers (moving them would round them).
     """
     source, destination = os.fspath(source), os.fspath(destination)
     read_mesh(source)  # refuses what it cannot read, before anything is written
     ext = file_format(source, kind="mesh format", formats=MESH_FORMATS)
     if os.path.splitext(destination)[1].lower() != ext:
-        raise CloudFileError(destination, f"a moved {ext} mesh is written as {ext} (the source's format)")
+        raise CloudFileError(destination, f"a moved {ext} file is written as {ext} (the source's format)")
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
-    with _atomic_file(destination) as out:
-        if ext == ".stl" and not _stl_is_ascii(source):
-            with open(source, "rb") as f:
-                head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
-            records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
-            records["normal"] = records["normal"].astype(np.float64) @ rotation.T
-            out.write(head + records.tobytes())
-            return
+    if ext == ".ply":
+        content = _moved_ply(source, rotation, translation)
+    elif ext == ".stl" and not _stl_is_ascii(source):
+        with open(source, "rb") as f:
+            head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
+        records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
+        records["normal"] = records["normal"].astype(np.float64) @ rotation.T
+        content = head + records.tobytes()
+    else:
         with open(source, "r", encoding="utf-8", errors="surrogateescape") as f:
             lines = f.readlines()
         numbers = _mesh_coordinate_lines(source, ext, lines)
@@ -218,7 +232,49 @@ def move_mesh_file(source: str | os.PathLike, destination: str | os.PathLike, ro
             ending = lines[n][len(lines[n].rstrip("\r\n")):]
             w[k:k + 3] = map(repr, values)
             lines[n] = " ".join(w) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
-        out.write("".join(lines).encode("utf-8", errors="surrogateescape"))
+        content = "".join(lines).encode("utf-8", errors="surrogateescape")
+    with _atomic_file(destination) as out:
+        out.write(content)
+
+
+def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of PLY file ``path`` with its vertices' x, y, z moved and nx, ny, nz turned (if it has them)."""
+    layout = _ply_layout(path)
+    index = layout.index("vertex")
+    props = dict(layout.elements[index].props)
+    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, ("nx", "ny", "nz")) if all(a in props for a in axes)]
+    if any(np.dtype(props[a]).kind != "f" for a in _XYZ):
+        raise CloudFileError(path, "PLY coordinates stored as integers would be rounded when moved; "
+                                   "write the moved points to another file instead")
+    with open(path, "rb") as f:
+        data = f.read()
+    if layout.fmt != "ascii":
+        start = _ply_binary_start(path, layout, index, np.frombuffer(data, np.uint8))
+        record, count = _ply_vertex_record(layout), layout.elements[index].count
+        table = np.frombuffer(data, record, count, start).copy()
+        for axes, is_normal in groups:
+            values = np.stack([table[a].astype(np.float64) for a in axes], axis=1) @ rotation.T
+            for a, column in zip(axes, (values if is_normal else values + translation).T):
+                table[a] = column
+        return data[:start] + table.tobytes() + data[start + count * record.itemsize:]
+    lines = data.split(b"\n")  # ASCII PLY: one vertex per line, after the header and the elements before it
+    first = layout.header_lines + sum(e.count for e in layout.elements[:index])
+    names = [n for n, _ in layout.elements[index].props]
+    rows = [lines[i].split() for i in range(first, first + layout.elements[index].count)]
+    for axes, is_normal in groups:
+        cols = [names.index(a) for a in axes]
+        values = np.asarray([[row[c] for c in cols] for row in rows], np.float64).reshape(-1, 3) @ rotation.T
+        values = values if is_normal else values + translation
+        text = (lambda v: str(np.float32(v))) if np.dtype(props[axes[0]]) == np.float32 else repr
+        for row, moved in zip(rows, values.tolist()):
+            for c, v in zip(cols, moved):
+                row[c] = text(v).encode("ascii")
+    for i, row in enumerate(rows, first):
+        lines[i] = b" ".join(row) + (b"\r" if lines[i].endswith(b"\r") else b"")
+    return b"\n".join(lines)
+
+
+_XYZ = ("x", "y", "z")
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
@@ -289,13 +345,48 @@ def _binary_records(path: str, dtype: np.dtype, offset: int, count: int, select,
     return table if rows_kept is None else table[rows_kept]
 
 
-def _read_ply(path: str, select) -> tuple[np.ndarray, int]:
+class _PlyElement(NamedTuple):
+    name: str
+    count: int
+    #: (name, dtype) per property: a NumPy type code for a scalar, (count type, item type) for a list
+    props: list[tuple[str, str | tuple[str, str]]]
+
+    @property
+    def has_lists(self) -> bool:
+        return any(isinstance(t, tuple) for _, t in self.props)
+
+
+class _PlyLayout(NamedTuple):
+    fmt: str  # ascii, binary_little_endian or binary_big_endian
+    elements: list[_PlyElement]
+    offset: int  # where the data starts
+    header_lines: int
+
+    @property
+    def order(self) -> str:
+        return "<" if self.fmt == "binary_little_endian" else ">"
+
+    def index(self, name: str) -> int | None:
+        names = [e.name for e in self.elements]
+        return names.index(name) if name in names else None
+
+    def faces(self) -> tuple[int, str] | None:
+        """The face element's index and the name of its list of vertex indices, if it has faces at all."""
+        index = self.index("face")
+        if index is None or not self.elements[index].count:
+            return None
+        lists = [n for n, t in self.elements[index].props if isinstance(t, tuple)]
+        name = next((n for n in ("vertex_indices", "vertex_index") if n in lists), None)
+        return None if name is None else (index, name)
+
+
+def _ply_layout(path: str) -> _PlyLayout:
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise CloudFileError(path, "not a PLY file (first line is not 'ply')")
         header = _read_header(f, path, b"end_header")
         offset = f.tell()
-    fmt, elements = None, []  # elements: [name, count, [(prop name, dtype or None for lists)]]
+    fmt, elements = None, []
     for line in header:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info", "end_header"):
@@ -303,52 +394,162 @@ def _read_ply(path: str, select) -> tuple[np.ndarray, int]:
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
         elif words[0] == "element" and len(words) == 3:
-            elements.append([words[1], int(words[2]), []])
+            elements.append(_PlyElement(words[1], int(words[2]), []))
         elif words[0] == "property" and elements:
-            if words[1] == "list":
-                elements[-1][2].append((words[-1], None))
+            if words[1] == "list" and len(words) == 5 and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
+                elements[-1].props.append((words[4], (_PLY_TYPES[words[2]], _PLY_TYPES[words[3]])))
             elif words[1] in _PLY_TYPES and len(words) == 3:
-                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+                elements[-1].props.append((words[2], _PLY_TYPES[words[1]]))
             else:
                 raise CloudFileError(path, f"unsupported PLY property line {line!r}")
         else:
             raise CloudFileError(path, f"malformed PLY header line {line!r}")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise CloudFileError(path, f"unknown PLY format {fmt!r}")
-    names = [e[0] for e in elements]
-    if "vertex" not in names:
+    layout = _PlyLayout(fmt, elements, offset, len(header) + 1)
+    index = layout.index("vertex")
+    if index is None:
         raise CloudFileError(path, "PLY file has no vertex element")
-    index = names.index("vertex")
-    _, count, props = elements[index]
-    prop_names = [p[0] for p in props]
-    cols = _columns(path, prop_names)
-    if any(dtype is None for _, dtype in props):
+    _columns(path, [n for n, _ in elements[index].props])
+    if elements[index].has_lists:
         raise CloudFileError(path, "PLY vertex element has list properties; only scalar properties are read")
+    return layout
 
-    if fmt == "ascii":
-        skip = sum(e[1] for e in elements[:index])
-        with open(path, "rb") as f:
-            f.seek(offset)
-            for _ in range(skip):
-                f.readline()
-            rows = [f.readline().decode("ascii") for _ in range(count)]
-        if count and not rows[-1]:
-            raise CloudFileError(path, f"PLY file ends before its {count} vertices")
+
+def _ply_vertex_record(layout: _PlyLayout) -> np.dtype:
+    props = layout.elements[layout.index("vertex")].props
+    return np.dtype([(n if n else f"_{i}", layout.order + t) for i, (n, t) in enumerate(props)])
+
+
+def _ply_text_rows(path: str, layout: _PlyLayout, index: int) -> list[str]:
+    """The text lines of element ``index`` of an ASCII PLY file (one line per item)."""
+    skip, count = sum(e.count for e in layout.elements[:index]), layout.elements[index].count
+    with open(path, "rb") as f:
+        f.seek(layout.offset)
+        for _ in range(skip):
+            f.readline()
+        rows = [f.readline().decode("ascii", errors="replace") for _ in range(count)]
+    if count and not rows[-1]:
+        raise CloudFileError(path, f"PLY file ends before its {count} {layout.elements[index].name} items")
+    return rows
+
+
+def _ply_binary_start(path: str, layout: _PlyLayout, index: int, data: np.ndarray) -> int:
+    """The byte at which element ``index`` of a binary PLY file starts: elements before it are walked."""
+    start = layout.offset
+    for element in layout.elements[:index]:
+        start = _ply_binary_lists(path, layout, element, start, data)[0]
+    return start
+
+
+def _ply_binary_lists(path: str, layout: _PlyLayout, element: _PlyElement, start: int,
+                      data: np.ndarray) -> tuple[int, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Where ``element`` (starting at byte ``start`` of ``data``, the file's bytes) ends, and each list property
+    as (counts (count,), items (sum of counts,)).
+
+    Lists usually all have one length (a triangle mesh): the rows are then one fixed record, read at once.
+    Otherwise (triangles and quads mixed) they are walked row by row.
+    """
+    order, count = layout.order, element.count
+    scalar = [np.dtype(order + t).itemsize if not isinstance(t, tuple) else None for _, t in element.props]
+    lists = [(n, t) for n, t in element.props if isinstance(t, tuple)]
+    if not lists:
+        end = start + count * sum(scalar)
+        if end > len(data):
+            raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
+        return end, {}
+    buffer = memoryview(data)
+    first, pos = [], start
+    for (name, t), size in zip(element.props, scalar):  # the first row's list lengths
+        if size is None:
+            if pos + np.dtype(t[0]).itemsize > len(data):
+                raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
+            first.append(int(np.frombuffer(buffer, order + t[0], 1, pos)[0]))
+            pos += np.dtype(t[0]).itemsize + first[-1] * np.dtype(t[1]).itemsize
+        else:
+            pos += size
+    fields, lengths = [], iter(first)
+    for i, (name, t) in enumerate(element.props):
+        if isinstance(t, tuple):
+            fields += [(f"{name}#n", order + t[0]), (f"{name}#items", order + t[1], (next(lengths),))]
+        else:
+            fields.append((f"_{i}", order + t))
+    record = np.dtype(fields)
+    end = start + count * record.itemsize
+    if count and end <= len(data):
+        table = np.frombuffer(buffer, record, count, start)
+        if all((table[f"{n}#n"] == k).all() for (n, _), k in zip(lists, first)):
+            return end, {n: (np.full(count, k, np.int64), table[f"{n}#items"].reshape(-1).astype(np.int64))
+                         for (n, _), k in zip(lists, first)}
+    # lists of several lengths: walk the rows
+    found = {n: ([], []) for n, _ in lists}
+    pos = start
+    try:
+        for _ in range(count):
+            for (name, t), size in zip(element.props, scalar):
+                if size is not None:
+                    pos += size
+                    continue
+                n = int(np.frombuffer(buffer, order + t[0], 1, pos)[0])
+                pos += np.dtype(t[0]).itemsize
+                found[name][0].append(n)
+                found[name][1].append(np.frombuffer(buffer, order + t[1], n, pos))
+                pos += n * np.dtype(t[1]).itemsize
+    except ValueError:  # frombuffer past the end
+        raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items") from None
+    if pos > len(data):
+        raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
+    return pos, {n: (np.asarray(c, np.int64), np.concatenate(items).astype(np.int64) if items else
+                     np.zeros(0, np.int64)) for n, (c, items) in found.items()}
+
+
+def _read_ply(path: str, select, layout: _PlyLayout | None = None) -> tuple[np.ndarray, int]:
+    """The vertices of a PLY file (``select`` picks the rows kept) and how many it holds."""
+    layout = layout or _ply_layout(path)
+    index = layout.index("vertex")
+    count, props = layout.elements[index].count, layout.elements[index].props
+    cols = _columns(path, [n for n, _ in props])
+    if layout.fmt == "ascii":
+        rows = _ply_text_rows(path, layout, index)
         table = np.loadtxt(rows, dtype=np.float64, ndmin=2, usecols=range(len(props)))
         table = table[:, cols] if count else np.zeros((0, 3))
         rows_kept = select(count)
         return (table if rows_kept is None else table[rows_kept]), count
-
-    if any(dtype is None for e in elements[:index] for _, dtype in e[2]):
-        raise CloudFileError(path, "PLY elements with list properties come before the vertices")
-    order = "<" if fmt == "binary_little_endian" else ">"
-
-    def record(props_):
-        return np.dtype([(n if n else f"_{i}", order + t) for i, (n, t) in enumerate(props_)])
-
-    start = offset + sum(e[1] * record(e[2]).itemsize for e in elements[:index])
-    table = _binary_records(path, record(props), start, count, select, "PLY file ends before its {} vertices")
+    start = _ply_binary_start(path, layout, index, np.memmap(path, np.uint8, mode="r"))
+    table = _binary_records(path, _ply_vertex_record(layout), start, count, select,
+                            "PLY file ends before its {} vertices")
     return np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1), count
+
+
+def _read_ply_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
+    layout = _ply_layout(path)
+    vertices, _ = _read_ply(path, lambda count: None, layout)
+    faces = layout.faces()
+    if faces is None:
+        return vertices, np.zeros((0, 3), np.int64)
+    index, name = faces
+    element = layout.elements[index]
+    if layout.fmt == "ascii":
+        counts, corners = [], []
+        for number, row in enumerate(_ply_text_rows(path, layout, index)):
+            words, at = row.split(), 0
+            for prop, t in element.props:
+                if not isinstance(t, tuple):
+                    at += 1
+                    continue
+                n = int(words[at])
+                if prop == name:
+                    counts.append(n)
+                    corners.extend(words[at + 1:at + 1 + n])
+                at += 1 + n
+            if at > len(words):
+                raise CloudFileError(path, f"PLY face {number} lists fewer values than its properties need")
+        counts, corners = np.asarray(counts, np.int64), np.asarray(corners, np.int64)
+    else:
+        data = np.memmap(path, np.uint8, mode="r")
+        start = _ply_binary_start(path, layout, index, data)
+        counts, corners = _ply_binary_lists(path, layout, element, start, data)[1][name]
+    return vertices, _fans(corners, counts)
 
 
 def _read_las(path: str, select) -> tuple[np.ndarray, int]:
@@ -579,14 +780,14 @@ def _read_npy(path: str, select) -> tuple[np.ndarray, int]:
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices and triangles of an .obj, .off or .stl (ASCII or binary) mesh.
+    """The vertices and triangles of an .obj, .off, .stl or .ply (ASCII or binary) mesh.
 
-    Polygons are split into triangle fans; OBJ's texture and normal indices, groups and materials, and OFF's
-    colours, are ignored.
+    Polygons are split into triangle fans; OBJ's texture and normal indices, groups and materials, OFF's
+    colours and PLY's other properties and elements are ignored.
 
     Returns:
       vertices: (V, 3) float64.
-      triangles: (F, 3) int64 indices into ``vertices`` (F may be 0: an OBJ file of vertices alone).
+      triangles: (F, 3) int64 indices into ``vertices`` (F may be 0: an OBJ or PLY file of vertices alone).
 
     Raises:
       CloudFileError: the file is missing, unreadable, of another format, malformed, or a face names a vertex
@@ -596,7 +797,7 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     ext = file_format(path, kind="mesh format", formats=MESH_FORMATS)
     if not os.path.isfile(path):
         raise CloudFileError(path, "no such file" if not os.path.exists(path) else "is not a file")
-    reader = {".obj": _read_obj, ".off": _read_off, ".stl": _read_stl}[ext]
+    reader = {".obj": _read_obj, ".off": _read_off, ".stl": _read_stl, ".ply": _read_ply_mesh}[ext]
     try:
         vertices, triangles = reader(path)
     except CloudFileError:

@@ -203,6 +203,31 @@ def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, t
         assert code == 2 and err.count("\n") == 1 and fragment in err, err
 
 
+def test_a_ply_source_is_written_whole(capsys, tmp_path, tiny_checkpoint, pair):
+    """--out with SRC's own extension: a PLY cloud read as a random subset (--max-points) is still written
+    with every point and its colours, moved by the printed matrix; another extension gets the points read."""
+    folder, src, _ = pair
+    colours = np.arange(len(src)) % 256
+    vertex = np.zeros(len(src), [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1")])
+    vertex["x"], vertex["y"], vertex["z"], vertex["red"] = *src.T, colours
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(src)}\nproperty double x\n"
+              "property double y\nproperty double z\nproperty uchar red\nend_header\n")
+    (tmp_path / "coloured.ply").write_bytes(header.encode() + vertex.tobytes())
+    for out_name in ("moved.ply", "moved.npy"):
+        code, out, err = run(capsys, tmp_path / "coloured.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
+                             "--refine", "none", "--max-points", 400, "--out", tmp_path / out_name)
+        assert code in (0, 3) and "using a random 400" in err
+        rows = [line for line in out.splitlines() if line.strip().startswith("[")]
+        matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
+        moved = io.read(tmp_path / out_name)
+        if out_name == "moved.ply":
+            np.testing.assert_allclose(moved, src @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-6)
+            back = np.frombuffer((tmp_path / out_name).read_bytes()[len(header):], vertex.dtype)
+            assert back["red"].tolist() == colours.tolist()
+        else:
+            assert moved.shape == (400, 3)
+
+
 def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tiny_checkpoint, pair):
     """A target in millimetres against a source in metres (1000 times the size): one warning line naming both
     files; the transform is still printed and the status is the verdict's. Same-size clouds give none."""

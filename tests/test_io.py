@@ -53,13 +53,16 @@ def test_open3d_reads_our_files(tmp_path, cloud, name):
     np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(tmp_path / name)).points), cloud, rtol=1e-7)
 
 
-def test_ply_with_faces_and_extra_properties(tmp_path):
-    text = ("ply\nformat ascii 1.0\ncomment a mesh\nelement vertex 3\nproperty float nx\nproperty float x\n"
-            "property float y\nproperty float z\nproperty uchar red\nelement face 1\n"
-            "property list uchar int vertex_indices\nend_header\n"
-            "9 1 2 3 255\n9 4 5 6 0\n9 7 8 9 1\n3 0 1 2\n")
-    (tmp_path / "m.ply").write_text(text)
-    np.testing.assert_array_equal(io.read(tmp_path / "m.ply"), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+def test_ply_extra_properties_and_elements_are_skipped(tmp_path):
+    """Properties around x, y, z are skipped, and so are other elements; faces that list no vertices (an
+    ``element face 0``, as MeshLab writes clouds, or a face element without ``vertex_indices``) leave a cloud."""
+    for faces in ("element face 0\nproperty list uchar int vertex_indices\n",
+                  "element face 1\nproperty list uchar int other_list\n"):
+        text = ("ply\nformat ascii 1.0\ncomment a cloud\nelement vertex 3\nproperty float nx\nproperty float x\n"
+                "property float y\nproperty float z\nproperty uchar red\n" + faces + "end_header\n"
+                "9 1 2 3 255\n9 4 5 6 0\n9 7 8 9 1\n" + ("3 0 1 2\n" if "1" in faces.split()[2] else ""))
+        (tmp_path / "m.ply").write_text(text)
+        np.testing.assert_array_equal(io.read(tmp_path / "m.ply"), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
 
 
 def test_big_endian_ply(tmp_path, cloud):
@@ -240,7 +243,21 @@ def _box_mesh_files(tmp_path):
     record["corners"] = corners[triangles]
     (tmp_path / "box.stl").write_bytes(b"solid: binary files may start so too".ljust(80) +
                                        np.uint32(len(triangles)).tobytes() + record.tobytes())
-    return corners, ["box.obj", "box.off", "box_ascii.stl", "box.stl"]
+    # PLY: the first quad as two triangles (lists of two lengths), normals, colours, a flag before the list
+    faces = [quads[0][:3], [quads[0][0], quads[0][2], quads[0][3]]] + quads[1:]
+    header = ("ply\nformat {} 1.0\nelement vertex 8\nproperty {} x\nproperty {} y\nproperty {} z\n"
+              "property float nx\nproperty float ny\nproperty float nz\nproperty uchar red\n"
+              f"element face {len(faces)}\nproperty uchar flags\nproperty list uchar int vertex_indices\n"
+              "element note 1\nproperty int mark\nend_header\n")
+    rows = "".join(f"{x:g} {y:g} {z:g} 0 0 1 {i}\n" for i, (x, y, z) in enumerate(corners))
+    rows += "".join(f"7 {len(f)} {' '.join(map(str, f))}\n" for f in faces) + "42\n"
+    (tmp_path / "box_ascii.ply").write_text(header.format("ascii", *["double"] * 3) + rows)
+    vertex = np.zeros(8, [("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("n", ">f4", 3), ("red", "u1")])
+    vertex["x"], vertex["y"], vertex["z"], vertex["n"], vertex["red"] = *corners.T, [0, 0, 1], np.arange(8)
+    data = vertex.tobytes() + b"".join(np.array([7, len(f)], "u1").tobytes() + np.array(f, ">i4").tobytes()
+                                       for f in faces) + np.array([42], ">i4").tobytes()
+    (tmp_path / "box.ply").write_bytes(header.format("binary_big_endian", *["float"] * 3).encode() + data)
+    return corners, ["box.obj", "box.off", "box_ascii.stl", "box.stl", "box_ascii.ply", "box.ply"]
 
 
 def test_meshes_are_sampled_uniformly_over_their_surface(tmp_path):
@@ -268,11 +285,11 @@ def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
     rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([5.0, -1.0, 0.25])
     for name in names:
         moved = tmp_path / f"moved_{name}"
-        io.move_mesh_file(tmp_path / name, moved, rotation, translation)
+        io.move_file(tmp_path / name, moved, rotation, translation)
         vertices, triangles = io.read_mesh(tmp_path / name)
         moved_vertices, moved_triangles = io.read_mesh(moved)
         np.testing.assert_array_equal(moved_triangles, triangles)
-        exact = name.endswith(("obj", "off", "ascii.stl"))  # text keeps float64; binary STL is float32
+        exact = name.endswith(("obj", "off", "ascii.stl", "ascii.ply"))  # text keeps float64; binaries: float32
         np.testing.assert_allclose(moved_vertices, vertices @ rotation.T + translation, atol=1e-12 if exact else 1e-5)
     text = (tmp_path / "moved_box.obj").read_text().splitlines()
     original = (tmp_path / "box.obj").read_text().splitlines()
@@ -282,11 +299,22 @@ def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
     np.testing.assert_allclose(normal, rotation @ [0, 0, 1], atol=1e-12)  # turned, not moved
     assert all(line.endswith(" 255 0 0") for line in (tmp_path / "moved_box.off").read_text().splitlines()[-6:])
     assert (tmp_path / "moved_box.stl").read_bytes()[:84] == (tmp_path / "box.stl").read_bytes()[:84]
+    for name in ("box.ply", "box_ascii.ply"):  # PLY: normals turned; colours, flags, faces and the rest kept
+        before, after = (tmp_path / name).read_bytes(), (tmp_path / f"moved_{name}").read_bytes()
+        assert len(after) == len(before) if name == "box.ply" else after.endswith(before[before.rindex(b" 7\n"):])
+        if name == "box.ply":
+            start = before.index(b"end_header\n") + 11
+            table = np.frombuffer(after[start:start + 8 * 25], [("xyz", ">f4", 3), ("n", ">f4", 3), ("red", "u1")])
+            np.testing.assert_allclose(table["n"], np.tile(rotation @ [0, 0, 1], (8, 1)), atol=1e-6)
+            assert table["red"].tolist() == list(range(8)) and after[start + 200:] == before[start + 200:]
+    lines = (tmp_path / "moved_box_ascii.ply").read_text().splitlines()
+    np.testing.assert_allclose(np.array(lines[16].split()[3:6], float), rotation @ [0, 0, 1], atol=1e-6)
+    assert lines[16].split()[6] == "0" and lines[:16] == (tmp_path / "box_ascii.ply").read_text().splitlines()[:16]
     with pytest.raises(io.CloudFileError, match="written as .obj"):
-        io.move_mesh_file(tmp_path / "box.obj", tmp_path / "x.stl", rotation, translation)
+        io.move_file(tmp_path / "box.obj", tmp_path / "x.stl", rotation, translation)
     (tmp_path / "bad.obj").write_text("v 0 0 0\nf 1 2 3\n")
     with pytest.raises(io.CloudFileError, match="not defined"):
-        io.move_mesh_file(tmp_path / "bad.obj", tmp_path / "x.obj", rotation, translation)
+        io.move_file(tmp_path / "bad.obj", tmp_path / "x.obj", rotation, translation)
     assert not (tmp_path / "x.obj").exists() and not list(tmp_path.glob(".tmp-*"))
 
 
@@ -294,16 +322,20 @@ def test_meshes_written_by_open3d(tmp_path):
     o3d = pytest.importorskip("open3d", reason="cross-checking mesh formats needs open3d (the test extra)")
     mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=12)
     mesh.compute_triangle_normals()  # STL needs them
-    for name in ("s.obj", "s.off", "s.stl"):
-        assert o3d.io.write_triangle_mesh(str(tmp_path / name), mesh)
+    for name in ("s.obj", "s.off", "s.stl", "s.ply", "s_ascii.ply"):
+        assert o3d.io.write_triangle_mesh(str(tmp_path / name), mesh, write_ascii="ascii" in name)
         vertices, triangles = io.read_mesh(tmp_path / name)
         back = o3d.io.read_triangle_mesh(str(tmp_path / name))
         np.testing.assert_allclose(vertices[triangles], np.asarray(back.vertices)[np.asarray(back.triangles)],
                                    atol=1e-6)
-        io.move_mesh_file(tmp_path / name, tmp_path / f"moved_{name}", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
+        io.move_file(tmp_path / name, tmp_path / f"moved_{name}", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
         moved = o3d.io.read_triangle_mesh(str(tmp_path / f"moved_{name}"))  # Open3D still reads it
         np.testing.assert_allclose(np.asarray(moved.vertices)[np.asarray(moved.triangles)],
                                    vertices[triangles][..., [1, 2, 0]] + [1.0, 2.0, 3.0], atol=1e-5)
+
+
+_PLY_TRIANGLE = ("ply\nformat {} 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
 
 
 def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path, cloud):
@@ -318,12 +350,20 @@ def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path
         "far.off": ("OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "a face names a vertex the file does not have"),
         "four.off": ("4OFF\n", "OFF variant '4OFF' is not supported"),
         "empty.stl": ("solid empty\nendsolid empty\n", "no vertices"),
+        "short.ply": (_PLY_TRIANGLE.format("ascii") + "0 0 0\n1 0 0\n0 1 0\n3 0 1\n", "fewer values"),
+        "far.ply": (_PLY_TRIANGLE.format("ascii") + "0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n", "a face names a vertex"),
     }
     for name, (text, fragment) in bad_meshes.items():
         (tmp_path / name).write_text(text)
         _bad(tmp_path / name, fragment)
     (tmp_path / "junk.stl").write_bytes(os.urandom(200))
     _bad(tmp_path / "junk.stl", "not an STL file")
+    triangle = np.eye(3, dtype="<f4").tobytes() + np.array([3], "u1").tobytes() + np.arange(3, dtype="<i4").tobytes()
+    for cut in (1, 13):  # within the list, and before its length
+        (tmp_path / "cut.ply").write_bytes(_PLY_TRIANGLE.format("binary_little_endian").encode() + triangle[:-cut])
+        _bad(tmp_path / "cut.ply", "ends before its 1 face items")
+    (tmp_path / "whole.ply").write_bytes(_PLY_TRIANGLE.format("binary_little_endian").encode() + triangle)
+    assert io.read_mesh(tmp_path / "whole.ply")[1].tolist() == [[0, 1, 2]]
     with pytest.raises(io.CloudFileError, match="unknown format '.obj'"):
         io.write(tmp_path / "out.obj", cloud)  # meshes are read, not written
 
