@@ -152,6 +152,21 @@ def _output_problem(path: str | None, mesh_source: str | None = None) -> str | N
     return None
 
 
+def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) -> list[str]:
+    """A registration's size-mismatch warnings as lines naming the files (``src``, ``tgt``) instead of "source"
+    and "target"; any other warning is shown as Python shows it."""
+    from dit_jax.registration import SizeMismatchWarning
+
+    lines = []
+    for warning in caught:
+        if issubclass(warning.category, SizeMismatchWarning):
+            lines.append(str(warning.message).replace("source", "\0", 1).replace("target", "\1", 1)
+                         .replace("\0", src).replace("\1", tgt))
+        else:
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+    return lines
+
+
 def _moves_file(src: str, out: str) -> bool:
     """Whether --out is SRC's own file moved (a mesh, or a PLY cloud with all its points and properties) rather
     than the points read from it."""
@@ -206,13 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         except registration.InputError as err:  # name the files, not "source"/"target"
             message = str(err).replace("source:", f"{args.src}:", 1).replace("target:", f"{args.tgt}:", 1)
             return _fail(message)
-        for warning in caught:
-            if issubclass(warning.category, registration.SizeMismatchWarning):
-                message = (str(warning.message).replace("source", "\0", 1).replace("target", "\1", 1)
-                           .replace("\0", args.src).replace("\1", args.tgt))
-                print(f"{PROG}: warning: {message}", file=sys.stderr)
-            else:
-                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+        for line in _warning_lines(caught, args.src, args.tgt):
+            print(f"{PROG}: warning: {line}", file=sys.stderr)
         if args.out is not None and _moves_file(args.src, args.out):
             io.move_file(args.src, args.out, result.rotation, result.translation)
         elif args.out is not None:
@@ -309,12 +319,22 @@ def series_main(argv: list[str] | None = None) -> int:
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
         model = registration.load(args.checkpoint, seed=args.seed)
-        n_links = len(clouds) - 1 + bool(args.loop)
-        with tqdm(total=n_links, desc="links", unit="link", file=sys.stderr,
-                  disable=args.no_progress or not sys.stderr.isatty()) as bar:
+        pairs = series.link_pairs(len(clouds), args.loop)
+        with tqdm(total=len(pairs), desc="links", unit="link", file=sys.stderr,
+                  disable=args.no_progress or not sys.stderr.isatty()) as bar, \
+                warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", registration.SizeMismatchWarning)
+
+            def link_done(done: int, total: int) -> None:  # each link's warnings name its two scans
+                bar.update(1)
+                a, b = pairs[done - 1]
+                for line in _warning_lines(caught, args.scans[a], args.scans[b]):
+                    bar.write(f"{SERIES_PROG}: warning: {line}", file=sys.stderr)
+                caught.clear()
+
             try:
                 result = series.register_series(model, clouds, loop=args.loop, refine=args.refine,
-                                                 progress=lambda done, total: bar.update(1))
+                                                 progress=link_done)
             except registration.InputError as err:
                 return fail(str(err))
         if args.out is not None:
@@ -322,7 +342,6 @@ def series_main(argv: list[str] | None = None) -> int:
     except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
         return fail(str(err))
 
-    pairs = result.pairs
     names = args.scans
     if args.json:
         report = {"scans": names, "poses": result.poses.tolist(), "out": args.out,
@@ -341,7 +360,7 @@ def series_main(argv: list[str] | None = None) -> int:
             print(f"{names[a]} onto {names[b]}: {'trusted' if link.verdict else 'suspect'}: {link.evidence()}")
         if args.loop:
             print(f"loop: gap {result.loop_gap_deg:.3f} deg and {result.loop_gap:.6g} (units of the input) "
-                  f"before closing, spread over {n_links} links")
+                  f"before closing, spread over {len(pairs)} links")
         if args.out is not None:
             print(f"wrote {args.out}")
     problems = [f"{names[a]} onto {names[b]} is not confirmed" for (a, b), link in zip(pairs, result.links)

@@ -138,3 +138,8 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     code = cli.series_main([paths[0], str(tmp_path / "missing.ply")])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"dit-register-series: error: {tmp_path / 'missing.ply'}: no such file")
+    io.write(tmp_path / "scan1_mm.ply", io.read(paths[1]) * 1000.0)  # a unit slip: one line naming both scans
+    cli.series_main([paths[0], str(tmp_path / "scan1_mm.ply"), "--checkpoint", tiny_checkpoint, "--refine", "none"])
+    warned = [line for line in capsys.readouterr().err.splitlines() if "times the size" in line]
+    assert warned and all(line.startswith(f"dit-register-series: warning: {tmp_path / 'scan1_mm.ply'} is 1,0")
+                          and f"times the size of {paths[0]} (radius" in line for line in warned), warned
