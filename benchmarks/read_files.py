@@ -1,11 +1,13 @@
-"""Seconds to read a cloud of every format ``dit_jax.io`` reads, and a mesh of every mesh format, beside Open3D.
+"""Seconds to read a cloud of every format ``dit_jax.io`` reads, and a mesh of every mesh format, beside Open3D,
+and to write each file moved (``io.move_file``, what ``dit-register --out`` does with SRC's own format).
 
     python benchmarks/read_files.py [--points 1000000] [--sphere-resolution 300] [--repeats 3]
 
 The cloud is random normal points (float64 where the format keeps it; PCD is float32), read with
 ``drop_nonfinite=True``; compressed PCD (those points, and an organized 1280 x 960 depth-camera cloud with NaN
-pixels) and the meshes are written by Open3D (a UV sphere: 300 gives 179,402 vertices and 358,800 triangles). Prints a markdown
-table of the best of ``--repeats`` reads; the mesh rows include sampling ``io.MESH_POINTS`` surface points.
+pixels) and the meshes are written by Open3D (a UV sphere: 300 gives 179,402 vertices and 358,800 triangles),
+the LAS file by laspy (where installed). Prints a markdown table of the best of ``--repeats`` runs; the mesh
+rows' reads include sampling ``io.MESH_POINTS`` surface points.
 """
 
 from __future__ import annotations
@@ -41,6 +43,14 @@ def main() -> None:
     warnings.simplefilter("ignore", io.NonFiniteWarning)  # the organized cloud's NaN pixels, left out
 
     cloud = np.random.default_rng(0).normal(size=(args.points, 3))
+    rotation, translation = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]), np.array([1.0, 2.0, 3.0])
+
+    def moved(path: str) -> float:
+        stem, ext = os.path.splitext(path)
+        if ext not in io.MOVE_FORMATS:
+            return float("nan")
+        return best_seconds(lambda: io.move_file(path, f"{stem}_moved{ext}", rotation, translation), args.repeats)
+
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         files = []
@@ -61,28 +71,40 @@ def main() -> None:
         o3d.io.write_point_cloud(os.path.join(folder, "organized_compressed.pcd"),
                                  o3d.geometry.PointCloud(o3d.utility.Vector3dVector(organized)), compressed=True)
         files.append(("organized_compressed.pcd", "Open3D"))
+        try:
+            import laspy
+        except ImportError:
+            laspy = None
+        if laspy is not None:
+            las = laspy.LasData(laspy.LasHeader(point_format=3, version="1.2"))
+            las.header.scales, las.header.offsets = [1e-4] * 3, [0.0] * 3
+            las.x, las.y, las.z = cloud.T
+            las.write(os.path.join(folder, "cloud.las"))
+            files.append(("cloud.las", "laspy"))
         for name, writer in files:
             path = os.path.join(folder, name)
             count = len(io.read(path, drop_nonfinite=True))
             ours = best_seconds(lambda: io.read(path, drop_nonfinite=True), args.repeats)
             theirs = (best_seconds(lambda: o3d.io.read_point_cloud(path, remove_nan_points=True), args.repeats)
-                      if not name.endswith((".npy", ".csv")) else float("nan"))
-            rows.append((name, f"{count:,} points", writer, os.path.getsize(path), ours, theirs))
+                      if not name.endswith((".npy", ".csv", ".las")) else float("nan"))
+            rows.append((name, f"{count:,} points", writer, os.path.getsize(path), ours, theirs, moved(path)))
 
         sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=args.sphere_resolution)
         sphere.compute_triangle_normals()
-        for name in ("mesh.obj", "mesh.off", "mesh.stl"):
+        for name in ("mesh.obj", "mesh.off", "mesh.stl", "mesh.ply", "mesh_ascii.ply"):
             path = os.path.join(folder, name)
-            o3d.io.write_triangle_mesh(path, sphere)
+            o3d.io.write_triangle_mesh(path, sphere, write_ascii="ascii" in name)
             ours = best_seconds(lambda: io.read(path), args.repeats)
             theirs = best_seconds(lambda: o3d.io.read_triangle_mesh(path).sample_points_uniformly(io.MESH_POINTS),
                                   args.repeats)
-            rows.append((name, f"{len(sphere.triangles):,} triangles", "Open3D", os.path.getsize(path), ours, theirs))
+            rows.append((name, f"{len(sphere.triangles):,} triangles", "Open3D", os.path.getsize(path), ours, theirs,
+                         moved(path)))
 
-    print("| file | holds | written by | MB | io.read (s) | Open3D (s) |\n|---|---|---|---|---|---|")
-    for name, holds, writer, size, ours, theirs in rows:
-        print(f"| {name} | {holds} | {writer} | {size / 1e6:.1f} | {ours:.2f} | "
-              f"{'-' if np.isnan(theirs) else f'{theirs:.2f}'} |")
+    print("| file | holds | written by | MB | io.read (s) | Open3D (s) | io.move_file (s) |\n"
+          "|---|---|---|---|---|---|---|")
+    show = lambda seconds: "-" if np.isnan(seconds) else f"{seconds:.2f}"  # noqa: E731
+    for name, holds, writer, size, ours, theirs, move in rows:
+        print(f"| {name} | {holds} | {writer} | {size / 1e6:.1f} | {ours:.2f} | {show(theirs)} | {show(move)} |")
 
 
 if __name__ == "__main__":

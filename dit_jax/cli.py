@@ -12,7 +12,7 @@ coordinates out instead (depth cameras mark pixels without a return so) and says
 ``--max-points`` are read as a random subset of that many points (say ``--no-downsample`` to refuse them
 instead). A mesh (a CAD model to find in a scan, say) is read as points sampled uniformly over its surface;
 ``--out`` with SRC's own extension writes the mesh itself moved (normals turned, all else kept), with
-another the moved samples; a PLY cloud is written so too, every point, colour and normal kept. Where one
+another the moved samples; a PLY, PCD or LAS cloud is written so too, every point and field kept. Where one
 cloud is ten or more times the size of the other, a warning asks whether both are in the same units (a
 rigid motion cannot rescale). ``dit-register-series`` registers a whole series
 of scans into one frame (see its ``--help``).
@@ -70,8 +70,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
     parser.add_argument("--out", default=None,
-                        help="write SRC moved onto TGT here (format by extension; with SRC's own extension, a mesh or "
-                             "PLY SRC is written whole: faces, colours and normals kept)")
+                        help="write SRC moved onto TGT here (format by extension; with SRC's own extension, a "
+                             "mesh or a PLY, PCD or LAS SRC is written whole: every point, face and field kept)")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.add_argument("--points", type=int, default=None,
                         help="points per cloud the network sees (default: the checkpoint's)")
@@ -132,15 +132,15 @@ def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     return points
 
 
-def _output_problem(path: str | None, mesh_source: str | None = None) -> str | None:
-    """What is wrong with an --out path (a format not written, a missing folder), or None. A mesh format is
-    written only as ``mesh_source`` moved, which must be a mesh of that format."""
+def _output_problem(path: str | None, source: str | None = None) -> str | None:
+    """What is wrong with an --out path (a format not written, a missing folder), or None. A mesh or LAS
+    file is written only as ``source`` moved, which must have that format."""
     if path is None:
         return None
     ext = os.path.splitext(path)[1].lower()
-    if ext in io.MESH_FORMATS and ext not in io.WRITE_FORMATS:
-        if mesh_source is None or os.path.splitext(mesh_source)[1].lower() != ext:
-            return (f"{path}: a {ext} mesh is written only as SRC moved, where SRC is a {ext} mesh; "
+    if ext in io.MOVE_FORMATS and ext not in io.WRITE_FORMATS:
+        if source is None or os.path.splitext(source)[1].lower() != ext:
+            return (f"{path}: a {ext} file is written only as SRC moved, where SRC is a {ext} file; "
                     f"choose one of {', '.join(io.WRITE_FORMATS)} for the moved points")
     else:
         try:
@@ -168,10 +168,10 @@ def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) ->
 
 
 def _moves_file(src: str, out: str) -> bool:
-    """Whether --out is SRC's own file moved (a mesh, or a PLY cloud with all its points and properties) rather
-    than the points read from it."""
+    """Whether --out is SRC's own file moved (every point and property kept; :func:`io.move_file`) rather
+    than the points read from it: where both have one of :data:`io.MOVE_FORMATS`, the same."""
     ext = os.path.splitext(out)[1].lower()
-    return ext in io.MESH_FORMATS and os.path.splitext(src)[1].lower() == ext
+    return ext in io.MOVE_FORMATS and os.path.splitext(src)[1].lower() == ext
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,14 +16,14 @@ those points out instead), or rows that are not three coordinates. Formats:
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
   ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
-* LAS (read only): ASPRS LAS 1.0-1.4, every point data format, memory-mapped; X, Y, Z scaled and offset as the
+* LAS (read, and written only as a file moved): ASPRS LAS 1.0-1.4, every point data format, memory-mapped; X, Y, Z scaled and offset as the
   header says. Compressed LAZ is refused with the hint to decompress it.
 * Meshes (:data:`MESH_FORMATS`): .obj, .off, .stl and PLY with faces, sampled uniformly over their surface.
-  :func:`move_file` writes a mesh (or a PLY cloud) moved, in its own format, every other byte kept.
 
-Writers (:func:`write`) produce binary little-endian PLY (float or double as the input), binary float32 PCD
-(what PCL and Open3D read), text with enough digits to round-trip (17 for float64, 9 otherwise; .csv
-comma-separated under an ``x,y,z`` header, .pts after the point count) and
+:func:`move_file` writes a PLY, PCD, LAS or mesh file moved, every other field kept (``dit-register --out``
+with the source's own extension). Writers (:func:`write`) produce binary little-endian PLY (float or double
+as the input), binary float32 PCD (what PCL and Open3D read), text with enough digits to round-trip (17 for
+float64, 9 otherwise; .csv comma-separated under an ``x,y,z`` header, .pts after the point count) and
 float32/64 NPY. They write to a temporary file in the destination's folder and rename it into place, so a
 failure leaves nothing half-written.
 """
@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".las")
-#: The formats :func:`write` writes: all but LAS, which is read only.
+#: The formats :func:`write` writes: all but LAS, which is read (and moved: :func:`move_file`).
 WRITE_FORMATS = tuple(f for f in FORMATS if f != ".las")
 #: Meshes, read as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`) and written
 #: only as a mesh file moved (:func:`move_file`). A PLY or OBJ file without faces is a cloud.
@@ -48,6 +48,8 @@ MESH_FORMATS = (".obj", ".off", ".stl", ".ply")
 #: How many surface points :func:`read` samples from a mesh: far more than registration samples from a cloud.
 MESH_POINTS = 100_000
 _READ_FORMATS = FORMATS + tuple(f for f in MESH_FORMATS if f not in FORMATS)
+#: The formats :func:`move_file` writes moved, every other property kept.
+MOVE_FORMATS = (".ply", ".pcd", ".las", ".obj", ".off", ".stl")
 #: The formats read and written as text, one point per line.
 TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
 
@@ -191,50 +193,78 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
 
 def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray,
               translation: np.ndarray) -> None:
-    """Writes the mesh or PLY file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``,
-    in the same format, atomically: vertices moved and normals turned, every other line or byte as it was
-    (OBJ's texture coordinates, groups and materials, OFF's colours, STL's header and attributes, PLY's
-    colours, faces and other elements; a PLY cloud keeps all its points).
+    """Writes the file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``, in the same
+    format, atomically, with everything but the coordinates kept: points (every one) and vertices moved,
+    normals turned, every other line or byte as it was. So a scan keeps its colours, intensities and
+    classes, a mesh its faces, texture coordinates, groups and materials.
+
+    * PLY (cloud or mesh): ``x, y, z`` moved, ``nx, ny, nz`` turned, other properties and elements kept.
+    * PCD: ``x, y, z`` moved, ``normal_x, normal_y, normal_z`` turned, the ``VIEWPOINT`` (the sensor's pose)
+      moved with the points, other fields kept; ``binary_compressed`` data is written as ``binary``.
+    * LAS: X, Y, Z moved and rounded to the file's scale (its stated precision), the header's bounds (and,
+      where the moved points would overflow its integers, its offset) updated; every other byte kept.
+    * OBJ, OFF, STL: vertices moved, OBJ's ``vn`` and STL's facet normals turned.
 
     Args:
-      source, destination: .obj, .off, .stl or .ply paths of the same format.
+      source, destination: paths of the same format, one of :data:`MOVE_FORMATS`.
       rotation: (3, 3); translation: (3,) (a :class:`dit_jax.registration.Result`'s).
 
     Raises:
-      CloudFileError: ``source`` is not a file :func:`read_mesh` reads, ``destination`` has another format,
-        or a PLY file stores its coordinates as integers (moving them would round them).
+      CloudFileError: ``source`` is unreadable or malformed, ``destination`` has another format, or a PLY or
+        PCD file stores its coordinates as integers (moving them would round them).
     """
     source, destination = os.fspath(source), os.fspath(destination)
-    read_mesh(source)  # refuses what it cannot read, before anything is written
-    ext = file_format(source, kind="mesh format", formats=MESH_FORMATS)
+    ext = file_format(source, kind="format to move", formats=MOVE_FORMATS)
     if os.path.splitext(destination)[1].lower() != ext:
         raise CloudFileError(destination, f"a moved {ext} file is written as {ext} (the source's format)")
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
-    if ext == ".ply":
-        content = _moved_ply(source, rotation, translation)
-    elif ext == ".stl" and not _stl_is_ascii(source):
-        with open(source, "rb") as f:
-            head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
-        records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
-        records["normal"] = records["normal"].astype(np.float64) @ rotation.T
-        content = head + records.tobytes()
-    else:
-        with open(source, "r", encoding="utf-8", errors="surrogateescape") as f:
-            lines = f.readlines()
-        numbers = _mesh_coordinate_lines(source, ext, lines)
-        parts = [lines[n].partition("#") for n in numbers]
-        words = [code.split() for code, _, _ in parts]
-        starts = [{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(w[0].lower(), 0) for w in words]  # OFF: 0
-        xyz = np.asarray([w[k:k + 3] for w, k in zip(words, starts)], np.float64).reshape(-1, 3)
-        normal = np.asarray([w[0].lower() in ("vn", "facet") for w in words], bool)
-        xyz = xyz @ rotation.T + np.where(normal[:, None], 0.0, translation)  # normals turn, points move
-        for n, w, k, (_, hash_, comment), values in zip(numbers, words, starts, parts, xyz.tolist()):
-            ending = lines[n][len(lines[n].rstrip("\r\n")):]
-            w[k:k + 3] = map(repr, values)
-            lines[n] = " ".join(w) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
-        content = "".join(lines).encode("utf-8", errors="surrogateescape")
+    if not os.path.isfile(source):
+        raise CloudFileError(source, "no such file" if not os.path.exists(source) else "is not a file")
+    content = None  # the moved file (a LAS file is streamed instead), made before anything is written
+    try:
+        if ext == ".ply":
+            content = _moved_ply(source, rotation, translation)
+        elif ext == ".pcd":
+            content = _moved_pcd(source, rotation, translation)
+        elif ext == ".las":
+            _read_las(source, lambda count: None)  # refuses what it cannot read
+        elif ext == ".stl" and not _stl_is_ascii(source):
+            read_mesh(source)
+            with open(source, "rb") as f:
+                head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
+            records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
+            records["normal"] = records["normal"].astype(np.float64) @ rotation.T
+            content = head + records.tobytes()
+        else:
+            read_mesh(source)
+            content = _moved_text_mesh(source, ext, rotation, translation)
+    except CloudFileError:
+        raise
+    except (OSError, ValueError, IndexError, UnicodeDecodeError) as err:
+        raise CloudFileError(source, f"unreadable {ext[1:].upper()} file ({_first_line(err)})") from None
     with _atomic_file(destination) as out:
-        out.write(content)
+        if content is None:
+            _write_moved_las(out, source, rotation, translation)
+        else:
+            out.write(content)
+
+
+def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of an OBJ, OFF or ASCII STL file with its vertices moved and its normals turned."""
+    with open(path, "r", encoding="utf-8", errors="surrogateescape") as f:
+        lines = f.readlines()
+    numbers = _mesh_coordinate_lines(path, ext, lines)
+    parts = [lines[n].partition("#") for n in numbers]
+    words = [code.split() for code, _, _ in parts]
+    starts = [{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(w[0].lower(), 0) for w in words]  # OFF: 0
+    xyz = np.asarray([w[k:k + 3] for w, k in zip(words, starts)], np.float64).reshape(-1, 3)
+    normal = np.asarray([w[0].lower() in ("vn", "facet") for w in words], bool)
+    xyz = xyz @ rotation.T + np.where(normal[:, None], 0.0, translation)  # normals turn, points move
+    for n, w, k, (_, hash_, comment), values in zip(numbers, words, starts, parts, xyz.tolist()):
+        ending = lines[n][len(lines[n].rstrip("\r\n")):]
+        w[k:k + 3] = map(repr, values)
+        lines[n] = " ".join(w) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
+    return "".join(lines).encode("utf-8", errors="surrogateescape")
 
 
 def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
@@ -242,7 +272,7 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     layout = _ply_layout(path)
     index = layout.index("vertex")
     props = dict(layout.elements[index].props)
-    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, ("nx", "ny", "nz")) if all(a in props for a in axes)]
+    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".ply"]) if all(a in props for a in axes)]
     if any(np.dtype(props[a]).kind != "f" for a in _XYZ):
         raise CloudFileError(path, "PLY coordinates stored as integers would be rounded when moved; "
                                    "write the moved points to another file instead")
@@ -259,22 +289,149 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         return data[:start] + table.tobytes() + data[start + count * record.itemsize:]
     lines = data.split(b"\n")  # ASCII PLY: one vertex per line, after the header and the elements before it
     first = layout.header_lines + sum(e.count for e in layout.elements[:index])
-    names = [n for n, _ in layout.elements[index].props]
-    rows = [lines[i].split() for i in range(first, first + layout.elements[index].count)]
-    for axes, is_normal in groups:
-        cols = [names.index(a) for a in axes]
-        values = np.asarray([[row[c] for c in cols] for row in rows], np.float64).reshape(-1, 3) @ rotation.T
+    count, names = layout.elements[index].count, [n for n, _ in layout.elements[index].props]
+    if len(lines) < first + count:
+        raise CloudFileError(path, f"PLY file ends before its {count} vertices")
+    columns = [([names.index(a) for a in axes], is_normal, np.dtype(props[axes[0]]).itemsize == 4)
+               for axes, is_normal in groups]
+    block = _moved_text_rows(path, lines[first:first + count], len(names), columns, rotation, translation)
+    return b"\n".join(lines[:first] + block + lines[first + count:])
+
+
+def _moved_text_rows(path: str, rows: list[bytes], width: int, columns: list[tuple[list[int], bool, bool]],
+                     rotation: np.ndarray, translation: np.ndarray) -> list[bytes]:
+    """Text rows of ``width`` whitespace-separated values each (an ASCII PLY or PCD file's points, line ends
+    not included) with three columns moved, or turned, at a time.
+
+    Args:
+      columns: per group (three column indices, whether they are a normal, which turns but does not move,
+        whether they are single precision, written with 9 digits instead of the 17 of a double's repr).
+
+    Every row is rebuilt from its values joined by single spaces (``\\r`` line ends kept).
+    """
+    tokens = b" ".join(rows).split()
+    if len(tokens) != len(rows) * width:
+        raise CloudFileError(path, f"expected {width} values on each of {len(rows)} point rows, "
+                                   f"found {len(tokens)} values")
+    for cols, is_normal, single in columns:
+        values = np.stack([np.array(tokens[c::width]).astype(np.float64) for c in cols], axis=1) @ rotation.T
         values = values if is_normal else values + translation
-        text = (lambda v: str(np.float32(v))) if np.dtype(props[axes[0]]) == np.float32 else repr
-        for row, moved in zip(rows, values.tolist()):
-            for c, v in zip(cols, moved):
-                row[c] = text(v).encode("ascii")
-    for i, row in enumerate(rows, first):
-        lines[i] = b" ".join(row) + (b"\r" if lines[i].endswith(b"\r") else b"")
-    return b"\n".join(lines)
+        text = list(map(b"%.9g".__mod__ if single else b"%r".__mod__, values.reshape(-1).tolist()))
+        for k, c in enumerate(cols):
+            tokens[c::width] = text[k::3]
+    end = b"\r" if rows and rows[0].endswith(b"\r") else b""
+    parts = [b" "] * (2 * len(tokens))
+    parts[0::2] = tokens
+    parts[2 * width - 1::2 * width] = [end + b"\n"] * len(rows)
+    return b"".join(parts)[:-1].split(b"\n") if rows else []
 
 
 _XYZ = ("x", "y", "z")
+_NORMALS = {".ply": ("nx", "ny", "nz"), ".pcd": ("normal_x", "normal_y", "normal_z")}
+
+
+def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of PCD file ``path`` with x, y, z moved, normal_x, normal_y, normal_z turned and the
+    VIEWPOINT moved; ``binary_compressed`` data comes back as ``binary`` (PCL and Open3D read both)."""
+    layout = _pcd_layout(path)
+    header, names = list(layout.header), layout.names
+    _columns(path, names)
+    if any(layout.types[names.index(a)] != "F" for a in _XYZ):
+        raise CloudFileError(path, "PCD coordinates stored as integers would be rounded when moved; "
+                                   "write the moved points to another file instead")
+    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".pcd"]) if all(a in names for a in axes)]
+
+    def moved(columns: list[np.ndarray], is_normal: bool) -> np.ndarray:
+        values = np.stack([np.asarray(c, np.float64) for c in columns], axis=1) @ rotation.T
+        return values if is_normal else values + translation
+
+    if "VIEWPOINT" in layout.lines:  # the sensor's pose in the cloud's frame: tx ty tz qw qx qy qz
+        number = layout.lines["VIEWPOINT"]
+        view = np.asarray(header[number].split()[1:8], np.float64)
+        pose = (*(rotation @ view[:3] + translation), *_quaternion_product(_rotation_quaternion(rotation), view[3:]))
+        header[number] = "VIEWPOINT " + " ".join(f"{v:.17g}" for v in pose) + "\n"
+    with open(path, "rb") as f:
+        f.seek(layout.offset)
+        data = f.read()
+    if layout.data == "ascii":
+        starts = np.cumsum([0] + layout.counts)[:-1]
+        columns = [([int(starts[names.index(a)]) for a in axes], is_normal, layout.sizes[names.index(axes[0])] == 4)
+                   for axes, is_normal in groups]
+        rows = [row for row in data.split(b"\n") if row.strip()]
+        body = b"\n".join(_moved_text_rows(path, rows, sum(layout.counts), columns, rotation, translation) + [b""])
+    else:
+        if layout.data == "binary":
+            record = _pcd_record(path, layout)
+            table, rest = np.frombuffer(data, record, layout.count).copy(), data[layout.count * record.itemsize:]
+        else:
+            table, rest = _pcd_compressed_table(path, layout), b""
+            header[layout.lines["DATA"]] = "DATA binary\n"
+        for axes, is_normal in groups:
+            keys = [f"{a}_{names.index(a)}" for a in axes]
+            for key, column in zip(keys, moved([table[key][:, 0] for key in keys], is_normal).T):
+                table[key][:, 0] = column
+        body = table.tobytes() + rest
+    return "".join(header).encode("ascii", errors="surrogateescape") + body
+
+
+def _rotation_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """The unit quaternion (w, x, y, z) of a rotation matrix (3, 3), w >= 0."""
+    m = np.asarray(rotation, np.float64)
+    # the largest of 4w^2, 4x^2, 4y^2, 4z^2 gives the best-conditioned square root
+    squares = np.array([1 + np.trace(m), 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2],
+                        1 - m[0, 0] - m[1, 1] + m[2, 2]])
+    k = int(np.argmax(squares))
+    r = np.sqrt(max(squares[k], 0.0)) * 2  # 4 * |component k|
+    off = {0: (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]),
+           1: (m[2, 1] - m[1, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]),
+           2: (m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], m[1, 2] + m[2, 1]),
+           3: (m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1])}[k]
+    q = np.empty(4)
+    q[k] = r / 4
+    q[[i for i in range(4) if i != k]] = np.asarray(off) / r
+    return q if q[0] >= 0 else -q
+
+
+def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a * b for quaternions (w, x, y, z): the rotation b, then a."""
+    (aw, ax, ay, az), (bw, bx, by, bz) = a, b
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+def _write_moved_las(out, path: str, rotation: np.ndarray, translation: np.ndarray) -> None:
+    """Writes LAS file ``path`` to ``out`` with its points moved, a million records at a time."""
+    data_offset, record_length, count, scale, offset = _las_layout(path)
+    source = np.memmap(path, np.uint8, mode="r")
+    if len(source) < data_offset + count * record_length:
+        raise CloudFileError(path, f"LAS file ends before its {count} points")
+    records = source[data_offset:data_offset + count * record_length].reshape(count, record_length)
+    chunks = range(0, count, 1_000_000)
+
+    def moved(chunk: np.ndarray, origin: np.ndarray) -> np.ndarray:  # chunk: (n, record_length) bytes
+        return (np.ascontiguousarray(chunk[:, :12]).view("<i4") * scale + origin) @ rotation.T + translation
+
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    for start in chunks:
+        points = moved(records[start:start + 1_000_000], offset)
+        low, high = np.minimum(low, points.min(axis=0)), np.maximum(high, points.max(axis=0))
+    new_offset = offset
+    limit = 2 ** 31 - 2 ** 20  # int32, with room for rounding
+    if count and ((np.abs((low - offset) / scale) > limit) | (np.abs((high - offset) / scale) > limit)).any():
+        new_offset = np.round((low + high) / 2 / scale) * scale  # re-centre the integers on the moved points
+    out.write(source[:data_offset].tobytes())
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    for start in chunks:
+        chunk = np.array(records[start:start + 1_000_000])  # every byte of each record, X, Y, Z replaced
+        xyz = np.round((moved(chunk, offset) - new_offset) / scale).astype("<i4")
+        chunk[:, :12] = xyz.view(np.uint8).reshape(len(chunk), 12)
+        out.write(chunk.tobytes())
+        low, high = np.minimum(low, xyz.min(axis=0)), np.maximum(high, xyz.max(axis=0))
+    out.write(source[data_offset + count * record_length:].tobytes())  # EVLRs, waveforms
+    if count:  # the header's offset, then its bounds (max x, min x, max y, ...) as the points now lie
+        bounds = np.stack([high, low], axis=1) * scale[:, None] + new_offset[:, None]
+        out.seek(155)
+        out.write(new_offset.astype("<f8").tobytes() + bounds.reshape(-1).astype("<f8").tobytes())
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
@@ -552,9 +709,8 @@ def _read_ply_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
     return vertices, _fans(corners, counts)
 
 
-def _read_las(path: str, select) -> tuple[np.ndarray, int]:
-    """LAS 1.0-1.4 (ASPRS), any point data format: each record opens with X, Y, Z as int32, in units of the
-    header's scale, from its offset. LAZ (compressed) is refused."""
+def _las_layout(path: str) -> tuple[int, int, int, np.ndarray, np.ndarray]:
+    """A LAS file's point data offset, record length, point count, scale (3,) and offset (3,)."""
     with open(path, "rb") as f:
         header = f.read(375)
     if len(header) < 227 or header[:4] != b"LASF":
@@ -567,26 +723,46 @@ def _read_las(path: str, select) -> tuple[np.ndarray, int]:
     count = int(np.frombuffer(header, "<u4", 1, 107)[0])
     if version >= (1, 4) and len(header) >= 255:  # 1.4 keeps a 64-bit count; the legacy one may be 0
         count = max(count, int(np.frombuffer(header, "<u8", 1, 247)[0]))
-    scale = np.frombuffer(header, "<f8", 3, 131)
-    offset = np.frombuffer(header, "<f8", 3, 155)
     if record_length < 12:
         raise CloudFileError(path, f"LAS point records of {record_length} bytes cannot hold X, Y, Z")
+    scale, offset = np.frombuffer(header, "<f8", 3, 131), np.frombuffer(header, "<f8", 3, 155)
+    return data_offset, record_length, count, scale, offset
+
+
+def _read_las(path: str, select) -> tuple[np.ndarray, int]:
+    """LAS 1.0-1.4 (ASPRS), any point data format: each record opens with X, Y, Z as int32, in units of the
+    header's scale, from its offset. LAZ (compressed) is refused."""
+    data_offset, record_length, count, scale, offset = _las_layout(path)
     record = np.dtype({"names": ["xyz"], "formats": [("<i4", 3)], "offsets": [0], "itemsize": record_length})
     table = _binary_records(path, record, data_offset, count, select, "LAS file ends before its {} points")
     return table["xyz"] * scale + offset, count
 
 
-def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
+class _PcdLayout(NamedTuple):
+    header: list[str]  # the header's lines, line ends kept
+    lines: dict[str, int]  # the line number of each keyword (FIELDS, VIEWPOINT, DATA, ...)
+    names: list[str]
+    sizes: list[int]
+    types: list[str]
+    counts: list[int]
+    count: int  # points
+    data: str  # ascii, binary or binary_compressed
+    offset: int  # where the data starts
+
+
+def _pcd_layout(path: str) -> _PcdLayout:
     with open(path, "rb") as f:
-        header = _read_header(f, path, b"DATA")
+        _read_header(f, path, b"DATA")
         offset = f.tell()
+        f.seek(0)
+        header = f.read(offset).decode("ascii", errors="surrogateescape").splitlines(keepends=True)
     fields: dict[str, list[str]] = {}
-    for line in header:
+    lines = {}
+    for number, line in enumerate(header):
         words = line.split()
         if words and not words[0].startswith("#"):
-            fields[words[0].upper()] = words[1:]
+            fields[words[0].upper()], lines[words[0].upper()] = words[1:], number
     names = fields.get("FIELDS", [])
-    cols = _columns(path, names)
     n = len(names)
     sizes = [int(s) for s in fields.get("SIZE", ["4"] * n)]
     types = [t.upper() for t in fields.get("TYPE", ["F"] * n)]
@@ -596,6 +772,22 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
     width, height = int(fields.get("WIDTH", ["0"])[0]), int(fields.get("HEIGHT", ["1"])[0])
     count = int(fields.get("POINTS", [str(width * height)])[0])
     data = (fields.get("DATA") or ["?"])[0].lower()
+    return _PcdLayout(header, lines, names, sizes, types, counts, count, data, offset)
+
+
+def _pcd_record(path: str, layout: _PcdLayout) -> np.dtype:
+    """One point of a binary PCD file, its fields named ``{name}_{index}`` (names may repeat: ``_`` pads)."""
+    try:
+        return np.dtype([(f"{name}_{i}", "<" + _PCD_TYPES[(t, s)], (k,)) for i, (name, t, s, k) in
+                         enumerate(zip(layout.names, layout.types, layout.sizes, layout.counts))])
+    except KeyError:
+        raise CloudFileError(path, f"unsupported PCD TYPE/SIZE {list(zip(layout.types, layout.sizes))}") from None
+
+
+def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
+    layout = _pcd_layout(path)
+    names, sizes, types, counts, count, data, offset = layout[2:]
+    cols = _columns(path, names)
     if any(counts[c] != 1 for c in cols):
         raise CloudFileError(path, "PCD x/y/z fields must have COUNT 1")
     if data == "ascii":
@@ -611,27 +803,27 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
         table = table if rows_kept is None else table[rows_kept]
         return table[:, [starts[c] for c in cols]], count
     if data == "binary":
-        try:
-            dtype = np.dtype([(f"{name}_{i}", "<" + _PCD_TYPES[(t, s)], (k,)) for i, (name, t, s, k) in
-                              enumerate(zip(names, types, sizes, counts))])
-        except KeyError:
-            raise CloudFileError(path, f"unsupported PCD TYPE/SIZE {list(zip(types, sizes))}") from None
-        table = _binary_records(path, dtype, offset, count, select, "PCD file ends before its {} points")
-        points = np.stack([table[f"{names[c]}_{c}"][:, 0].astype(np.float64) for c in cols], axis=1)
-        return points, count
-    if data == "binary_compressed":
-        return _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count, select), count
-    raise CloudFileError(path, f"unknown PCD DATA type {data!r}")
+        table = _binary_records(path, _pcd_record(path, layout), offset, count, select,
+                                "PCD file ends before its {} points")
+    elif data == "binary_compressed":
+        table = _pcd_compressed_table(path, layout)
+        rows_kept = select(count)
+        table = table if rows_kept is None else table[rows_kept]
+    else:
+        raise CloudFileError(path, f"unknown PCD DATA type {data!r}")
+    return np.stack([table[f"{names[c]}_{c}"][:, 0].astype(np.float64) for c in cols], axis=1), count
 
 
-def _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count, select) -> np.ndarray:
-    """The x, y, z columns of a ``DATA binary_compressed`` PCD file (what PCL and Open3D write compressed).
+def _pcd_compressed_table(path: str, layout: _PcdLayout) -> np.ndarray:
+    """The points (count,) of a ``DATA binary_compressed`` PCD file (what PCL and Open3D write compressed), as
+    :func:`_pcd_record` records.
 
     After the header: the compressed and the decompressed size (uint32 each), then LZF-compressed data that
     holds each field's values for all points in turn (field by field, not point by point).
     """
+    record, count = _pcd_record(path, layout), layout.count
     with open(path, "rb") as f:
-        f.seek(offset)
+        f.seek(layout.offset)
         sizes_raw = f.read(8)
         if len(sizes_raw) < 8:
             raise CloudFileError(path, "PCD file ends before its compressed data")
@@ -639,23 +831,16 @@ def _read_pcd_compressed(path, offset, names, types, sizes, counts, cols, count,
         data = f.read(int(packed))
     if len(data) < packed:
         raise CloudFileError(path, f"PCD file ends before its {packed} bytes of compressed data")
-    widths = [s * k for s, k in zip(sizes, counts)]
-    if unpacked != count * sum(widths):
-        raise CloudFileError(path, f"PCD header says {count} points of {sum(widths)} bytes, the compressed data "
-                                   f"holds {unpacked} bytes")
+    if unpacked != count * record.itemsize:
+        raise CloudFileError(path, f"PCD header says {count} points of {record.itemsize} bytes, the compressed "
+                                   f"data holds {unpacked} bytes")
     raw = _lzf_decompress(data, int(unpacked), path)
-    starts = np.cumsum([0] + widths)[:-1] * count
-    columns = []
-    for c in cols:
-        try:
-            dtype = np.dtype("<" + _PCD_TYPES[(types[c], sizes[c])])
-        except KeyError:
-            raise CloudFileError(path, f"unsupported PCD TYPE/SIZE of field {names[c]}: "
-                                       f"{types[c]}{sizes[c]}") from None
-        columns.append(np.frombuffer(raw, dtype, count=count, offset=int(starts[c])).astype(np.float64))
-    points = np.stack(columns, axis=1) if count else np.zeros((0, 3))
-    rows_kept = select(count)
-    return points if rows_kept is None else points[rows_kept]
+    table, start = np.zeros(count, record), 0
+    for name in record.names:
+        field = record.fields[name][0]
+        table[name] = np.frombuffer(raw, field.base, count * field.shape[0], start).reshape(count, -1)
+        start += count * field.itemsize
+    return table
 
 
 def _lzf_decompress(data: bytes, size: int, path: str) -> bytes:

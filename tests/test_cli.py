@@ -138,7 +138,7 @@ def test_bad_checkpoint_and_output_path(capsys, tmp_path, pair):
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.e57")
     assert code == 2 and "unknown output format" in err
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "a.stl")
-    assert code == 2 and "a .stl mesh is written only as SRC moved" in err  # a cloud SRC has no mesh to move
+    assert code == 2 and "a .stl file is written only as SRC moved" in err  # a cloud SRC has no mesh to move
     code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--out", tmp_path / "no" / "a.ply")
     assert code == 2 and "folder does not exist" in err
 
@@ -169,6 +169,15 @@ def test_nonfinite_points_refused_unless_left_out(capsys, tmp_path, tiny_checkpo
         f"dit-register: note: {folder / 'src.ply'}: 600 points, above --max-points; using a random 500",
         f"dit-register: note: {tmp_path / 'holes.pcd'}: left out 200 of 800 points with NaN or Inf coordinates",
         f"dit-register: note: {tmp_path / 'holes.pcd'}: 600 points, above --max-points; using a random 500"]
+    code, out, err = run(capsys, tmp_path / "holes.pcd", folder / "src.ply", "--checkpoint", tiny_checkpoint,
+                         "--refine", "none", "--drop-nonfinite", "--out", tmp_path / "moved.pcd")
+    rows = [line for line in out.splitlines() if line.strip().startswith("[")]
+    matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
+    with pytest.warns(io.NonFiniteWarning):  # written whole, the holes where they were
+        moved = io.read(tmp_path / "moved.pcd", drop_nonfinite=True)
+    kept = np.isfinite(holes).all(axis=1)
+    assert code in (0, 3) and b"\nPOINTS 800\n" in (tmp_path / "moved.pcd").read_bytes()
+    np.testing.assert_allclose(moved, holes[kept] @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-4)
 
 
 def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, tiny_checkpoint, pair):
@@ -196,8 +205,9 @@ def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, t
     assert code == 0 and f"wrote {tmp_path / 'moved.obj'}" in out, err
     moved_vertices, _ = io.read_mesh(tmp_path / "moved.obj")  # the same registration: the same matrix
     np.testing.assert_allclose(moved_vertices, vertices @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-4)
-    for other, fragment in (("moved.stl", "a .stl mesh is written only as SRC moved, where SRC is a .stl"),
-                            ("moved.las", "unknown output format '.las'")):
+    for other, fragment in (("moved.stl", "a .stl file is written only as SRC moved, where SRC is a .stl"),
+                            ("moved.las", "a .las file is written only as SRC moved"),
+                            ("moved.e57", "unknown output format")):
         code, _, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
                            "--out", tmp_path / other)
         assert code == 2 and err.count("\n") == 1 and fragment in err, err

@@ -223,6 +223,86 @@ def test_las_files_as_laspy_writes_them(tmp_path, cloud, version, point_format):
         io.write(tmp_path / "e.las", cloud)  # read only
 
 
+@pytest.mark.parametrize("kwargs", [{"write_ascii": True}, {"write_ascii": False},
+                                    {"write_ascii": False, "compressed": True}])
+def test_a_moved_pcd_keeps_its_fields_and_moves_its_viewpoint(tmp_path, cloud, kwargs):
+    o3d = pytest.importorskip("open3d", reason="cross-checking PCD files needs open3d (the test extra)")
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+    from dit_jax.data.scans import quaternion_matrix
+
+    rng = np.random.default_rng(1)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
+    pcd.normals = o3d.utility.Vector3dVector(rng.normal(size=cloud.shape))
+    pcd.normalize_normals()
+    pcd.colors = o3d.utility.Vector3dVector(rng.random(cloud.shape))
+    assert o3d.io.write_point_cloud(str(tmp_path / "a.pcd"), pcd, **kwargs)
+    data = (tmp_path / "a.pcd").read_bytes()
+    q = np.array([0.1, -0.3, 0.2, 0.9]) / np.linalg.norm([0.1, -0.3, 0.2, 0.9])  # (x, y, z, w)
+    viewpoint = f"VIEWPOINT 1 2 3 {q[3]} {q[0]} {q[1]} {q[2]}".encode()
+    (tmp_path / "a.pcd").write_bytes(data.replace(b"VIEWPOINT 0 0 0 1 0 0 0", viewpoint))
+    original = o3d.io.read_point_cloud(str(tmp_path / "a.pcd"))
+    rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([5.0, -1.0, 0.25])
+    io.move_file(tmp_path / "a.pcd", tmp_path / "m.pcd", rotation, translation)
+    moved = o3d.io.read_point_cloud(str(tmp_path / "m.pcd"))
+    np.testing.assert_allclose(np.asarray(moved.points), np.asarray(original.points) @ rotation.T + translation,
+                               atol=1e-4)  # float32 fields
+    np.testing.assert_allclose(np.asarray(moved.normals), np.asarray(original.normals) @ rotation.T, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(moved.colors), np.asarray(original.colors))
+    header = (tmp_path / "m.pcd").read_bytes().split(b"\nDATA ")[0].decode().splitlines()
+    assert (b"\nDATA ascii\n" if kwargs["write_ascii"] else b"\nDATA binary\n") in (tmp_path / "m.pcd").read_bytes()
+    (view,) = [np.array(line.split()[1:], float) for line in header if line.startswith("VIEWPOINT")]
+    np.testing.assert_allclose(view[:3], rotation @ [1, 2, 3] + translation, atol=1e-12)
+    np.testing.assert_allclose(quaternion_matrix([*view[4:], view[3]]), rotation @ quaternion_matrix(q), atol=1e-12)
+    assert [line for line in header if not line.startswith(("VIEWPOINT", "DATA"))] == \
+        [line for line in (tmp_path / "a.pcd").read_bytes().split(b"\nDATA ")[0].decode().splitlines()
+         if not line.startswith(("VIEWPOINT", "DATA"))]
+
+
+def test_files_that_cannot_be_moved_are_refused_and_nothing_is_written(tmp_path):
+    head = "ply\nformat ascii 1.0\nelement vertex 2\nproperty {0} x\nproperty {0} y\nproperty {0} z\nend_header\n"
+    bad = {
+        "short_row.ply": (head.format("float") + "1 2 3\n4 5\n", "expected 3 values on each of 2 point rows"),
+        "integers.ply": (head.format("int") + "1 2 3\n4 5 6\n", "stored as integers would be rounded"),
+        "flat.pcd": ("FIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nPOINTS 1\nDATA ascii\n1 2\n", "no z field"),
+        "word.ply": (head.format("float") + "1 2 3\n4 5 a\n", "unreadable PLY file"),
+    }
+    for name, (text, fragment) in bad.items():
+        (tmp_path / name).write_text(text)
+        with pytest.raises(io.CloudFileError, match=fragment):
+            io.move_file(tmp_path / name, tmp_path / f"out{os.path.splitext(name)[1]}", np.eye(3), np.zeros(3))
+    with pytest.raises(io.CloudFileError, match="no such file"):
+        io.move_file(tmp_path / "missing.las", tmp_path / "out.las", np.eye(3), np.zeros(3))
+    with pytest.raises(io.CloudFileError, match="written as .ply"):
+        io.move_file(tmp_path / "word.ply", tmp_path / "out.pcd", np.eye(3), np.zeros(3))
+    with pytest.raises(io.CloudFileError, match="unknown format to move '.xyz'"):
+        io.move_file(tmp_path / "a.xyz", tmp_path / "out.xyz", np.eye(3), np.zeros(3))
+    assert sorted(os.listdir(tmp_path)) == sorted(bad)
+
+
+def test_a_moved_las_keeps_every_attribute_at_its_scale(tmp_path, cloud):
+    laspy = pytest.importorskip("laspy", reason="writing LAS files needs laspy (the test extra)")
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    las = laspy.LasData(laspy.LasHeader(point_format=3, version="1.2"))
+    las.header.scales, las.header.offsets = [0.001] * 3, [1000.0, -2.0, 0.0]
+    las.x, las.y, las.z = cloud.T
+    las.intensity, las.classification = np.arange(len(cloud)), np.arange(len(cloud)) % 7
+    las.write(str(tmp_path / "a.las"))
+    rotation = euler_zyx_to_matrix([30.0, -20.0, 10.0])
+    for translation in ([5.0, -1.0, 0.25], [3e6, 0.0, 0.0]):  # the second overflows the offset's integers
+        io.move_file(tmp_path / "a.las", tmp_path / "m.las", rotation, translation)
+        before, after = laspy.read(str(tmp_path / "a.las")), laspy.read(str(tmp_path / "m.las"))
+        points = np.stack([after.x, after.y, after.z], axis=1)
+        expected = np.stack([before.x, before.y, before.z], axis=1) @ rotation.T + translation
+        np.testing.assert_allclose(points, expected, atol=0.0005 + 1e-9)  # rounded to the file's 1 mm
+        np.testing.assert_array_equal(after.intensity, before.intensity)
+        np.testing.assert_array_equal(after.classification, before.classification)
+        np.testing.assert_allclose(after.header.mins, points.min(axis=0), atol=1e-9)
+        np.testing.assert_allclose(after.header.maxs, points.max(axis=0), atol=1e-9)
+        np.testing.assert_array_equal(io.read(tmp_path / "m.las"), points)
+    assert after.header.offsets[0] != 1000.0  # re-centred
+
+
 def _box_mesh_files(tmp_path):
     """A 2 x 1 x 0.5 box (area 7) as OBJ (quads, one face by negative indices), OFF (ModelNet's header) and
     ASCII and binary STL."""
