@@ -167,11 +167,14 @@ def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) ->
     return lines
 
 
-def _moves_file(src: str, out: str) -> bool:
-    """Whether --out is SRC's own file moved (every point and property kept; :func:`io.move_file`) rather
-    than the points read from it: where both have one of :data:`io.MOVE_FORMATS`, the same."""
+def _write_moved(src: str, out: str, rotation: np.ndarray, translation: np.ndarray, points: np.ndarray) -> None:
+    """Writes SRC moved to ``out``: the file itself (every point and field kept, :func:`io.move_file`) where
+    both have the same one of :data:`io.MOVE_FORMATS`, else ``points`` (N, 3), what was read of it."""
     ext = os.path.splitext(out)[1].lower()
-    return ext in io.MOVE_FORMATS and os.path.splitext(src)[1].lower() == ext
+    if ext in io.MOVE_FORMATS and os.path.splitext(src)[1].lower() == ext:
+        io.move_file(src, out, rotation, translation)
+    else:
+        io.write(out, points @ np.asarray(rotation).T + np.asarray(translation))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -223,10 +226,8 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(message)
         for line in _warning_lines(caught, args.src, args.tgt):
             print(f"{PROG}: warning: {line}", file=sys.stderr)
-        if args.out is not None and _moves_file(args.src, args.out):
-            io.move_file(args.src, args.out, result.rotation, result.translation)
-        elif args.out is not None:
-            io.write(args.out, result.apply(src))
+        if args.out is not None:
+            _write_moved(args.src, args.out, result.rotation, result.translation, src)
         if args.plot is not None:
             result.plot(args.plot, src, tgt, title=f"{os.path.basename(args.src)} onto {os.path.basename(args.tgt)}")
     except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
@@ -274,6 +275,9 @@ def _series_parser() -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
     parser.add_argument("--out", default=None, help="write every scan moved into the first one's frame, as one cloud")
+    parser.add_argument("--out-dir", default=None, metavar="DIR",
+                        help="write each scan moved into the first one's frame to DIR, under its own name and "
+                             "format (PLY, PCD, LAS and meshes whole: every point and field kept)")
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
     parser.add_argument("--refine", choices=("none", "icp"), default="icp",
                         help="icp (default) or none: the network alone for every link")
@@ -291,6 +295,22 @@ def _series_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _out_dir_problem(folder: str | None, scans: list[str]) -> str | None:
+    """What is wrong with --out-dir (its parent missing, two scans of one name, a scan it would overwrite)."""
+    if folder is None:
+        return None
+    if not os.path.isdir(os.path.dirname(os.path.abspath(folder))):
+        return f"--out-dir {folder}: its parent folder does not exist"
+    names = [os.path.basename(path) for path in scans]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        return f"--out-dir {folder}: two scans are named {twice[0]}; one would overwrite the other there"
+    for path in scans:
+        if os.path.realpath(os.path.dirname(os.path.abspath(path))) == os.path.realpath(folder):
+            return f"--out-dir {folder}: it holds {path}, which the moved scan would overwrite"
+    return None
+
+
 #: ``dit-register-series`` warns where the loop's rotation gap exceeds this many degrees: the links' own errors
 #: (a few tenths of a degree each on the dragon's scans) sum to far less.
 LOOP_GAP_WARNING_DEG = 5.0
@@ -303,7 +323,7 @@ def series_main(argv: list[str] | None = None) -> int:
     if len(args.scans) < (3 if args.loop else 2):
         return fail(f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
                     f"got {len(args.scans)}")
-    problem = _output_problem(args.out)
+    problem = _output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans)
     if problem:
         return fail(problem)
     if args.max_points < 1:
@@ -339,6 +359,10 @@ def series_main(argv: list[str] | None = None) -> int:
                 return fail(str(err))
         if args.out is not None:
             io.write(args.out, result.merged(clouds))
+        if args.out_dir is not None:
+            os.makedirs(args.out_dir, exist_ok=True)
+            for path, pose, cloud in zip(args.scans, result.poses, clouds):
+                _write_moved(path, os.path.join(args.out_dir, os.path.basename(path)), pose[:3, :3], pose[:3, 3], cloud)
     except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
         return fail(str(err))
 
@@ -363,6 +387,8 @@ def series_main(argv: list[str] | None = None) -> int:
                   f"before closing, spread over {len(pairs)} links")
         if args.out is not None:
             print(f"wrote {args.out}")
+        if args.out_dir is not None:
+            print(f"wrote {len(args.scans)} moved scans to {args.out_dir}")
     problems = [f"{names[a]} onto {names[b]} is not confirmed" for (a, b), link in zip(pairs, result.links)
                 if not link.verdict]
     if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:

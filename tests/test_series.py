@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -122,9 +123,12 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
         io.write(path, surface @ euler_zyx_to_matrix([10.0 * k, 0.0, 0.0]).T + [k, 0.0, 0.0])
         paths.append(str(path))
     code = cli.series_main(paths + ["--checkpoint", tiny_checkpoint, "--loop", "--refine", "none", "--json",
-                                    "--out", str(tmp_path / "merged.ply")])
+                                    "--out", str(tmp_path / "merged.ply"), "--out-dir", str(tmp_path / "aligned")])
     out, err = capsys.readouterr()
     report = json.loads(out)
+    for path, pose in zip(paths, np.array(report["poses"])):  # each scan in the first one's frame, its own file
+        np.testing.assert_allclose(io.read(tmp_path / "aligned" / os.path.basename(path)),
+                                   io.read(path) @ pose[:3, :3].T + pose[:3, 3], atol=1e-9)
     assert len(report["poses"]) == 3 and len(report["links"]) == 3
     assert [(link["source"], link["target"]) for link in report["links"]] == [
         (paths[1], paths[0]), (paths[2], paths[1]), (paths[0], paths[2])]
@@ -135,6 +139,8 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     assert code == (3 if suspect or report["loop_gap_deg"] > cli.LOOP_GAP_WARNING_DEG else 0), err
     code = cli.series_main(paths[:2] + ["--loop"])
     assert code == 2 and "--loop needs at least 3 scans" in capsys.readouterr().err
+    code = cli.series_main(paths + ["--out-dir", str(tmp_path)])
+    assert code == 2 and f"it holds {paths[0]}, which the moved scan would overwrite" in capsys.readouterr().err
     code = cli.series_main([paths[0], str(tmp_path / "missing.ply")])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"dit-register-series: error: {tmp_path / 'missing.ply'}: no such file")
