@@ -61,7 +61,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
-                                            ".npy, text (.xyz .txt .csv .asc .pts), .las (read);\n"
+                                            ".npy, text (.xyz .txt .csv .asc .pts), .las (read; written only as SRC moved);\n"
                                             "meshes (.obj .off .stl, .ply with faces) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
