@@ -339,6 +339,8 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     if any(layout.types[names.index(a)] != "F" for a in _XYZ):
         raise CloudFileError(path, "PCD coordinates stored as integers would be rounded when moved; "
                                    "write the moved points to another file instead")
+    if any(layout.counts[names.index(a)] != 1 for a in _XYZ):
+        raise CloudFileError(path, "PCD x/y/z fields must have COUNT 1")
     groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".pcd"]) if all(a in names for a in axes)]
 
     def moved(columns: list[np.ndarray], is_normal: bool) -> np.ndarray:
@@ -358,6 +360,8 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         columns = [([int(starts[names.index(a)]) for a in axes], is_normal, layout.sizes[names.index(axes[0])] == 4)
                    for axes, is_normal in groups]
         rows = [row for row in data.split(b"\n") if row.strip()]
+        if len(rows) != layout.count:
+            raise CloudFileError(path, f"PCD header says {layout.count} points, the data has {len(rows)}")
         body = b"\n".join(_moved_text_rows(path, rows, sum(layout.counts), columns, rotation, translation) + [b""])
     else:
         if layout.data == "binary":
