@@ -61,7 +61,8 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
-                                            ".npy, text (.xyz .txt .csv .asc .pts), .las (read; written only as SRC moved);\n"
+                                            ".npy, text (.xyz .txt .csv .asc .pts),\n"
+                                            ".las (read; written only as SRC moved); "
                                             "meshes (.obj .off .stl, .ply with faces) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
@@ -152,6 +153,17 @@ def _output_problem(path: str | None, source: str | None = None) -> str | None:
     return None
 
 
+def _plot_problem(path: str | None) -> str | None:
+    """What is wrong with a --plot path (not a .png, a missing folder), or None."""
+    if path is None:
+        return None
+    if not path.lower().endswith(".png"):
+        return f"--plot {path}: expected a .png file name"
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        return f"{path}: its folder does not exist"
+    return None
+
+
 def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) -> list[str]:
     """A registration's size-mismatch warnings as lines naming the files (``src``, ``tgt``) instead of "source"
     and "target"; any other warning is shown as Python shows it."""
@@ -183,11 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     problem = _output_problem(args.out, args.src)  # checked before any work, so a bad --out costs nothing
     if problem:
         return _fail(problem)
-    if args.plot is not None:
-        if not args.plot.lower().endswith(".png"):
-            return _fail(f"--plot {args.plot}: expected a .png file name")
-        if not os.path.isdir(os.path.dirname(os.path.abspath(args.plot))):
-            return _fail(f"{args.plot}: its folder does not exist")
+    problem = _plot_problem(args.plot)
+    if problem:
+        return _fail(problem)
     if args.max_points < 1:
         return _fail(f"--max-points must be positive, got {args.max_points}")
     if args.max_disagreement is not None:
@@ -278,6 +288,9 @@ def _series_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out-dir", default=None, metavar="DIR",
                         help="write each scan moved into the first one's frame to DIR, under its own name and "
                              "format (PLY, PCD, LAS and meshes whole: every point and field kept)")
+    parser.add_argument("--plot", default=None, metavar="FILE.png",
+                        help="draw every scan in the first one's frame, from two viewpoints, beside each link's "
+                             "agreement and verdict")
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
     parser.add_argument("--refine", choices=("none", "icp"), default="icp",
                         help="icp (default) or none: the network alone for every link")
@@ -323,7 +336,8 @@ def series_main(argv: list[str] | None = None) -> int:
     if len(args.scans) < (3 if args.loop else 2):
         return fail(f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
                     f"got {len(args.scans)}")
-    problem = _output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans)
+    problem = (_output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans)
+               or _plot_problem(args.plot))
     if problem:
         return fail(problem)
     if args.max_points < 1:
@@ -359,6 +373,8 @@ def series_main(argv: list[str] | None = None) -> int:
                 return fail(str(err))
         if args.out is not None:
             io.write(args.out, result.merged(clouds))
+        if args.plot is not None:
+            result.plot(args.plot, clouds, names=[os.path.basename(path) for path in args.scans])
         if args.out_dir is not None:
             os.makedirs(args.out_dir, exist_ok=True)
             for path, pose, cloud in zip(args.scans, result.poses, clouds):
@@ -368,7 +384,8 @@ def series_main(argv: list[str] | None = None) -> int:
 
     names = args.scans
     if args.json:
-        report = {"scans": names, "poses": result.poses.tolist(), "out": args.out,
+        report = {"scans": names, "poses": result.poses.tolist(), "out": args.out, "out_dir": args.out_dir,
+                  "plot": args.plot,
                   "links": [{"source": names[a], "target": names[b]} | link.to_json()
                             for (a, b), link in zip(pairs, result.links)],
                   "loop_gap_deg": None if np.isnan(result.loop_gap_deg) else result.loop_gap_deg,
@@ -389,6 +406,8 @@ def series_main(argv: list[str] | None = None) -> int:
             print(f"wrote {args.out}")
         if args.out_dir is not None:
             print(f"wrote {len(args.scans)} moved scans to {args.out_dir}")
+        if args.plot is not None:
+            print(f"wrote {args.plot}")
     problems = [f"{names[a]} onto {names[b]} is not confirmed" for (a, b), link in zip(pairs, result.links)
                 if not link.verdict]
     if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:

@@ -4,6 +4,8 @@
 * :func:`plot_registration` -- two clouds before and after a registration, seen from two viewpoints, with the
   estimated motion (and its error, where the truth is known) in the title: what ``dit-register --plot``,
   :meth:`dit_jax.registration.Result.plot` and evaluate.py's worst-pair pictures draw.
+* :func:`plot_series` -- a series of scans in one frame, each in its own colour, from two sides, beside
+  each link's verdict: what ``dit-register-series --plot`` and :meth:`dit_jax.series.SeriesResult.plot` draw.
 """
 
 from __future__ import annotations
@@ -89,6 +91,53 @@ def plot_registration(path: str | os.PathLike, src: np.ndarray, tgt: np.ndarray,
     line = describe(rotation, translation, inlier_ratio=inlier_ratio, fitness=fitness, truth=truth)
     fig.suptitle(f"{title}\n{line}" if title else line, fontsize=9)
     fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return os.fspath(path)
+
+
+def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: list[str] | None = None,
+                links: list[tuple[str, float, float, bool]] | None = None, title: str | None = None) -> str:
+    """Writes a PNG of scans already in one frame, each (N_k, 3) in its own colour, seen along the merged
+    cloud's thinnest and middle principal axes (whatever axis is up), and a bar per
+    link: ``links`` = (label, agreement in degrees, threshold, trusted), green where trusted, red where
+    suspect, the threshold dashed. Returns the path."""
+    plt = pyplot()
+    names = names or [f"scan {k}" for k in range(len(clouds))]  # legend entries
+    per_scan = max(300, 3 * MAX_DRAWN // max(1, len(clouds)))
+    drawn = [np.asarray(c, np.float64)[np.random.default_rng(k).choice(len(c), min(len(c), per_scan), replace=False)]
+             for k, c in enumerate(clouds)]
+    everything = np.concatenate(drawn)
+    centre = np.median(everything, axis=0)
+    _, _, axes = np.linalg.svd(everything - centre, full_matrices=False)  # rows: most to least spread
+    colours = plt.get_cmap("tab20" if len(clouds) > 10 else "tab10")
+    panels = 3 if links else 2
+    fig, ax_row = plt.subplots(1, panels, figsize=(5.2 * panels, 5.0))
+    views = ((0, 1, "seen along its thinnest axis"), (0, 2, "along its middle axis"))
+    for ax, (across, up, label) in zip(ax_row, views):
+        for k, points in enumerate(drawn):
+            flat = (points - centre) @ axes[[across, up]].T
+            ax.scatter(*flat.T, s=0.6, color=colours(k % colours.N), label=names[k], rasterized=True)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"all scans in the first one's frame, {label}", fontsize=8)
+    if links:
+        ax = ax_row[2]
+        labels, agreements, thresholds, trusted = zip(*links)
+        ax.bar(range(len(links)), agreements, color=["tab:green" if t else "tab:red" for t in trusted])
+        for k, threshold in enumerate(thresholds):
+            ax.plot([k - 0.4, k + 0.4], [threshold, threshold], "k--", lw=1)
+        ax.set_xticks(range(len(links)), labels, rotation=90 if len(links) > 8 else 0, fontsize=7)
+        ax.set_ylabel("agreement of the two directions (deg)", fontsize=8)
+        ax.set_title("links: green trusted, red suspect; dashed: threshold", fontsize=8)
+    if len(clouds) <= 20:
+        handles, labels = ax_row[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=min(5, len(clouds)), fontsize=7, markerscale=8,
+                   frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.04 * (1 + min(20, len(clouds)) // 5), 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return os.fspath(path)

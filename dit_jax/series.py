@@ -64,6 +64,22 @@ class SeriesResult:
         """(sum N_k, 3): every cloud moved into scan 0's frame, in order."""
         return np.concatenate(self.apply(clouds))
 
+    def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str] | None = None,
+             title: str | None = None) -> str:
+        """Writes a PNG of the clouds moved into scan 0's frame, each in its own colour, from two viewpoints,
+        beside each link's agreement and verdict (:func:`dit_jax.plotting.plot_series`); returns the path."""
+        from dit_jax import plotting
+
+        names = [f"{k}: {name}" for k, name in enumerate(names)] if names is not None else None
+        links = [(f"{a} onto {b}", link.agreement, link.max_disagreement, bool(link.verdict))
+                 for (a, b), link in zip(self.pairs, self.links)]
+        if not np.isnan(self.loop_gap_deg):
+            line = f"{len(self.poses)} scans, loop closed (gap {self.loop_gap_deg:.2f} deg before closing)"
+        else:
+            line = f"{len(self.poses)} scans, chained"
+        return plotting.plot_series(path, self.apply(clouds), names=names, links=links,
+                                    title=f"{title}\n{line}" if title else line)
+
 
 def link_pairs(n_clouds: int, loop: bool) -> list[tuple[int, int]]:
     """(source, target) of each link of a series of ``n_clouds``: cloud k + 1 onto cloud k, then (``loop``)

@@ -123,7 +123,8 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
         io.write(path, surface @ euler_zyx_to_matrix([10.0 * k, 0.0, 0.0]).T + [k, 0.0, 0.0])
         paths.append(str(path))
     code = cli.series_main(paths + ["--checkpoint", tiny_checkpoint, "--loop", "--refine", "none", "--json",
-                                    "--out", str(tmp_path / "merged.ply"), "--out-dir", str(tmp_path / "aligned")])
+                                    "--out", str(tmp_path / "merged.ply"), "--out-dir", str(tmp_path / "aligned"),
+                                    "--plot", str(tmp_path / "series.png")])
     out, err = capsys.readouterr()
     report = json.loads(out)
     for path, pose in zip(paths, np.array(report["poses"])):  # each scan in the first one's frame, its own file
@@ -133,12 +134,16 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     assert [(link["source"], link["target"]) for link in report["links"]] == [
         (paths[1], paths[0]), (paths[2], paths[1]), (paths[0], paths[2])]
     assert report["loop_gap_deg"] is not None
+    assert report["plot"] == str(tmp_path / "series.png")
+    assert (tmp_path / "series.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     np.testing.assert_allclose(report["poses"][0], np.eye(4), atol=1e-12)
     assert io.read(tmp_path / "merged.ply").shape == (1200, 3)
     suspect = [link for link in report["links"] if link["verdict"] == "suspect"]
     assert code == (3 if suspect or report["loop_gap_deg"] > cli.LOOP_GAP_WARNING_DEG else 0), err
     code = cli.series_main(paths[:2] + ["--loop"])
     assert code == 2 and "--loop needs at least 3 scans" in capsys.readouterr().err
+    code = cli.series_main(paths + ["--plot", str(tmp_path / "series.jpg")])
+    assert code == 2 and "expected a .png file name" in capsys.readouterr().err
     code = cli.series_main(paths + ["--out-dir", str(tmp_path)])
     assert code == 2 and f"it holds {paths[0]}, which the moved scan would overwrite" in capsys.readouterr().err
     code = cli.series_main([paths[0], str(tmp_path / "missing.ply")])
