@@ -16,8 +16,8 @@ those points out instead), or rows that are not three coordinates. Formats:
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
   ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
-* LAS (read, and written only as a file moved): ASPRS LAS 1.0-1.4, every point data format, memory-mapped; X, Y, Z scaled and offset as the
-  header says. Compressed LAZ is refused with the hint to decompress it.
+* LAS (read, and written only as a file moved): ASPRS LAS 1.0-1.4, every point data format, memory-mapped;
+  X, Y, Z scaled and offset as the header says. Compressed LAZ is refused with the hint to decompress it.
 * Meshes (:data:`MESH_FORMATS`): .obj, .off, .stl and PLY with faces, sampled uniformly over their surface.
 
 :func:`move_file` writes a PLY, PCD, LAS or mesh file moved, every other field kept (``dit-register --out``
@@ -282,10 +282,7 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         start = _ply_binary_start(path, layout, index, np.frombuffer(data, np.uint8))
         record, count = _ply_vertex_record(layout), layout.elements[index].count
         table = np.frombuffer(data, record, count, start).copy()
-        for axes, is_normal in groups:
-            values = np.stack([table[a].astype(np.float64) for a in axes], axis=1) @ rotation.T
-            for a, column in zip(axes, (values if is_normal else values + translation).T):
-                table[a] = column
+        _move_columns([([table[a] for a in axes], is_normal) for axes, is_normal in groups], rotation, translation)
         return data[:start] + table.tobytes() + data[start + count * record.itemsize:]
     lines = data.split(b"\n")  # ASCII PLY: one vertex per line, after the header and the elements before it
     first = layout.header_lines + sum(e.count for e in layout.elements[:index])
@@ -296,6 +293,16 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
                for axes, is_normal in groups]
     block = _moved_text_rows(path, lines[first:first + count], len(names), columns, rotation, translation)
     return b"\n".join(lines[:first] + block + lines[first + count:])
+
+
+def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndarray,
+                  translation: np.ndarray) -> None:
+    """Moves each group of three coordinate columns (views into a file's records, (N,) each) in place, or,
+    where the group is a normal, turns it."""
+    for views, is_normal in groups:
+        values = np.stack([view.astype(np.float64) for view in views], axis=1) @ rotation.T
+        for view, column in zip(views, (values if is_normal else values + translation).T):
+            view[...] = column
 
 
 def _moved_text_rows(path: str, rows: list[bytes], width: int, columns: list[tuple[list[int], bool, bool]],
@@ -343,10 +350,6 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         raise CloudFileError(path, "PCD x/y/z fields must have COUNT 1")
     groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".pcd"]) if all(a in names for a in axes)]
 
-    def moved(columns: list[np.ndarray], is_normal: bool) -> np.ndarray:
-        values = np.stack([np.asarray(c, np.float64) for c in columns], axis=1) @ rotation.T
-        return values if is_normal else values + translation
-
     if "VIEWPOINT" in layout.lines:  # the sensor's pose in the cloud's frame: tx ty tz qw qx qy qz
         number = layout.lines["VIEWPOINT"]
         view = np.asarray(header[number].split()[1:8], np.float64)
@@ -370,10 +373,8 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         else:
             table, rest = _pcd_compressed_table(path, layout), b""
             header[layout.lines["DATA"]] = "DATA binary\n"
-        for axes, is_normal in groups:
-            keys = [f"{a}_{names.index(a)}" for a in axes]
-            for key, column in zip(keys, moved([table[key][:, 0] for key in keys], is_normal).T):
-                table[key][:, 0] = column
+        fields = [([table[f"{a}_{names.index(a)}"][:, 0] for a in axes], is_normal) for axes, is_normal in groups]
+        _move_columns(fields, rotation, translation)
         body = table.tobytes() + rest
     return "".join(header).encode("ascii", errors="surrogateescape") + body
 
