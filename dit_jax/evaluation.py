@@ -77,6 +77,22 @@ def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_d
             "passed_right": right, "right_deg": right_deg}
 
 
+def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg: float = 5.0) -> list[list]:
+    """How often results were right, band by band of the agreement verdict's evidence: errors (P,) and
+    agreement (P,) in degrees; ``edges`` the bands' upper ends, increasing. Returns one ``[upper, pairs,
+    right]`` per band (previous edge, edge], then ``[None, pairs, right]`` for those beyond the last edge:
+    how many results fell in it and how many of them were within ``right_deg``. What
+    :class:`dit_jax.registration.Result` quotes beside a verdict (``verdict_agreement_bands``)."""
+    errors, agreement = np.asarray(errors, np.float64), np.asarray(agreement, np.float64)
+    bands, low = [], -np.inf
+    for high in [*edges, np.inf]:
+        inside = (agreement > low) & (agreement <= high)
+        bands.append([None if np.isinf(high) else float(high), int(inside.sum()),
+                      int((inside & (errors <= right_deg)).sum())])
+        low = high
+    return bands
+
+
 def verdict_line(name: str, v: dict) -> str:
     """One sentence on a :func:`verdict_summary` of method ``name``."""
     return (f"{name}'s verdict ({v['rule']}): flags {_share(v['failures_caught'])} of its {v['failures']} results "

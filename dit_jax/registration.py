@@ -140,6 +140,13 @@ class Result:
         registered onto the source, kept by ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of its source that the kept
         direction's network estimate started from; 0 for the unturned start (and without the search).
+      agreement_band: how often results like this one were right, where the checkpoint records it
+        (``verdict_agreement_bands``, from the validation pairs its threshold was chosen on): ``(low, high,
+        pairs, right)``, the band of agreement (low, high] degrees this result's agreement falls in, how many
+        validation results fell in it and how many of those were within 5 degrees of the truth; None where
+        the checkpoint records no bands, the verdict measured no agreement, or the band held fewer than
+        :data:`MIN_BAND_PAIRS` pairs. A suspect result 0.5-1 degrees from agreeing is far likelier right
+        than one 30 degrees from it; this says how much, on the validation data.
     """
 
     rotation: np.ndarray
@@ -160,6 +167,7 @@ class Result:
     verdict_rule: str = "fitness"
     direction: str = "forward"
     start_turn: float = 0.0
+    agreement_band: tuple | None = None
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -175,13 +183,21 @@ class Result:
                 "max_disagreement_deg": None if np.isnan(self.max_disagreement) else self.max_disagreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
-                "direction": self.direction, "start_turn_deg": self.start_turn}
+                "direction": self.direction, "start_turn_deg": self.start_turn,
+                "agreement_band": None if self.agreement_band is None else dict(zip(
+                    ("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band))}
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
         if self.verdict_rule == "agreement":
-            return (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
+            line = (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
                     f"this one's inverse (trusted up to {self.max_disagreement:g} deg)")
+            if self.agreement_band is not None:
+                low, high, pairs, right = self.agreement_band
+                band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
+                line += (f"; of the {pairs} validation results that {band} deg, "
+                         f"{100 * right / pairs:.0f} % were within 5 deg")
+            return line
         return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
                 f"(trusted from {100 * self.min_fitness:.0f} %)")
 
@@ -317,13 +333,17 @@ class Registrar:
         turns of :func:`dit_jax.geometry.cube_rotations` and go on from the one that fits best
         (:func:`dit_jax.icp.best_start`), for clouds at any relative rotation; about 24 times the network's
         time (default False: the network handles rotations up to the training range, README "What it reaches").
+      agreement_bands: {refine: [[upper degrees or None, pairs, right], ...]}, how often validation results
+        were right band by band of agreement (:func:`dit_jax.evaluation.agreement_bands`; a checkpoint records
+        its own), quoted as each result's ``agreement_band``.
     """
 
     def __init__(self, params, config: DITConfig, *, n_points: int = 1000, n_iters: int | None = None,
                  seed: int = 0, fps_pool: int = 50_000, centring: str = "auto",
                  min_fitness: float = DEFAULT_MIN_FITNESS, refine: str = "icp", precision: str | None = None,
                  verdict_rule: str = "agreement", max_disagreement: dict | None = None,
-                 best_direction: bool = DEFAULT_BEST_DIRECTION, rotation_search: bool = False):
+                 best_direction: bool = DEFAULT_BEST_DIRECTION, rotation_search: bool = False,
+                 agreement_bands: dict | None = None):
         _check_refine(refine)
         self.refine = refine
         self.rotation_search = bool(rotation_search)
@@ -334,6 +354,7 @@ class Registrar:
             raise ValueError(f"verdict_rule must be one of {', '.join(map(repr, VERDICTS))}, got {verdict_rule!r}")
         self.verdict_rule = verdict_rule
         self.max_disagreement = {**DEFAULT_MAX_DISAGREEMENT, **(max_disagreement or {})}
+        self.agreement_bands = dict(agreement_bands or {})
         self.best_direction = bool(best_direction)
         self.config = config if n_iters is None else config.replace(n_iters=n_iters)
         if precision is not None:
@@ -417,6 +438,7 @@ class Registrar:
             verdict = agreement <= max_disagreement
         else:
             agreement, verdict = float("nan"), fitness >= self.min_fitness
+        band = _agreement_band(self.agreement_bands.get(refine), agreement)
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = rotation, translation
         return Result(rotation=rotation, translation=translation, matrix=matrix, source_indices=src_idx,
@@ -426,7 +448,7 @@ class Registrar:
                       seconds=seconds, verdict=bool(verdict), min_fitness=self.min_fitness,
                       refinement=None if refine == "none" else refine, refine_seconds=refine_seconds,
                       agreement=agreement, max_disagreement=max_disagreement, verdict_rule=self.verdict_rule,
-                      direction=direction, start_turn=start)
+                      direction=direction, start_turn=start, agreement_band=band)
 
     def _network(self, src_n: np.ndarray, tgt_n: np.ndarray, search: bool):
         """The network's estimate for one direction, in the normalised frame: ``(R (3, 3), t (3,), extras of
@@ -477,6 +499,23 @@ def shipped_weights() -> str:
     return os.fspath(importlib.resources.files("dit_jax") / SHIPPED_WEIGHTS)
 
 
+#: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
+MIN_BAND_PAIRS = 10
+
+
+def _agreement_band(bands: list | None, agreement: float) -> tuple | None:
+    """The (low, high, pairs, right) of ``bands`` ([[upper or None, pairs, right], ...], increasing) that
+    ``agreement`` (degrees) falls in; None without bands or agreement, or for a band of too few pairs."""
+    if not bands or not np.isfinite(agreement):
+        return None
+    low = 0.0
+    for high, pairs, right in bands:
+        if high is None or agreement <= high:
+            return (low, high, int(pairs), int(right)) if pairs >= MIN_BAND_PAIRS else None
+        low = high
+    return None
+
+
 def load(checkpoint: str | os.PathLike | None = None, **kwargs) -> Registrar:
     """A :class:`Registrar` from an orbax checkpoint directory, the authors' ``.pth`` weights, or (None) the
     shipped weights. ``kwargs`` go to :class:`Registrar`; ``n_points`` defaults to what the checkpoint
@@ -497,4 +536,5 @@ def load(checkpoint: str | os.PathLike | None = None, **kwargs) -> Registrar:
     kwargs.setdefault("n_points", extra.get("inference_points") or 1000)
     kwargs.setdefault("min_fitness", extra.get("verdict_min_fitness", DEFAULT_MIN_FITNESS))
     kwargs.setdefault("max_disagreement", extra.get("verdict_max_disagreement"))
+    kwargs.setdefault("agreement_bands", extra.get("verdict_agreement_bands"))
     return Registrar(params, config, **kwargs)

@@ -118,7 +118,7 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
     under ``verdict_fallback``): the verdict then trusts only near-exact agreement, as pairs that share their
     points give, and flags nearly every result on the pool, rather than trust results that are too often wrong."""
     report = {"verdict_max_disagreement": {}, "verdict_pool": list(pooled), "verdict_agreement_on_validation": {},
-              "verdict_curve": {}, "per_pair": per_pair, "verdict_fallback": []}
+              "verdict_curve": {}, "verdict_agreement_bands": {}, "per_pair": per_pair, "verdict_fallback": []}
     for refinement, evidence in per_pair.items():
         errors, agreement = np.asarray(evidence["rot_err"], float), np.asarray(evidence["agreement"], float)
         settings = np.asarray(evidence["setting"])
@@ -130,6 +130,8 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
               f"failures flagged: " + "; ".join(
                   f"{t:g} / {c['passed']} / {c['passed_right']:.3f} / {c['failures_caught']:.3f}"
                   for t, c in zip(AGREEMENT_GRID, curve)), flush=True)
+        report["verdict_agreement_bands"][refinement] = evaluation.agreement_bands(
+            errors[in_pool], agreement[in_pool], AGREEMENT_GRID, RIGHT_DEG)
         threshold = largest_threshold(errors[in_pool], agreement[in_pool])
         if threshold is None:
             threshold = AGREEMENT_GRID[0]
@@ -149,6 +151,29 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
     return report
 
 
+def bands_from_record(path: str) -> dict:
+    """The agreement bands (:func:`dit_jax.evaluation.agreement_bands`) of a checkpoint whose thresholds were
+    chosen before bands were recorded, from the precision curve its record keeps (cumulative over
+    :data:`AGREEMENT_GRID`): each band's pairs and right results are the differences between neighbouring
+    thresholds' trusted counts, the last band what the largest threshold left of the pool."""
+    choice = checkpoint.read_extra(path)["verdict_agreement_choice"]
+    pool_pairs = choice["pairs_per_setting"] * len(choice["verdict_pool"])
+    bands = {}
+    for refinement, curve in choice["verdict_curve"].items():
+        if [row["rule"] for row in curve] != [evaluation.agreement_rule(t) for t in AGREEMENT_GRID]:
+            raise ValueError(f"{path}: the recorded {refinement} curve is not over {AGREEMENT_GRID}")
+        passed = [row["passed"] for row in curve]
+        right = [round(row["passed"] * row["passed_right"]) if row["passed"] else 0 for row in curve]
+        rows, before = [], (0, 0)
+        for t, n, k in zip(AGREEMENT_GRID, passed, right):
+            rows.append([t, n - before[0], k - before[1]])
+            before = (n, k)
+        all_right = pool_pairs - curve[-1]["failures"]
+        rows.append([None, pool_pairs - before[0], all_right - before[1]])
+        bands[refinement] = rows
+    return bands
+
+
 def record(path: str, report: dict) -> None:
     """Writes the choice into the checkpoint at ``path``, its params untouched: the agreement thresholds
     and, where inference settings were chosen too, those settings (into its config) and the fitness
@@ -161,6 +186,8 @@ def record(path: str, report: dict) -> None:
                                                                    "pairs_per_setting", "verdict_curve",
                                                                    "verdict_agreement_on_validation",
                                                                    "verdict_fallback") if k in report}}
+    if "verdict_agreement_bands" in report:
+        changes["verdict_agreement_bands"] = report["verdict_agreement_bands"]
     if "chosen" in report:
         config = checkpoint.update_config(path, report["chosen"])
         changes["verdict_min_fitness"] = report["verdict_min_fitness"]
@@ -204,6 +231,9 @@ def main() -> None:
     parser.add_argument("--record", action="store_true",
                         help="write the choice into the checkpoint (settings into its config, thresholds into "
                              "its record; the params are not touched)")
+    parser.add_argument("--bands-from-record", action="store_true",
+                        help="record the agreement bands of a checkpoint chosen before they were kept, from the "
+                             "precision curve in its record (registers nothing; --out gets them too)")
     parser.add_argument("--rechoose", default=None, metavar="JSON",
                         help="choose the agreement thresholds again from the per-pair evidence an earlier "
                              "--out of this script kept (registers nothing; the evidence must be this "
@@ -214,6 +244,13 @@ def main() -> None:
                         help="keep the checkpoint's GMCCE options and guard; search only --n-iters")
     args = parser.parse_args()
 
+    if args.bands_from_record:
+        bands = bands_from_record(args.checkpoint)
+        checkpoint.update_extra(args.checkpoint, {"verdict_agreement_bands": bands})
+        with open(args.out, "w") as f:
+            json.dump({"checkpoint": args.checkpoint, "verdict_agreement_bands": bands}, f, indent=1)
+        print(f"recorded the agreement bands in {args.checkpoint}: {json.dumps(bands)}")
+        return
     if args.rechoose:
         with open(args.rechoose) as f:
             earlier = json.load(f)

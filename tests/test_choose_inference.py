@@ -57,3 +57,25 @@ def test_record_writes_the_thresholds_and_says_so_in_the_note(tmp_path):
     assert "0.25 deg alone, 0.5 with ICP" in extra["note"] and "the network alone" in extra["note"]
     after = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
     assert after == before, "the params' files are untouched"
+
+
+def test_agreement_bands_count_each_band_and_agree_with_the_recorded_curve(tmp_path):
+    """The bands quoted beside a verdict: per agreement band, how many validation results and how many right;
+    rebuilt from a record's cumulative precision curve (records made before bands were kept), the same."""
+    rng = np.random.default_rng(0)
+    agreement = rng.exponential(3.0, 400)
+    errors = np.where(rng.random(400) < np.exp(-agreement / 4), 1.0, 30.0)  # the closer, the likelier right
+    settings = ["independent_clean"] * 400
+    report = choose_inference.choose_from_evidence({"icp": _evidence(errors, agreement, settings)},
+                                                   ["independent_clean"])
+    bands = report["verdict_agreement_bands"]["icp"]
+    assert [b[0] for b in bands] == [*choose_inference.AGREEMENT_GRID, None]
+    assert sum(b[1] for b in bands) == 400 and sum(b[2] for b in bands) == int((errors <= 5).sum())
+    assert bands[2] == [1.0, int(((agreement > 0.5) & (agreement <= 1)).sum()),
+                        int(((agreement > 0.5) & (agreement <= 1) & (errors <= 5)).sum())]
+    config = configs.tiny()
+    path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config)
+    report["pairs_per_setting"] = 400
+    choose_inference.record(str(path), report)
+    assert checkpoint.read_extra(path)["verdict_agreement_bands"]["icp"] == bands
+    assert choose_inference.bands_from_record(str(path))["icp"] == bands

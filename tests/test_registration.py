@@ -257,9 +257,10 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
 
     monkeypatch.setattr(registration.icp_lib, "refine", fake_refine)
     results = {}
+    bands = {"icp": [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]}  # how often right, by agreement
     for best in (False, True):
         registrar = registration.Registrar(tiny_registrar.params, tiny_registrar.config, n_points=96,
-                                           best_direction=best)
+                                           best_direction=best, agreement_bands=bands if best else None)
         results[best] = registrar.register(src, tgt)
     assert results[False].direction == "forward" and _rotation_error_deg(results[False].rotation, off) < 1e-6
     assert results[True].direction == "backward" and _rotation_error_deg(results[True].rotation, truth) < 1e-6
@@ -267,7 +268,17 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
     assert results[True].agreement == pytest.approx(results[False].agreement) == pytest.approx(20.0)
     assert results[True].verdict == results[False].verdict
     assert results[True].to_json()["direction"] == "backward"
-    assert registration.load(refine="none").best_direction is registration.DEFAULT_BEST_DIRECTION
+    # 20 degrees from agreeing: the band (10, 30] of the validation results quoted beside the verdict
+    assert results[True].agreement_band == (10.0, 30.0, 20, 6) and results[False].agreement_band is None
+    assert results[True].evidence().endswith("of the 20 validation results that agreed within 10-30 deg, "
+                                             "30 % were within 5 deg")
+    assert results[True].to_json()["agreement_band"] == {"low_deg": 10.0, "high_deg": 30.0,
+                                                         "validation_pairs": 20, "within_5_deg": 6}
+    assert registration._agreement_band(bands["icp"], 5.0) is None  # a band of 5 results: not quoted
+    assert registration._agreement_band(bands["icp"], 90.0) == (30.0, None, 40, 2)
+    shipped = registration.load(refine="none")
+    assert shipped.best_direction is registration.DEFAULT_BEST_DIRECTION
+    assert sum(pairs for _, pairs, _ in shipped.agreement_bands["icp"]) == 640  # the shipped record's bands
 
 
 def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registrar, monkeypatch):
