@@ -289,7 +289,7 @@ def _series_parser() -> argparse.ArgumentParser:
                         help="write each scan moved into the first one's frame to DIR, under its own name and "
                              "format (PLY, PCD, LAS and meshes whole: every point and field kept)")
     parser.add_argument("--plot", default=None, metavar="FILE.png",
-                        help="draw every scan in the first one's frame, from two viewpoints, beside each link's "
+                        help="draw every scan in the first one's frame, from two sides, beside each link's "
                              "agreement and verdict")
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
     parser.add_argument("--refine", choices=("none", "icp"), default="icp",
