@@ -620,6 +620,8 @@ def _ply_binary_lists(path: str, layout: _PlyLayout, element: _PlyElement, start
         if end > len(data):
             raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
         return end, {}
+    if count == 0:
+        return start, {n: (np.zeros(0, np.int64), np.zeros(0, np.int64)) for n, _ in lists}
     buffer = memoryview(data)
     first, pos = [], start
     for (name, t), size in zip(element.props, scalar):  # the first row's list lengths

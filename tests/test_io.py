@@ -63,6 +63,10 @@ def test_ply_extra_properties_and_elements_are_skipped(tmp_path):
                 "9 1 2 3 255\n9 4 5 6 0\n9 7 8 9 1\n" + ("3 0 1 2\n" if "1" in faces.split()[2] else ""))
         (tmp_path / "m.ply").write_text(text)
         np.testing.assert_array_equal(io.read(tmp_path / "m.ply"), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
+    header = (b"ply\nformat binary_little_endian 1.0\nelement face 0\nproperty list uchar int vertex_indices\n"
+              b"element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    (tmp_path / "b.ply").write_bytes(header + np.eye(3, dtype="<f4").tobytes())  # an empty list element first
+    np.testing.assert_array_equal(io.read(tmp_path / "b.ply"), np.eye(3))
 
 
 def test_big_endian_ply(tmp_path, cloud):
