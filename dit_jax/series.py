@@ -66,7 +66,7 @@ class SeriesResult:
 
     def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str] | None = None,
              title: str | None = None) -> str:
-        """Writes a PNG of the clouds moved into scan 0's frame, each in its own colour, from two viewpoints,
+        """Writes a PNG of the clouds moved into scan 0's frame, each in its own colour, from two sides,
         beside each link's agreement and verdict (:func:`dit_jax.plotting.plot_series`); returns the path."""
         from dit_jax import plotting
 
