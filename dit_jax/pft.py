@@ -170,3 +170,37 @@ class SqueezeExcitation(nn.Module):
         hidden = jax.nn.relu(dense(self.emb_dims // self.reduction, "fc0")(squeezed))
         gate = jax.nn.sigmoid(dense(self.emb_dims, "fc2")(hidden))
         return features * gate
+
+
+#: Each PFT layer's residual outputs: the last product of every branch added to the residual stream.
+_RESIDUAL_OUTPUTS = (("self_attn", "o"), ("src_attn", "o"), ("feed_forward", "w_2"))
+
+
+def deepen(params, fresh):
+    """PFT params with more layers that compute what ``params`` computed (growing the network in depth).
+
+    ``params`` is a PFT's parameter tree (``encoder`` and ``decoder``, each ``layers_0`` .. ``layers_{n-1}``
+    and ``norm``); ``fresh`` is that of a PFT of the same width with more layers (freshly initialised, say).
+    Returns ``fresh`` with the layers and final norms of ``params`` in place of its own, and every layer beyond
+    them kept from ``fresh`` with its residual outputs (each attention's ``o`` and the feed-forward's ``w_2``,
+    kernels and biases) zeroed. A pre-norm layer whose residual branches end in zeros adds nothing to its
+    input, so the deeper network's outputs equal the shallower one's; training then gives the new layers a
+    use. Raises ``ValueError`` where ``fresh`` has fewer layers, or other shapes, than ``params``.
+    """
+    deeper = {}
+    for stack in ("encoder", "decoder"):
+        old, new = params[stack], fresh[stack]
+        if not set(old) <= set(new):
+            raise ValueError(f"PFT {stack}: the deeper network lacks {sorted(set(old) - set(new))}")
+        grown = dict(old)
+        for name in sorted(set(new) - set(old)):
+            layer = {branch: dict(values) for branch, values in new[name].items()}
+            for branch, product in _RESIDUAL_OUTPUTS:
+                if branch in layer:
+                    layer[branch][product] = jax.tree.map(jnp.zeros_like, layer[branch][product])
+            grown[name] = layer
+        shape = lambda tree: jax.tree.map(jnp.shape, tree)
+        if shape(grown) != shape(new):
+            raise ValueError(f"PFT {stack}: the layers differ in shape, not only in number")
+        deeper[stack] = grown
+    return deeper

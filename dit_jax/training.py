@@ -22,7 +22,7 @@ import orbax.checkpoint as ocp
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from dit_jax import configs, losses, metrics, model
+from dit_jax import configs, losses, metrics, model, pft
 from dit_jax.configs import DITConfig
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import pipeline, shapes as shapes_lib
@@ -68,7 +68,9 @@ class TrainConfig:
         not the authors'); 0 trains the authors' objective.
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
         whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
-        setting. Its network shape must match ``model``'s.
+        setting. Its network shape must match ``model``'s, or have fewer PFT layers (``--set
+        model.n_blocks=4`` from a 2-block checkpoint): then the network is grown in depth by
+        :func:`dit_jax.pft.deepen` and starts out computing what the checkpoint computes.
     """
 
     model: str = "cpu"
@@ -527,6 +529,12 @@ def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTran
 
     params, _ = checkpoint.restore(path)
     shapes = lambda tree: jax.tree.map(lambda a: tuple(a.shape), tree)
+    if shapes(params) != shapes(state.params):
+        # A run of more PFT layers starts from a shallower network grown in depth (same outputs).
+        try:
+            params = {**params, "pft": pft.deepen(params["pft"], state.params["pft"])}
+        except (KeyError, ValueError):
+            pass
     if shapes(params) != shapes(state.params):
         raise ValueError(f"init_from {path}: its network does not have this run's shape (model config)")
     params = jax.tree.map(jnp.asarray, params)

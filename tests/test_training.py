@@ -299,6 +299,14 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     checkpoint.save(tmp_path / "wider", model.init(jax.random.PRNGKey(0), wider), wider)
     with pytest.raises(ValueError, match="does not have this run's shape"):
         training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
+    # A deeper run starts from the shallower checkpoint grown in depth: the same registration to the bit.
+    deeper = dataclasses.replace(config, model_overrides=(("n_blocks", config.model_config().n_blocks + 1),))
+    grown = training._initialise_from(training.init_state(deeper, optimizer), str(source), optimizer).params
+    points = jax.random.normal(jax.random.PRNGKey(1), (1, 64, 3))
+    moved = points @ jnp.asarray(random_rotation(np.random.default_rng(0)), jnp.float32).T
+    before = model.register(params, points, moved, config.model_config())
+    after = model.register(grown, points, moved, deeper.model_config())
+    np.testing.assert_allclose(np.asarray(after[0]), np.asarray(before[0]), atol=1e-5)
 
 
 def test_training_curves_of_several_runs_plot_into_one_png(tmp_path):
