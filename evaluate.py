@@ -23,6 +23,21 @@ import argparse
 import sys
 
 
+# What each mode leaves out, so that a flag given with it is refused rather than silently ignored.
+_IGNORED_BY = {
+    "--scans": ("data_dir", "settings", "unseen", "variant", "gmcce_threshold", "batch_size", "bfloat16", "reuse",
+                "no_verdict"),
+    "--angle-sweep": ("skips", "variant", "iters", "gmcce_threshold", "baselines", "batch_size", "bfloat16",
+                      "reuse", "no_verdict", "best_direction", "no_dit"),
+}
+
+
+def _registrar_options(args, best_direction) -> dict:
+    """The options of ``registration.load`` that evaluate.py's flags set for real scans."""
+    options = {"n_points": args.n_points, "n_iters": args.iters, "best_direction": best_direction}
+    return {name: value for name, value in options.items() if value is not None}
+
+
 def main(argv=None) -> int:
     from dit_jax import compile_cache
     from dit_jax.baselines import NAMES as BASELINES
@@ -67,6 +82,11 @@ def main(argv=None) -> int:
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
+    mode = "--scans" if args.scans else "--angle-sweep" if args.angle_sweep else None
+    for dest in _IGNORED_BY.get(mode, ("skips",)):
+        if getattr(args, dest) != parser.get_default(dest):
+            flag = "--" + dest.replace("_", "-")
+            parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
     chosen = []
     for name in args.settings:
         chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]
@@ -98,8 +118,7 @@ def main(argv=None) -> int:
             results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
                                                 baselines=args.baselines, max_pairs=args.max_pairs,
                                                 progress=not args.no_progress, refine=args.refine == "icp",
-                                                registrar_options=None if best_direction is None
-                                                else {"best_direction": best_direction})
+                                                registrar_options=_registrar_options(args, best_direction))
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
             return 0

@@ -63,7 +63,9 @@ def parse(argv=None):
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     parser.add_argument("--resume", action="store_true")
     parser.add_argument("--init-from", default=None, metavar="MODEL_DIR",
-                        help="start from these params (a model checkpoint, e.g. runs/x/model): fine-tuning")
+                        help="start from these params (a model checkpoint, e.g. runs/x/model): fine-tuning; "
+                             "with --set model.n_blocks above the checkpoint's, its PFT is grown in depth "
+                             "(new layers start as identities)")
     parser.add_argument("--prepared-dir", default=None, help="where TFDS keeps prepared data")
     parser.add_argument("--distributed", action="store_true",
                         help="join a multi-process run (one process per host or per GPU; see the README)")

@@ -616,7 +616,9 @@ def summarise_scans(rows: list[dict]) -> dict:
 
 
 def scan_tables(results: dict) -> str:
-    lines = []
+    dit = results.get("dit")
+    lines = [f"DIT sees {dit['n_points']} points of each scan (farthest-point sampled) and iterates "
+             f"{dit['n_iters']} times.", ""] if dit else []
     for pair_set, methods in results["pair_sets"].items():
         info = results["pair_set_info"][pair_set]
         lines += [f"### {pair_set} ({info['pairs']} pairs, about {info['angle']:.0f} degrees apart)", "",
@@ -692,6 +694,7 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
                "pair_sets": {}, "pair_set_info": {}}
     if registrar is not None:
+        results["dit"] = {"n_points": registrar.n_points, "n_iters": registrar.config.n_iters}
         first = pair_sets[next(iter(pair_sets))][0]
         registrar.register(first.source, first.target, refine="none")  # compile outside the timings
     for set_name, set_pairs in pair_sets.items():

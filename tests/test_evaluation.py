@@ -97,6 +97,27 @@ def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
     assert [r["rot_err"] for r in strict["DIT"]["rows"]] == [r["rot_err"] for r in rows]
 
 
+def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, tmp_path, capsys):
+    """--n-points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
+    import evaluate
+    from conftest import random_rotation, write_scan_series
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    write_scan_series(tmp_path, [(random_rotation(rng), rng.normal(size=3)) for _ in range(2)], rng, n_points=300)
+    out = tmp_path / "out"
+    assert evaluate.main(["--checkpoint", tiny_checkpoint, "--scans", str(tmp_path), "--skips", "1", "--n-points",
+                          "96", "--iters", "2", "--refine", "none", "--out", str(out), "--no-progress"]) == 0
+    assert json.loads((out / "results.json").read_text())["dit"] == {"n_points": 96, "n_iters": 2}
+    assert "DIT sees 96 points of each scan" in (out / "results.md").read_text()
+    for argv in (["--scans", str(tmp_path), "--no-verdict"], ["--scans", str(tmp_path), "--unseen"],
+                 ["--angle-sweep", "--iters", "2"], ["--skips", "3"]):
+        with pytest.raises(SystemExit):
+            evaluate.main(argv + ["--out", str(tmp_path / "refused")])
+        assert "does not apply" in capsys.readouterr().err
+    assert not (tmp_path / "refused").exists()
+
+
 def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
     results = evaluation.angle_sweep(tiny_checkpoint, str(tmp_path), angles=(0, 90), pairs_per_angle=2,
                                      unseen=False, progress=False)
