@@ -411,13 +411,14 @@ def _restore(manager, step: int, abstract: TrainState, config: TrainConfig) -> t
     return state, meta
 
 
-def export_params(workdir: str, out_dir: str) -> str:
+def export_params(workdir: str, out_dir: str, *, latest: bool = False) -> str:
     """Writes the best (else the latest) params of a training run as a model checkpoint
-    (:mod:`dit_jax.checkpoint`), the format ``evaluate.py`` and the registration API read."""
+    (:mod:`dit_jax.checkpoint`), the format ``evaluate.py`` and the registration API read. ``latest``: the
+    last checkpoint's params instead of the best (the end of a run whose best came early)."""
     from dit_jax import checkpoint
 
     workdir = os.path.abspath(workdir)
-    for sub in ("best", "checkpoints"):
+    for sub in ("checkpoints",) if latest else ("best", "checkpoints"):
         path = os.path.join(workdir, sub)
         if not os.path.isdir(path):
             continue

@@ -147,6 +147,8 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared,
 
     assert checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))[
         "chosen_by"] == "checkpoints"
+    latest = checkpoint.read_extra(training.export_params(str(tiny_run[0]), str(tmp_path / "end"), latest=True))
+    assert (latest["chosen_by"], latest["step"]) == ("checkpoints", 12)
     device_stage._bundle(str(tiny_run[0]), str(tmp_path / "validated.tar"))
     with tarfile.open(tmp_path / "validated.tar") as tar:
         assert any(n.startswith("best/") for n in tar.getnames())
