@@ -25,8 +25,8 @@ import sys
 
 # What each mode leaves out, so that a flag given with it is refused rather than silently ignored.
 _IGNORED_BY = {
-    "--scans": ("data_dir", "settings", "unseen", "variant", "gmcce_threshold", "batch_size", "bfloat16", "reuse",
-                "no_verdict"),
+    "--scans": ("angle_sweep", "data_dir", "settings", "unseen", "variant", "gmcce_threshold", "batch_size",
+                "bfloat16", "reuse", "no_verdict"),
     "--angle-sweep": ("skips", "variant", "iters", "gmcce_threshold", "baselines", "batch_size", "bfloat16",
                       "reuse", "no_verdict", "best_direction", "no_dit"),
 }

@@ -111,6 +111,7 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
     assert json.loads((out / "results.json").read_text())["dit"] == {"n_points": 96, "n_iters": 2}
     assert "DIT sees 96 points of each scan" in (out / "results.md").read_text()
     for argv in (["--scans", str(tmp_path), "--no-verdict"], ["--scans", str(tmp_path), "--unseen"],
+                 ["--scans", str(tmp_path), "--angle-sweep"],
                  ["--angle-sweep", "--iters", "2"], ["--skips", "3"]):
         with pytest.raises(SystemExit):
             evaluate.main(argv + ["--out", str(tmp_path / "refused")])
