@@ -284,15 +284,15 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         table = np.frombuffer(data, record, count, start).copy()
         _move_columns([([table[a] for a in axes], is_normal) for axes, is_normal in groups], rotation, translation)
         return data[:start] + table.tobytes() + data[start + count * record.itemsize:]
-    lines = data.split(b"\n")  # ASCII PLY: one vertex per line, after the header and the elements before it
-    first = layout.header_lines + sum(e.count for e in layout.elements[:index])
-    count, names = layout.elements[index].count, [n for n, _ in layout.elements[index].props]
-    if len(lines) < first + count:
+    skip, count = _ply_text_span(layout, index)
+    lines = data[layout.offset:].split(b"\n")
+    if len(lines) < skip + count:
         raise CloudFileError(path, f"PLY file ends before its {count} vertices")
+    names = [n for n, _ in layout.elements[index].props]
     columns = [([names.index(a) for a in axes], is_normal, np.dtype(props[axes[0]]).itemsize == 4)
                for axes, is_normal in groups]
-    block = _moved_text_rows(path, lines[first:first + count], len(names), columns, rotation, translation)
-    return b"\n".join(lines[:first] + block + lines[first + count:])
+    block = _moved_text_rows(path, lines[skip:skip + count], len(names), columns, rotation, translation)
+    return data[:layout.offset] + b"\n".join(lines[:skip] + block + lines[skip + count:])
 
 
 def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndarray,
@@ -522,7 +522,6 @@ class _PlyLayout(NamedTuple):
     fmt: str  # ascii, binary_little_endian or binary_big_endian
     elements: list[_PlyElement]
     offset: int  # where the data starts
-    header_lines: int
 
     @property
     def order(self) -> str:
@@ -568,7 +567,7 @@ def _ply_layout(path: str) -> _PlyLayout:
             raise CloudFileError(path, f"malformed PLY header line {line!r}")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise CloudFileError(path, f"unknown PLY format {fmt!r}")
-    layout = _PlyLayout(fmt, elements, offset, len(header) + 1)
+    layout = _PlyLayout(fmt, elements, offset)
     index = layout.index("vertex")
     if index is None:
         raise CloudFileError(path, "PLY file has no vertex element")
@@ -583,9 +582,15 @@ def _ply_vertex_record(layout: _PlyLayout) -> np.dtype:
     return np.dtype([(n if n else f"_{i}", layout.order + t) for i, (n, t) in enumerate(props)])
 
 
+def _ply_text_span(layout: _PlyLayout, index: int) -> tuple[int, int]:
+    """Where element ``index`` of an ASCII PLY file lies: (lines after the header before its first item, its
+    item count). Every item takes one line, so the elements before it take one line per item."""
+    return sum(e.count for e in layout.elements[:index]), layout.elements[index].count
+
+
 def _ply_text_rows(path: str, layout: _PlyLayout, index: int) -> list[str]:
     """The text lines of element ``index`` of an ASCII PLY file (one line per item)."""
-    skip, count = sum(e.count for e in layout.elements[:index]), layout.elements[index].count
+    skip, count = _ply_text_span(layout, index)
     with open(path, "rb") as f:
         f.seek(layout.offset)
         for _ in range(skip):

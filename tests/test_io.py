@@ -402,6 +402,21 @@ def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
     assert not (tmp_path / "x.obj").exists() and not list(tmp_path.glob(".tmp-*"))
 
 
+@pytest.mark.parametrize("end", ["\n", "\r\n"])
+def test_a_moved_ascii_ply_finds_its_vertices_after_other_elements(tmp_path, end):
+    """Reading and moving an ASCII PLY locate its vertex rows alike: after the header and one line per item
+    of every element before them, whatever the line ends."""
+    text = ("ply|format ascii 1.0|element camera 2|property float f|element vertex 3|property double x|"
+            "property double y|property double z|end_header|5|6|1 0 0|0 2 0|0 0 3|").replace("|", end)
+    (tmp_path / "a.ply").write_bytes(text.encode())
+    points = io.read(tmp_path / "a.ply")
+    np.testing.assert_array_equal(points, np.diag([1.0, 2.0, 3.0]))
+    io.move_file(tmp_path / "a.ply", tmp_path / "m.ply", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(io.read(tmp_path / "m.ply"), points[:, [1, 2, 0]] + [1.0, 2.0, 3.0])
+    after = (tmp_path / "m.ply").read_bytes().decode()
+    assert after.startswith(text[:text.index("1 0 0")]) and after.endswith(end) and after.count(end) == 14
+
+
 def test_meshes_written_by_open3d(tmp_path):
     o3d = pytest.importorskip("open3d", reason="cross-checking mesh formats needs open3d (the test extra)")
     mesh = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=12)
