@@ -89,6 +89,14 @@ def rotation_angle_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(sin, (np.trace(m) - 1.0) / 2.0)))
 
 
+def axis_angle_matrix(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    """The rotation (3, 3) float64 by ``angle_deg`` about ``axis`` (3,), any length but zero (Rodrigues)."""
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    a = np.radians(angle_deg)
+    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
+
+
 def cube_rotations() -> np.ndarray:
     """The 24 rotations that map a cube onto itself (3x3 signed permutation matrices of determinant +1), the
     identity first: (24, 3, 3) float64. Every rotation lies within 62.8 degrees of one of them."""

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from dit_jax import evaluation, icp, registration, training
+from dit_jax import evaluation, geometry, icp, registration, training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import scans as scans_lib
 from dit_jax.data import shapes as shapes_lib
@@ -49,7 +49,7 @@ def _modelnet_pairs(args, n_points):
         for angle in args.angles:
             for i in range(len(batch["src"])):
                 in_shape_frame = (batch["tgt"][i] - batch["t"][i]) @ batch["R"][i]
-                rotation = evaluation.axis_angle_matrix(axes[i], angle)
+                rotation = geometry.axis_angle_matrix(axes[i], angle)
                 yield setting, angle, batch["src"][i], in_shape_frame @ rotation.T + batch["t"][i], rotation
 
 

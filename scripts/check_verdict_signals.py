@@ -55,7 +55,7 @@ def rerun_signals(params, config, b: dict, kept: dict, rng: np.random.Generator)
     subset = {"src": np.stack([s[rng.choice(len(s), n_src, replace=False)] for s in b["src"]]),
               "tgt": np.stack([t[rng.choice(len(t), n_tgt, replace=False)] for t in b["tgt"]])}
     resampled = _dit_icp(params, config, subset, indices)
-    turns = np.stack([evaluation.axis_angle_matrix(rng.normal(size=3), TURN_DEG) for _ in indices])
+    turns = np.stack([geometry.axis_angle_matrix(rng.normal(size=3), TURN_DEG) for _ in indices])
     turned_src = np.einsum("pij,pnj->pni", turns, b["src"]).astype(b["src"].dtype)
     turned = _dit_icp(params, config, {"src": turned_src, "tgt": b["tgt"]}, indices)
     return {"resample": np.array([geometry.rotation_angle_deg(r.T @ k) for r, k in zip(resampled["R"], kept["R"])]),

@@ -48,3 +48,39 @@ def test_chamfer_is_zero_for_a_perfect_noise_free_estimate():
     shape = rng.normal(size=(1, 50, 3))
     assert metrics.chamfer_distance(shape, shape, shape, shape)[0] == 0.0
     assert metrics.chamfer_distance(shape + 0.1, shape, shape, shape)[0] > 0
+
+
+def _vase(n_angles: int = 36, n_heights: int = 24) -> np.ndarray:
+    """A surface of revolution about z sampled on a regular grid: turning it by a multiple of 360 / n_angles
+    degrees about z maps the samples onto themselves."""
+    angle, height = np.meshgrid(np.arange(n_angles) * 2 * np.pi / n_angles, np.linspace(-0.8, 0.8, n_heights))
+    radius = 0.3 + 0.2 * np.sin(3 * height)
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle), height], -1).reshape(-1, 3)
+
+
+def test_symmetric_errors_count_as_right_and_others_do_not():
+    from dit_jax.geometry import axis_angle_matrix
+
+    vase = _vase()
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-1, 1, (800, 3)) * [1.0, 0.6, 0.3]  # three distinct extents: no symmetry but the box's
+    truth_r, truth_t = euler_zyx_to_matrix(np.array([20.0, -10.0, 35.0])), np.array([0.1, -0.2, 0.3])
+    # (estimate as a turn applied before the truth, translation offset): whether right up to symmetry
+    cases = [(vase, axis_angle_matrix([0, 0, 1], 60), 0.0, True),   # the vase's symmetry: 60 degrees off
+             (vase, axis_angle_matrix([1, 0, 0], 30), 0.0, False),  # not a symmetry of it
+             (vase, np.eye(3), 0.2, False),                          # a translation error is not forgiven
+             (box, axis_angle_matrix([1, 2, 3], 3), 0.0, True),      # within 5 degrees
+             (box, axis_angle_matrix([0, 0, 1], 30), 0.0, False),
+             (box, axis_angle_matrix([1, 2, 3], 12), 0.0, False)]
+    for shape, turn, offset, expected in cases:
+        r, t = truth_r @ turn, truth_t + offset
+        got = metrics.within_up_to_symmetry(shape[None], r[None], t[None], truth_r[None], truth_t[None])
+        assert got.tolist() == [expected]
+    error = metrics.surface_error(vase[None], (truth_r @ axis_angle_matrix([0, 0, 1], 60))[None], truth_t[None],
+                                  truth_r[None], truth_t[None])
+    assert error[0] < 1e-9  # the samples land on each other
+    tolerance = metrics.symmetry_tolerance(box[None], truth_r[None], truth_t[None])
+    assert metrics.surface_error(box[None], truth_r[None], truth_t[None], truth_r[None], truth_t[None])[0] == 0.0
+    turned_5 = metrics.surface_error(box[None], (truth_r @ axis_angle_matrix([1, 0, 0], 5))[None], truth_t[None],
+                                     truth_r[None], truth_t[None])
+    assert 0.3 * tolerance[0] < turned_5[0] < 3 * tolerance[0]  # the tolerance is what a 5-degree turn does
