@@ -235,35 +235,47 @@ def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndar
     return {"R": np.stack(rotations), "t": np.stack(translations), "seconds": np.asarray(seconds)}
 
 
+def complete_shapes(truth: dict) -> np.ndarray:
+    """The complete, noise-free shape of each pair in its source frame, (B, P, 3), from a batch of
+    :meth:`~dit_jax.data.pairs.PairDataset.batch` (whose ``tgt_clean`` holds it in the target frame)."""
+    return np.einsum("bji,bnj->bni", truth["R"], truth["tgt_clean"] - truth["t"][:, None])
+
+
 def score(pred: dict, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
-          min_fitness: float | None = None, max_disagreement: float | None = None) -> dict:
+          min_fitness: float | None = None, max_disagreement: float | None = None,
+          symmetry_tolerance: np.ndarray | None = None) -> dict:
     """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
-    distance, time per pair, the per-category breakdown, the worst pair, each pair's rotation error and verdict
-    evidence (``per_pair``) and, where ``pred`` carries that evidence (``fitness``, ``agreement``), how its
-    verdicts do at ``min_fitness`` and ``max_disagreement``."""
+    distance, the share within 5 degrees up to the shape's symmetry, time per pair, the per-category
+    breakdown, the worst pair, each pair's rotation error, surface error and verdict evidence (``per_pair``)
+    and, where ``pred`` carries that evidence (``fitness``, ``agreement``), how its verdicts do at
+    ``min_fitness`` and ``max_disagreement``. ``symmetry_tolerance`` (P,): the pairs'
+    :func:`dit_jax.metrics.symmetry_tolerance`, the same for every method (computed here when not given)."""
     truth = dataset.batch(indices)
     result = metrics.summarise(pred["R"], pred["t"], truth["R"], truth["t"])
-    chamfer, surface, up_to_symmetry = [], [], []
+    shapes = complete_shapes(truth)
+    chamfer = []
     for start in range(0, len(indices), 16):
         sl = slice(start, start + 16)
-        r, t, r_gt, t_gt = pred["R"][sl], pred["t"][sl], truth["R"][sl], truth["t"][sl]
+        r, t = pred["R"][sl], pred["t"][sl]
         src_moved = np.einsum("bij,bnj->bni", r, truth["src"][sl]) + t[:, None]
-        in_src_frame = np.einsum("bji,bnj->bni", r_gt, truth["tgt_clean"][sl] - t_gt[:, None])
-        src_clean_moved = np.einsum("bij,bnj->bni", r, in_src_frame) + t[:, None]
+        src_clean_moved = np.einsum("bij,bnj->bni", r, shapes[sl]) + t[:, None]
         chamfer.append(metrics.chamfer_distance(src_moved, truth["tgt"][sl], src_clean_moved, truth["tgt_clean"][sl]))
-        surface.append(metrics.surface_error(in_src_frame, r, t, r_gt, t_gt))
-        up_to_symmetry.append(metrics.within_up_to_symmetry(in_src_frame, r, t, r_gt, t_gt, SYMMETRY_DEGREES))
     result["chamfer"] = float(np.mean(np.concatenate(chamfer)))
-    result["within_up_to_symmetry"] = float(np.mean(np.concatenate(up_to_symmetry)))
     result["seconds_per_pair"] = float(np.mean(pred["seconds"]))
     errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(pred["R"]), jnp.asarray(truth["R"])))
+    surface = metrics.surface_error(shapes, pred["R"], pred["t"], truth["R"], truth["t"])
+    if symmetry_tolerance is None:
+        symmetry_tolerance = metrics.symmetry_tolerance(shapes, truth["R"], truth["t"], SYMMETRY_DEGREES)
+    up_to_symmetry = metrics.within_up_to_symmetry(
+        errors, np.linalg.norm(np.asarray(pred["t"], np.float64) - truth["t"], axis=-1), surface,
+        symmetry_tolerance, SYMMETRY_DEGREES)
+    result["within_up_to_symmetry"] = float(np.mean(up_to_symmetry))
     worst = int(np.argmax(errors))  # kept, so a later --reuse run can still draw this method's worst pair
     result["worst"] = {"pair": int(indices[worst]), "rot_err": float(errors[worst]),
                        "R": np.asarray(pred["R"][worst]).tolist(), "t": np.asarray(pred["t"][worst]).tolist()}
     # Per pair, so a verdict threshold chosen later can be scored on these pairs without registering them again.
     result["per_pair"] = {"pair": np.asarray(indices).tolist(), "rot_err": np.round(errors, 5).tolist(),
-                          "surface_error": np.round(np.concatenate(surface), 6).tolist(),
-                          "up_to_symmetry": np.concatenate(up_to_symmetry).tolist()}
+                          "surface_error": np.round(surface, 6).tolist(), "up_to_symmetry": up_to_symmetry.tolist()}
     for evidence in ("agreement", "fitness"):
         if evidence in pred:
             result["per_pair"][evidence] = np.round(np.asarray(pred[evidence], np.float64), 5).tolist()
@@ -536,15 +548,18 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar, setting)
+        truth = ds.batch(indices)
+        tolerance = (metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
+                     if preds else None)
         scored = {name: score(p, ds, indices, test_shapes.shape_names, min_fitness,
-                              max_disagreement["icp" if name == METHOD_DIT_ICP else "none"])
+                              max_disagreement["icp" if name == METHOD_DIT_ICP else "none"], tolerance)
                   for name, p in preds.items()}
         for name in baselines:
             if name in scored:
                 scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
         order = [m for m in (METHOD_DIT, METHOD_DIT_ICP) if m in scored] + list(baselines)
         if METHOD_DIT_ICP in scored:
-            truth_r = jnp.asarray(ds.batch(indices)["R"])
+            truth_r = jnp.asarray(truth["R"])
             errors = {m: np.asarray(metrics.rotation_error_deg(jnp.asarray(preds[m]["R"], jnp.float32), truth_r))
                       for m in (METHOD_DIT, METHOD_DIT_ICP)}
             scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(errors[METHOD_DIT], errors[METHOD_DIT_ICP],

@@ -156,16 +156,13 @@ def symmetry_tolerance(shape, rotation_gt, translation_gt, degrees: float = 5.0,
     return out
 
 
-def within_up_to_symmetry(shape, rotation, translation, rotation_gt, translation_gt, degrees: float = 5.0,
+def within_up_to_symmetry(rotation_error, translation_error, surface, tolerance, degrees: float = 5.0,
                           max_translation: float = 0.05) -> np.ndarray:
-    """Whether each estimate is right up to the shape's symmetry: within ``degrees`` and ``max_translation``
-    of the truth, or placing the complete shape at least as close to the truth's placement as a typical pose
-    ``degrees`` off (:func:`surface_error` at most :func:`symmetry_tolerance`). Shapes as
-    :func:`surface_error`; returns (B,) bool.
+    """Whether each estimate is right up to the shape's symmetry: within ``degrees`` (``rotation_error``,
+    degrees) and ``max_translation`` (``translation_error``) of the truth, or placing the complete shape at
+    least as close to the truth's placement as a typical pose ``degrees`` off (``surface``, its
+    :func:`surface_error`, at most ``tolerance``, its :func:`symmetry_tolerance` for ``degrees``). All (B,);
+    returns (B,) bool.
     """
-    rotation_error = np.asarray(rotation_error_deg(jnp.asarray(rotation), jnp.asarray(rotation_gt)))
-    translation_gap = np.linalg.norm(np.asarray(translation, np.float64) - translation_gt, axis=-1)
-    right = (rotation_error <= degrees) & (translation_gap <= max_translation)
-    close = surface_error(shape, rotation, translation, rotation_gt, translation_gt) <= \
-        symmetry_tolerance(shape, rotation_gt, translation_gt, degrees)
-    return right | close
+    right = (np.asarray(rotation_error) <= degrees) & (np.asarray(translation_error) <= max_translation)
+    return right | (np.asarray(surface) <= np.asarray(tolerance))

@@ -74,7 +74,10 @@ def test_symmetric_errors_count_as_right_and_others_do_not():
              (box, axis_angle_matrix([1, 2, 3], 12), 0.0, False)]
     for shape, turn, offset, expected in cases:
         r, t = truth_r @ turn, truth_t + offset
-        got = metrics.within_up_to_symmetry(shape[None], r[None], t[None], truth_r[None], truth_t[None])
+        surface = metrics.surface_error(shape[None], r[None], t[None], truth_r[None], truth_t[None])
+        tolerance = metrics.symmetry_tolerance(shape[None], truth_r[None], truth_t[None])
+        rotation_error = metrics.rotation_error_deg(jnp.asarray(r[None]), jnp.asarray(truth_r[None]))
+        got = metrics.within_up_to_symmetry(rotation_error, [np.linalg.norm(t - truth_t)], surface, tolerance)
         assert got.tolist() == [expected]
     error = metrics.surface_error(vase[None], (truth_r @ axis_angle_matrix([0, 0, 1], 60))[None], truth_t[None],
                                   truth_r[None], truth_t[None])
