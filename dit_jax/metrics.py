@@ -17,6 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dit_jax.geometry import axis_angle_matrix
+
 
 def rotation_error_deg(rotation, rotation_gt):
     """Isotropic rotation error: the angle of ``R_gt^T R`` in degrees. (..., 3, 3) -> (...)."""
@@ -141,8 +143,6 @@ def symmetry_tolerance(shape, rotation_gt, translation_gt, degrees: float = 5.0,
 
     shape: (B, P, 3) in the source frame; rotation_gt (B, 3, 3), translation_gt (B, 3). Returns (B,).
     """
-    from dit_jax.geometry import axis_angle_matrix
-
     k = np.arange(n_axes) + 0.5
     polar, azimuth = np.arccos(1.0 - 2.0 * k / n_axes), np.pi * (1.0 + 5.0 ** 0.5) * k
     axes = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=1)
