@@ -7,9 +7,10 @@ Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a us
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and ``inference_points`` (1000, the authors' test
 protocol), which the registration API and evaluate.py use by default. ``--choice`` (the output of
-scripts/choose_inference.py) sets the inference settings in the shipped config and the verdict threshold
-(``verdict_min_fitness``). A run that started from other weights (``init_from``) keeps their record under
-``trained_from``, so the whole history travels with the weights.
+scripts/choose_inference.py) sets the inference settings in the shipped config, the fitness verdict's
+threshold (``verdict_min_fitness``) and the agreement verdict's thresholds with the bands quoted beside them.
+A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
+history travels with the weights.
 """
 
 import argparse
@@ -65,7 +66,10 @@ def main() -> None:
         if choice.get("verdict_max_disagreement"):
             extra["verdict_max_disagreement"] = choice["verdict_max_disagreement"]
             extra["verdict_agreement_choice"] = {k: choice[k] for k in (
-                "settings_verdict", "pairs_per_setting", "verdict_agreement_on_validation") if k in choice}
+                "settings_verdict", "verdict_pool", "pairs_per_setting", "verdict_curve",
+                "verdict_agreement_on_validation", "verdict_fallback") if k in choice}
+        if choice.get("verdict_agreement_bands"):
+            extra["verdict_agreement_bands"] = choice["verdict_agreement_bands"]
     shutil.rmtree(staging)
     if os.path.exists(args.out):
         shutil.rmtree(args.out)

@@ -1,0 +1,96 @@
+"""Prints the README's summary tables of an evaluate.py output directory, from its results.json.
+
+    python scripts/readme_tables.py docs/eval_modelnet40_unseen [--before OLD/results.json]
+
+Two tables per directory: which method is best per setting and the runner-up (ranked by success, then the
+share within 5 degrees and 0.05, then the lower mean isotropic rotation error), with DIT's and DIT+ICP's
+figures beside them; and DIT against DIT+ICP and the strongest baseline, every setting. ``--before`` (an
+earlier results.json of the same pairs, say from ``git show``) adds a line per setting with DIT's and
+DIT+ICP's success and share within 5 degrees then and now, which is what a re-measurement after new weights
+has to report. Nothing is registered; the figures are those evaluate.py wrote.
+"""
+
+import argparse
+import json
+import os
+
+#: evaluate.py's names of the network's own rows; every other method is a baseline.
+NETWORK = ("DIT", "DIT+ICP")
+
+
+def within5(stats: dict) -> float:
+    """The share of pairs within 5 degrees and 0.05, read off the success curve evaluate.py stores."""
+    curve = stats["success_curve"]
+    return curve["ratio"][curve["rotation_thresholds"].index(5.0)]
+
+
+def rank_key(stats: dict) -> tuple:
+    return (-stats["success"], -within5(stats), stats["rot_iso"])
+
+
+def percent(x: float) -> str:
+    return f"{100 * x:.0f} %"
+
+
+def best_table(settings: dict) -> list[str]:
+    lines = ["| setting | best (success, then within 5 deg, then iso R) | runner-up | DIT | DIT+ICP |",
+             "|---|---|---|---|---|"]
+    for name, methods in settings.items():
+        ranked = sorted(methods, key=lambda m: rank_key(methods[m]))
+
+        def cell(m):
+            s = methods[m]
+            return f"{m}: {percent(s['success'])} success, {percent(within5(s))} within 5 deg, iso R {s['rot_iso']:.3g}"
+
+        def short(m):
+            return f"{percent(methods[m]['success'])} / iso {methods[m]['rot_iso']:.3g}" if m in methods else "-"
+        lines.append(f"| {name} | {cell(ranked[0])} | {cell(ranked[1])} | {short('DIT')} | {short('DIT+ICP')} |")
+    return lines
+
+
+def versus_table(settings: dict) -> list[str]:
+    lines = ["| setting | method | MAE(R) deg | iso R deg | success | within 5 deg, 0.05 | s / pair |",
+             "|---|---|---|---|---|---|---|"]
+    for name, methods in settings.items():
+        baselines = [m for m in methods if m not in NETWORK]
+        shown = [m for m in NETWORK if m in methods]
+        if baselines:
+            shown.append(min(baselines, key=lambda m: rank_key(methods[m])))
+        for m in shown:
+            s = methods[m]
+            lines.append(f"| {name} | {m} | {s['rot_mae']:.4g} | {s['rot_iso']:.4g} | {percent(s['success'])} | "
+                         f"{percent(within5(s))} | {s['seconds_per_pair']:.3f} |")
+    return lines
+
+
+def changes(settings: dict, before: dict) -> list[str]:
+    lines = []
+    for name, methods in settings.items():
+        parts = []
+        for m in NETWORK:
+            if m in methods and m in before.get(name, {}):
+                old, new = before[name][m], methods[m]
+                parts.append(f"{m} success {percent(old['success'])} -> {percent(new['success'])}, within 5 "
+                             f"{percent(within5(old))} -> {percent(within5(new))}, iso R "
+                             f"{old['rot_iso']:.3g} -> {new['rot_iso']:.3g}")
+        if parts:
+            lines.append(f"- {name}: " + "; ".join(parts))
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("directory", help="an evaluate.py --out directory (holding results.json)")
+    parser.add_argument("--before", default=None, help="an earlier results.json of the same pairs")
+    args = parser.parse_args()
+    results = json.load(open(os.path.join(args.directory, "results.json")))
+    settings = results["settings"]
+    print("\n".join(best_table(settings)), end="\n\n")
+    print("\n".join(versus_table(settings)))
+    if args.before:
+        print()
+        print("\n".join(changes(settings, json.load(open(args.before))["settings"])))
+
+
+if __name__ == "__main__":
+    main()
