@@ -29,7 +29,7 @@ def test_largest_threshold_keeps_95_percent_of_the_trusted_results_right():
     assert choose_inference.largest_threshold(np.full(4, 30.0), np.full(4, 0.1)) is None
 
 
-def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_the_smallest():
+def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_trusting_none_of_the_pool():
     # Shared-point pairs: all right and agreeing; independent pairs: the network alone never reaches 95 %.
     settings = ["clean"] * 10 + ["independent_clean"] * 10
     icp = _evidence([0.1] * 10 + [1.0] * 9 + [50.0], [0.01] * 10 + [0.3] * 9 + [2.5], settings)
@@ -40,6 +40,25 @@ def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_the_sma
     on_clean = report["verdict_agreement_on_validation"]["none"]["clean"]
     assert on_clean["passed"] == 10 and on_clean["passed_right"] == 1.0  # near-exact agreement is still trusted
     assert report["verdict_agreement_on_validation"]["icp"]["pool"]["failures_caught"] == 1.0
+
+
+def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results():
+    # No threshold reaches 95 %: 0.25 trusts 10 results, 8 right; 0.5 trusts 20, 18 right; 1.0 trusts 30, 25 right.
+    agreement = np.r_[np.full(10, 0.2), np.full(10, 0.4), np.full(10, 0.9), np.full(10, 20.0)]
+    errors = np.r_[np.full(8, 1.0), 30.0, 30.0, np.full(10, 1.0), np.full(7, 1.0), np.full(3, 30.0), np.full(10, 30.0)]
+    report = choose_inference.choose_from_evidence(
+        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
+    assert report["verdict_max_disagreement"] == {"icp": 0.5} and report["verdict_fallback"] == ["icp"]
+    # A threshold trusting fewer results than a band needs is not taken, however right they are.
+    errors[8:10] = 1.0
+    agreement[:10] = np.r_[np.full(5, 0.2), np.full(5, 0.4)]
+    agreement[10:20] = 0.9
+    errors[10:13] = 30.0
+    report = choose_inference.choose_from_evidence(
+        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
+    assert report["verdict_max_disagreement"] == {"icp": 0.5}  # 10 trusted, all right; 0.25 trusts only 5
+    # Where every threshold trusts a few but fewer than a band needs, the smallest.
+    assert choose_inference.fallback_threshold([{"passed": 3, "passed_right": 1.0}] * 11) == 0.25
 
 
 def test_record_writes_the_thresholds_and_says_so_in_the_note(tmp_path):
