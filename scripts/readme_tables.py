@@ -1,13 +1,17 @@
 """Prints the README's summary tables of an evaluate.py output directory, from its results.json.
 
     python scripts/readme_tables.py docs/eval_modelnet40_unseen [--before OLD/results.json]
+    python scripts/readme_tables.py --verdict docs/eval_stanford_dragon docs/eval_modelnet40_unseen
 
 Two tables per directory: which method is best per setting and the runner-up (ranked by success, then the
 share within 5 degrees and 0.05, then the lower mean isotropic rotation error), with DIT's and DIT+ICP's
 figures beside them; and DIT against DIT+ICP and the strongest baseline, every setting. ``--before`` (an
 earlier results.json of the same pairs, say from ``git show``) adds a line per setting with DIT's and
 DIT+ICP's success and share within 5 degrees then and now, which is what a re-measurement after new weights
-has to report. Nothing is registered; the figures are those evaluate.py wrote.
+has to report. ``--verdict`` prints instead one table over every directory given (ModelNet40 settings or
+scan pair sets): how many of DIT's and DIT+ICP's failures (more than 5 degrees off) the agreement verdict
+flags, and how many of the results it trusts are within 5 degrees. Nothing is registered; the figures are
+those evaluate.py wrote.
 """
 
 import argparse
@@ -78,12 +82,48 @@ def changes(settings: dict, before: dict) -> list[str]:
     return lines
 
 
+def _count(summary: dict | None, what: str) -> str:
+    """``failures flagged`` or ``trusted right`` of an evaluation.verdict_summary as "k of n" ("-" for none)."""
+    if not summary:
+        return "-"
+    n = summary["failures"] if what == "flagged" else summary["passed"]
+    share = summary["failures_caught"] if what == "flagged" else summary["passed_right"]
+    return f"{round(n * share)} of {n}" if n else "-"
+
+
+def verdict_table(directories: list[str]) -> list[str]:
+    lines = ["| data | DIT alone: failures (> 5 deg) flagged | DIT alone: trusted within 5 deg | "
+             "DIT+ICP: failures flagged | DIT+ICP: trusted within 5 deg |", "|---|---|---|---|---|"]
+    for directory in directories:
+        results = json.load(open(os.path.join(directory, "results.json")))
+        if "pair_sets" in results:  # evaluate.py --scans
+            groups = {f"{os.path.basename(results['scans'].rstrip('/'))} {name}": {m: v["summary"] for m, v in
+                                                                                  methods.items()}
+                      for name, methods in results["pair_sets"].items()}
+        else:
+            groups = {f"{os.path.basename(directory.rstrip('/'))} {name}": methods
+                      for name, methods in results["settings"].items()}
+        for name, methods in groups.items():
+            pairs = methods["DIT"]["pairs"]
+            verdicts = [(methods.get(m) or {}).get("verdict") for m in NETWORK]
+            lines.append(f"| {name} ({pairs} pairs) | {_count(verdicts[0], 'flagged')} | {_count(verdicts[0], 'trusted')} "
+                         f"| {_count(verdicts[1], 'flagged')} | {_count(verdicts[1], 'trusted')} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("directory", help="an evaluate.py --out directory (holding results.json)")
+    parser.add_argument("directory", nargs="+", help="evaluate.py --out directories (holding results.json); "
+                                                     "one, but with --verdict any number")
     parser.add_argument("--before", default=None, help="an earlier results.json of the same pairs")
+    parser.add_argument("--verdict", action="store_true", help="the agreement verdict's table instead")
     args = parser.parse_args()
-    results = json.load(open(os.path.join(args.directory, "results.json")))
+    if args.verdict:
+        print("\n".join(verdict_table(args.directory)))
+        return
+    if len(args.directory) > 1:
+        parser.error("give one directory (or --verdict)")
+    results = json.load(open(os.path.join(args.directory[0], "results.json")))
     settings = results["settings"]
     print("\n".join(best_table(settings)), end="\n\n")
     print("\n".join(versus_table(settings)))

@@ -39,3 +39,18 @@ def test_changes_name_both_rows_before_and_after():
     (line,) = readme_tables.changes(SETTINGS, before)
     assert "DIT success 5 % -> 10 %, within 5 30 % -> 40 %" in line
     assert "DIT+ICP success 80 % -> 80 %" in line
+
+
+def test_verdict_table_counts_flagged_failures_and_right_trusted_results(tmp_path):
+    import json
+    verdict = {"failures": 4, "failures_caught": 0.75, "passed": 10, "passed_right": 0.9}
+    none_failed = {"failures": 0, "failures_caught": float("nan"), "passed": 5, "passed_right": 1.0}
+    (tmp_path / "mn").mkdir()
+    (tmp_path / "mn" / "results.json").write_text(json.dumps({"settings": {"independent_clean": {
+        "DIT": {"pairs": 14, "verdict": none_failed}, "DIT+ICP": {"pairs": 14, "verdict": verdict}}}}))
+    (tmp_path / "scans").mkdir()
+    (tmp_path / "scans" / "results.json").write_text(json.dumps({"scans": "/data/dragon/", "pair_sets": {"skip1": {
+        "DIT": {"summary": {"pairs": 15, "verdict": verdict}}, "DIT+ICP": {"summary": {"pairs": 15}}}}}))
+    rows = readme_tables.verdict_table([str(tmp_path / "scans"), str(tmp_path / "mn")])[2:]
+    assert rows == ["| dragon skip1 (15 pairs) | 3 of 4 | 9 of 10 | - | - |",
+                    "| mn independent_clean (14 pairs) | - | 5 of 5 | 3 of 4 | 9 of 10 |"]
