@@ -227,7 +227,7 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
         elif ext == ".pcd":
             content = _moved_pcd(source, rotation, translation)
         elif ext == ".las":
-            _read_las(source, lambda count: None)  # refuses what it cannot read
+            _las_records(source)  # refuses what it cannot read (header and size; the records are read once, below)
         elif ext == ".stl" and not _stl_is_ascii(source):
             read_mesh(source)
             with open(source, "rb") as f:
@@ -406,11 +406,7 @@ def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _write_moved_las(out, path: str, rotation: np.ndarray, translation: np.ndarray) -> None:
     """Writes LAS file ``path`` to ``out`` with its points moved, a million records at a time."""
-    data_offset, record_length, count, scale, offset = _las_layout(path)
-    source = np.memmap(path, np.uint8, mode="r")
-    if len(source) < data_offset + count * record_length:
-        raise CloudFileError(path, f"LAS file ends before its {count} points")
-    records = source[data_offset:data_offset + count * record_length].reshape(count, record_length)
+    source, records, (data_offset, record_length, count, scale, offset) = _las_records(path)
     chunks = range(0, count, 1_000_000)
 
     def moved(chunk: np.ndarray, origin: np.ndarray) -> np.ndarray:  # chunk: (n, record_length) bytes
@@ -739,6 +735,16 @@ def _las_layout(path: str) -> tuple[int, int, int, np.ndarray, np.ndarray]:
         raise CloudFileError(path, f"LAS point records of {record_length} bytes cannot hold X, Y, Z")
     scale, offset = np.frombuffer(header, "<f8", 3, 131), np.frombuffer(header, "<f8", 3, 155)
     return data_offset, record_length, count, scale, offset
+
+
+def _las_records(path: str) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """A LAS file memory-mapped, its point records as (count, record_length) bytes and :func:`_las_layout`;
+    :class:`CloudFileError` where the header is not one or the file ends before its records."""
+    layout = data_offset, record_length, count, _, _ = _las_layout(path)
+    source = np.memmap(path, np.uint8, mode="r")
+    if len(source) < data_offset + count * record_length:
+        raise CloudFileError(path, f"LAS file ends before its {count} points")
+    return source, source[data_offset:data_offset + count * record_length].reshape(count, record_length), layout
 
 
 def _read_las(path: str, select) -> tuple[np.ndarray, int]:

@@ -305,6 +305,10 @@ def test_a_moved_las_keeps_every_attribute_at_its_scale(tmp_path, cloud):
         np.testing.assert_allclose(after.header.maxs, points.max(axis=0), atol=1e-9)
         np.testing.assert_array_equal(io.read(tmp_path / "m.las"), points)
     assert after.header.offsets[0] != 1000.0  # re-centred
+    (tmp_path / "short.las").write_bytes((tmp_path / "a.las").read_bytes()[:-40])
+    with pytest.raises(io.CloudFileError, match=f"ends before its {len(cloud)} points"):
+        io.move_file(tmp_path / "short.las", tmp_path / "short_moved.las", rotation, translation)
+    assert not (tmp_path / "short_moved.las").exists() and not list(tmp_path.glob(".tmp-*"))
 
 
 def _box_mesh_files(tmp_path):
