@@ -7,8 +7,9 @@ Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a us
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and ``inference_points`` (1000, the authors' test
 protocol), which the registration API and evaluate.py use by default. ``--choice`` (the output of
-scripts/choose_inference.py) sets the inference settings in the shipped config, the fitness verdict's
-threshold (``verdict_min_fitness``) and the agreement verdict's thresholds with the bands quoted beside them.
+scripts/choose_inference.py) is then recorded as ``choose_inference.py --record`` records one: the inference
+settings into the shipped config, the fitness verdict's threshold (``verdict_min_fitness``) and the agreement
+verdict's thresholds, with the bands quoted beside them, into its record.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
 history travels with the weights.
 """
@@ -18,6 +19,7 @@ import json
 import os
 import shutil
 
+import choose_inference  # scripts/choose_inference.py, beside this script
 from dit_jax import checkpoint, registration, training
 
 
@@ -56,24 +58,12 @@ def main() -> None:
     init_from = extra.get("train_config", {}).get("init_from")
     if init_from and os.path.isdir(init_from):
         extra["trained_from"] = checkpoint.read_extra(init_from)
-    if args.choice:
-        choice = json.load(open(args.choice))
-        config = config.replace(**choice["chosen"])
-        extra["verdict_min_fitness"] = choice["verdict_min_fitness"]
-        extra["inference_choice"] = {k: choice[k] for k in ("chosen", "verdict_min_fitness", "settings",
-                                                            "pairs_per_setting") if k in choice}
-        extra["inference_choice"]["verdict_on_validation"] = choice.get("verdict_on_validation")
-        if choice.get("verdict_max_disagreement"):
-            extra["verdict_max_disagreement"] = choice["verdict_max_disagreement"]
-            extra["verdict_agreement_choice"] = {k: choice[k] for k in (
-                "settings_verdict", "verdict_pool", "pairs_per_setting", "verdict_curve",
-                "verdict_agreement_on_validation", "verdict_fallback") if k in choice}
-        if choice.get("verdict_agreement_bands"):
-            extra["verdict_agreement_bands"] = choice["verdict_agreement_bands"]
     shutil.rmtree(staging)
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
     checkpoint.save(args.out, params, config, extra=extra)
+    if args.choice:  # written as choose_inference.py --record writes a choice into any checkpoint
+        choose_inference.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
     print(f"wrote {args.out} ({size / 2 ** 20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
 
