@@ -24,14 +24,14 @@ the source lands on the target, one registration instead of two). Trusted result
 suspect too). It is still printed and written, a one-line warning goes to stderr, and the exit status is 3
 (``--no-verdict-status`` keeps it 0).
 
-Range (shipped weights, measured 2026-11-28, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
+Range (shipped weights, measured 2026-12-02, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
 independently, as real scans are, rotations up to about 75 degrees as it ships, refined by ICP (median
-1.2-2.6 degrees), and up to about 30 with --refine none (within 10 degrees on 56-94 % of pairs); beyond that
+1.2-1.7 degrees), and up to about 30 with --refine none (within 10 degrees on 62-94 % of pairs); beyond that
 it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 0.12 degrees (14 of 15
-pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 2.05
-with --refine none (docs/eval_stanford_dragon, 2026-11-28). --refine none is faster (on those 42,000-point
-scans about 0.5 s a pair against 5.6-8.9 s, medians, on 2 CPU cores, both with the verdict's second
-registration; 2026-12-01).
+pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 1.81
+with --refine none (docs/eval_stanford_dragon, 2026-12-02). --refine none is faster (on those 42,000-point
+scans about 0.8 s a pair against 5.3-8.9 s on 2 CPU cores, both with the verdict's second registration;
+2026-12-02).
 For clouds that may be turned further, --any-rotation starts the network from 24 turns of SRC and goes on from
 the best fitting: on independently sampled test pairs turned 120-180 degrees, 62 % within 5 degrees instead of
 0-25 % (8 pairs per angle; 2026-12-01), at 4-6 times the time; it can lose a noisy pair to a half-turn that
@@ -98,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
                              "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
     parser.add_argument("--max-disagreement", type=float, default=None, metavar="DEG",
                         help="agreement verdict: trust the result where the two registrations agree within DEG "
-                             "degrees (default: the checkpoint's; shipped: 0.5 with ICP, 0.25 with --refine none, "
+                             "degrees (default: the checkpoint's; shipped: 0.5, with ICP and with --refine none, "
                              "strict by design; larger trusts more right results and more wrong ones, README)")
     parser.add_argument("--best-direction", choices=("on", "off"), default=None,
                         help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
