@@ -73,7 +73,7 @@ VERDICTS = ("agreement", "fitness")
 #: The agreement verdict's thresholds (degrees between the result and the inverse of the target-onto-source
 #: registration) per refinement, where a checkpoint records none (``verdict_max_disagreement``): the first ones
 #: ``scripts/choose_inference.py`` chose (2026-11-27, for the third training stage's weights). The shipped
-#: checkpoint records its own, 0.25 and 0.5 (README, "Is the result right?").
+#: checkpoint records its own, 0.5 for both since 2026-12-02 (README, "Is the result right?").
 DEFAULT_MAX_DISAGREEMENT = {"none": 3.0, "icp": 6.0}
 #: The default of :class:`Registrar`'s ``best_direction``. On validation pairs it raised DIT+ICP's share within
 #: 5 degrees on four of ten settings and lowered it on none (docs/BENCHMARKS.md, "DIT+ICP from both
