@@ -18,8 +18,10 @@ import argparse
 import json
 import os
 
+from dit_jax import evaluation
+
 #: evaluate.py's names of the network's own rows; every other method is a baseline.
-NETWORK = ("DIT", "DIT+ICP")
+NETWORK = (evaluation.METHOD_DIT, evaluation.METHOD_DIT_ICP)
 
 
 def within5(stats: dict) -> float:
