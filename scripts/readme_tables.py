@@ -50,7 +50,7 @@ def best_table(settings: dict) -> list[str]:
 
         def short(m):
             return f"{percent(methods[m]['success'])} / iso {methods[m]['rot_iso']:.3g}" if m in methods else "-"
-        lines.append(f"| {name} | {cell(ranked[0])} | {cell(ranked[1])} | {short('DIT')} | {short('DIT+ICP')} |")
+        lines.append(f"| {name} | {cell(ranked[0])} | {cell(ranked[1])} | {' | '.join(map(short, NETWORK))} |")
     return lines
 
 
@@ -106,7 +106,7 @@ def verdict_table(directories: list[str]) -> list[str]:
             groups = {f"{os.path.basename(directory.rstrip('/'))} {name}": methods
                       for name, methods in results["settings"].items()}
         for name, methods in groups.items():
-            pairs = methods["DIT"]["pairs"]
+            pairs = methods[NETWORK[0]]["pairs"]
             verdicts = [(methods.get(m) or {}).get("verdict") for m in NETWORK]
             lines.append(f"| {name} ({pairs} pairs) | {_count(verdicts[0], 'flagged')} | {_count(verdicts[0], 'trusted')} "
                          f"| {_count(verdicts[1], 'flagged')} | {_count(verdicts[1], 'trusted')} |")
