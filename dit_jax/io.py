@@ -250,20 +250,31 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
 
 
 def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
-    """The bytes of an OBJ, OFF or ASCII STL file with its vertices moved and its normals turned."""
+    """The bytes of an OBJ, OFF or ASCII STL file with its vertices moved and its normals turned: each such line
+    is written again as its words joined by single spaces, a comment at its end kept."""
     with open(path, "r", encoding="utf-8", errors="surrogateescape") as f:
         lines = f.readlines()
     numbers = _mesh_coordinate_lines(path, ext, lines)
-    parts = [lines[n].partition("#") for n in numbers]
-    words = [code.split() for code, _, _ in parts]
-    starts = [{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(w[0].lower(), 0) for w in words]  # OFF: 0
-    xyz = np.asarray([w[k:k + 3] for w, k in zip(words, starts)], np.float64).reshape(-1, 3)
-    normal = np.asarray([w[0].lower() in ("vn", "facet") for w in words], bool)
-    xyz = xyz @ rotation.T + np.where(normal[:, None], 0.0, translation)  # normals turn, points move
-    for n, w, k, (_, hash_, comment), values in zip(numbers, words, starts, parts, xyz.tolist()):
-        ending = lines[n][len(lines[n].rstrip("\r\n")):]
-        w[k:k + 3] = map(repr, values)
-        lines[n] = " ".join(w) + (f" {hash_}{comment}".rstrip("\r\n") if hash_ else "") + ending
+    rows = [lines[n].rstrip("\r\n") for n in numbers]
+    comments = [""] * len(rows)
+    if any("#" in row for row in rows):
+        parts = [row.partition("#") for row in rows]
+        rows = [code for code, _, _ in parts]
+        comments = [f" {hash_}{comment}" if hash_ else "" for _, hash_, comment in parts]
+    words, offsets = _row_words(rows)
+    keywords = [words[i].lower() for i in offsets[:-1].tolist()] if ext != ".off" else [""] * len(rows)
+    starts = np.asarray([{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(k, 0) for k in keywords], np.int64)
+    if (np.diff(offsets) < starts + 3).any():
+        raise CloudFileError(path, "a vertex or normal line has fewer than three coordinates")
+    index = (offsets[:-1] + starts)[:, None] + np.arange(3)
+    normal = np.asarray([k in ("vn", "facet") for k in keywords], bool)
+    xyz = _floats(_picked(words, index)).reshape(-1, 3) @ rotation.T
+    xyz += np.where(normal[:, None], 0.0, translation)  # normals turn, points move
+    for i, value in zip(index.ravel().tolist(), map(repr, xyz.ravel().tolist())):
+        words[i] = value
+    bounds = offsets.tolist()
+    for n, a, b, comment in zip(numbers, bounds[:-1], bounds[1:], comments):
+        lines[n] = " ".join(words[a:b]) + comment + lines[n][len(lines[n].rstrip("\r\n")):]
     return "".join(lines).encode("utf-8", errors="surrogateescape")
 
 
@@ -1057,6 +1068,43 @@ def _read_mesh_as_points(path: str, select, n_samples: int, seed: int) -> tuple[
         raise CloudFileError(path, str(err)) from None
 
 
+#: The characters ``str.split`` splits on that are ASCII (UTF-8 encodes every other one in several bytes).
+_ASCII_SPACE = np.isin(np.arange(256), [9, 10, 11, 12, 13, 28, 29, 30, 31, 32])
+
+
+def _row_words(rows: list[str]) -> tuple[list[str], np.ndarray]:
+    """The words of text rows (as ``str.split`` finds them), all in one list, and (R + 1,) offsets: row r's
+    words are ``words[offsets[r]:offsets[r + 1]]``.
+
+    Splitting all rows at once and counting each row's words on its bytes is what makes the text mesh readers
+    and :func:`move_file` fast on large meshes: splitting row by row makes a list per row, several times slower.
+    """
+    text = "\n".join(rows)
+    words = text.split()
+    raw = np.frombuffer(text.encode("utf-8", errors="surrogateescape"), np.uint8)
+    space = _ASCII_SPACE[raw]
+    first = ~space & np.concatenate([[True], space[:-1]])  # the first byte of each word
+    counts = np.bincount(np.cumsum(raw == 10)[first], minlength=len(rows))
+    # A row with a newline of its own, or a space outside ASCII (which str.split splits on), is counted again
+    # row by row: either way the byte count disagrees with the words found.
+    if len(counts) != len(rows) or counts.sum() != len(words):
+        counts = np.fromiter(map(len, map(str.split, rows)), np.int64, len(rows))
+    return words, np.concatenate([[0], np.cumsum(counts)])
+
+
+def _picked(words: list[str], index: np.ndarray) -> list[str]:
+    """``words`` at ``index`` (any shape), flattened."""
+    return [words[i] for i in np.ravel(index).tolist()]
+
+
+def _floats(words: list[str]) -> np.ndarray:
+    return np.fromiter(map(float, words), np.float64, len(words))
+
+
+def _ints(words: list[str]) -> np.ndarray:
+    return np.fromiter(map(int, words), np.int64, len(words))
+
+
 def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """(F, 3) triangles splitting each polygon (``counts[i]`` consecutive entries of ``corners``) into a fan."""
     per_polygon = np.maximum(counts - 2, 0)  # a "face" of one or two corners has no area: nothing
@@ -1067,64 +1115,73 @@ def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
-    vertex_words, corner_words, counts, defined = [], [], [], []
     with open(path, "r", encoding="utf-8", errors="replace") as f:
-        for number, line in enumerate(f, 1):
-            if "#" in line:
-                line = line.split("#", 1)[0]
-            if line[:2] not in ("v ", "f ", "v\t", "f\t"):
-                continue  # texture coordinates, normals, groups, materials, lines, blank
-            words = line.split()
-            if words[0] == "v":
-                if len(words) < 4:
-                    raise CloudFileError(path, f"line {number}: a vertex needs three coordinates")
-                vertex_words.append(words[1:4])
-            else:
-                corner_words.extend(word.partition("/")[0] for word in words[1:])
-                counts.append(len(words) - 1)
-                defined.append(len(vertex_words))
-    vertices = np.asarray(vertex_words, np.float64).reshape(-1, 3)
-    corners = np.asarray(corner_words, dtype=np.int64)
-    defined = np.repeat(np.asarray(defined, np.int64), counts)
+        text = f.read()
+    if "#" in text:
+        text = re.sub(r"#[^\n]*", "", text)
+    # Texture coordinates, normals, groups, materials, lines and blank lines are skipped; vertices and faces
+    # keep their order, which negative (relative) indices need.
+    rows = re.findall(r"^([vf])[ \t]([^\n]*)", text, re.MULTILINE)
+    is_vertex = np.fromiter((kind == "v" for kind, _ in rows), bool, len(rows))
+    vertex_words, vertex_offsets = _row_words([row for kind, row in rows if kind == "v"])
+    short = np.flatnonzero(np.diff(vertex_offsets) < 3)
+    if len(short):
+        line = text.count("\n", 0, list(re.finditer(r"^v[ \t]", text, re.MULTILINE))[short[0]].start()) + 1
+        raise CloudFileError(path, f"line {line}: a vertex needs three coordinates")
+    vertices = _floats(_picked(vertex_words, vertex_offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+    faces = [row for kind, row in rows if kind == "f"]
+    if any("/" in face for face in faces):  # "v/vt/vn": the vertex
+        faces = re.sub(r"(?<=\S)/\S*", "", "\n".join(faces)).split("\n")
+    face_words, face_offsets = _row_words(faces)
+    counts = np.diff(face_offsets)
+    corners = _ints(face_words)
+    defined = np.repeat(np.cumsum(is_vertex)[~is_vertex], counts)  # vertices defined before each face
     # 1-based, or negative: counted back from the last vertex defined before the face
     corners = np.where(corners > 0, corners - 1, defined + corners)
     if ((corners < 0) | (corners >= defined)).any():  # index 0 lands here too: defined + 0
         raise CloudFileError(path, "a face names a vertex not defined before it")
-    return vertices, _fans(corners, np.asarray(counts, np.int64))
+    return vertices, _fans(corners, counts)
 
 
-def _off_layout(path: str, text_lines: list[str]) -> tuple[list[int], list[int], list[list[str]]]:
+def _off_layout(path: str, text_lines: list[str]) -> tuple[list[int], list[int]]:
     """Where an OFF file's vertices and faces are: the indices (into ``text_lines``) of its vertex lines and of
-    its face lines, and every line's words (comments and blank lines hold none)."""
-    words = [line.split("#", 1)[0].split() for line in text_lines]
-    data = [i for i, w in enumerate(words) if w]
-    keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", words[data[0]][0], re.IGNORECASE) if data else None
+    its face lines (comments and blank lines are skipped; a comment after data on a line is not data)."""
+    code = [line.partition("#")[0] for line in text_lines] if any("#" in line for line in text_lines) else text_lines
+    data = [i for i, line in enumerate(code) if not line.isspace() and line]
+    head = code[data[0]].split() if data else []
+    keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", head[0], re.IGNORECASE) if data else None
     if keyword is None:
-        raise CloudFileError(path, "not an OFF file (no OFF header)" if not data or "OFF" not in words[data[0]][0]
-                             else f"OFF variant {words[data[0]][0]!r} is not supported")
+        raise CloudFileError(path, "not an OFF file (no OFF header)" if not data or "OFF" not in head[0]
+                             else f"OFF variant {head[0]!r} is not supported")
     # Counts follow the keyword on its line (ModelNet's files even write "OFF490 518 0"), or on the next.
-    counts = ([keyword[2]] if keyword[2] else []) + words[data[0]][1:]
+    counts = ([keyword[2]] if keyword[2] else []) + head[1:]
     body = data[1:]
     if not counts and body:
-        counts, body = words[body[0]], body[1:]
+        counts, body = code[body[0]].split(), body[1:]
     if len(counts) < 2:
         raise CloudFileError(path, "OFF header without vertex and face counts")
     n_vertices, n_faces = int(counts[0]), int(counts[1])
     if len(body) < n_vertices + n_faces:
         raise CloudFileError(path, f"OFF file ends before its {n_vertices} vertices and {n_faces} faces")
-    return body[:n_vertices], body[n_vertices:n_vertices + n_faces], words
+    return body[:n_vertices], body[n_vertices:n_vertices + n_faces]
 
 
 def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
     with open(path, "r", encoding="utf-8", errors="replace") as f:
-        vertex_lines, face_lines, words = _off_layout(path, f.readlines())
-    vertices = np.asarray([words[i][:3] for i in vertex_lines], np.float64).reshape(-1, 3)
-    faces = [words[i] for i in face_lines]
-    sizes = np.asarray([int(w[0]) for w in faces], np.int64)
-    if any(len(w) <= size for w, size in zip(faces, sizes)):
+        lines = f.readlines()
+    vertex_lines, face_lines = _off_layout(path, lines)
+    code = lambda numbers: [lines[i].partition("#")[0] for i in numbers]  # noqa: E731
+    vertex_words, vertex_offsets = _row_words(code(vertex_lines))
+    if (np.diff(vertex_offsets) < 3).any():
+        raise CloudFileError(path, "an OFF vertex has fewer than three coordinates")
+    vertices = _floats(_picked(vertex_words, vertex_offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+    face_words, face_offsets = _row_words(code(face_lines))
+    sizes = _ints(_picked(face_words, face_offsets[:-1]))
+    if (np.diff(face_offsets) <= sizes).any() or (sizes < 0).any():
         raise CloudFileError(path, "an OFF face lists fewer corners than its count")
     # a face's colour, if any, follows its corners on its line
-    corners = np.asarray([word for w, size in zip(faces, sizes) for word in w[1:size + 1]], np.int64)
+    ramp = np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    corners = _ints(_picked(face_words, np.repeat(face_offsets[:-1] + 1, sizes) + ramp))
     return vertices, _fans(corners, sizes)
 
 

@@ -406,6 +406,39 @@ def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
     assert not (tmp_path / "x.obj").exists() and not list(tmp_path.glob(".tmp-*"))
 
 
+def test_text_meshes_with_comments_colours_and_odd_spacing_read_and_move(tmp_path):
+    """The text mesh readers split all lines at once: comments, blank lines, tabs, non-ASCII spaces, colours,
+    mixed polygons and negative indices must still land where a line-by-line reading puts them."""
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    square = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0.5, 0.5, 1)]
+    expected = [[0, 1, 2], [0, 2, 3], [0, 1, 4], [1, 2, 4]]
+    (tmp_path / "odd.obj").write_text(
+        "# top\nv 0 0 0\nv\t1 0 0 # a comment\nv 1  1 0 1.0\nvn 0 0 1\nv 0\u00a01 0\nf 1/1/1 2/2/2 3/3/3 4/4/4\n"
+        "\nv 0.5 0.5 1\nf -5 -4 -1\nf 2//1 3//1 5//1\nl 1 2\n")
+    (tmp_path / "odd.off").write_text(
+        "COFF\n# counts next\n5 3 0\n0 0 0 9 9 9 1\n\n1 0 0 9 9 9 1 # x\n1 1 0 9 9 9 1\n0\u00a01 0 9 9 9 1\n"
+        "0.5 0.5 1 9 9 9 1\n4 0 1 2 3 255 0 0\n3\t0 1 4\n3 1 2 4 # last\n")
+    rotation, translation = euler_zyx_to_matrix([40.0, 10.0, -25.0]), np.array([0.5, -2.0, 3.0])
+    for name in ("odd.obj", "odd.off"):
+        vertices, triangles = io.read_mesh(tmp_path / name)
+        np.testing.assert_array_equal(vertices, square)
+        assert triangles.tolist() == expected
+        io.move_file(tmp_path / name, tmp_path / f"moved_{name}", rotation, translation)
+        moved_vertices, moved_triangles = io.read_mesh(tmp_path / f"moved_{name}")
+        np.testing.assert_allclose(moved_vertices, np.array(square) @ rotation.T + translation, atol=1e-12)
+        assert moved_triangles.tolist() == expected
+    obj = (tmp_path / "moved_odd.obj").read_text().splitlines()
+    assert obj[2].endswith(" # a comment") and obj[3].endswith(" 1.0") and obj[0] == "# top"
+    np.testing.assert_allclose(np.array(obj[4].split()[1:], float), rotation @ [0, 0, 1], atol=1e-12)
+    off = (tmp_path / "moved_odd.off").read_text().splitlines()
+    assert off[5].endswith(" 9 9 9 1 # x") and off[-3:] == ["4 0 1 2 3 255 0 0", "3\t0 1 4", "3 1 2 4 # last"]
+    (tmp_path / "flat_normal.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 1\nf 1 2 3\n")
+    with pytest.raises(io.CloudFileError, match="fewer than three coordinates"):
+        io.move_file(tmp_path / "flat_normal.obj", tmp_path / "x.obj", rotation, translation)
+    assert not (tmp_path / "x.obj").exists()
+
+
 @pytest.mark.parametrize("end", ["\n", "\r\n"])
 def test_a_moved_ascii_ply_finds_its_vertices_after_other_elements(tmp_path, end):
     """Reading and moving an ASCII PLY locate its vertex rows alike: after the header and one line per item
@@ -452,6 +485,9 @@ def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path
         "short.off": ("OFF\n4 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "ends before its 4 vertices and 2 faces"),
         "far.off": ("OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "a face names a vertex the file does not have"),
         "four.off": ("4OFF\n", "OFF variant '4OFF' is not supported"),
+        "two.off": ("OFF 3 1 0\n0 0 0\n1 0 0\n0 1\n3 0 1 2\n", "an OFF vertex has fewer than three coordinates"),
+        "few.off": ("OFF 3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1\n", "fewer corners than its count"),
+        "two.obj": ("v 0 0 0\nv 1 0 0\n# note\nv 0 1\n", "line 4: a vertex needs three coordinates"),
         "empty.stl": ("solid empty\nendsolid empty\n", "no vertices"),
         "short.ply": (_PLY_TRIANGLE.format("ascii") + "0 0 0\n1 0 0\n0 1 0\n3 0 1\n", "fewer values"),
         "far.ply": (_PLY_TRIANGLE.format("ascii") + "0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n", "a face names a vertex"),
