@@ -5,8 +5,8 @@ and to write each file moved (``io.move_file``, what ``dit-register --out`` does
 
 The cloud is random normal points (float64 where the format keeps it; PCD is float32), read with
 ``drop_nonfinite=True``; compressed PCD (those points, and an organized 1280 x 960 depth-camera cloud with NaN
-pixels) and the meshes are written by Open3D (a UV sphere: 300 gives 179,402 vertices and 358,800 triangles),
-the LAS file by laspy (where installed). Prints a markdown table of the best of ``--repeats`` runs; the mesh
+pixels) and the meshes are written by Open3D (a UV sphere: 300 gives 179,402 vertices and 358,800 triangles;
+ASCII STL, which Open3D cannot write, by this script), the LAS file by laspy (where installed). Prints a markdown table of the best of ``--repeats`` runs; the mesh
 rows' reads include sampling ``io.MESH_POINTS`` surface points.
 """
 
@@ -30,6 +30,15 @@ def best_seconds(fn, repeats: int) -> float:
         fn()
         times.append(time.perf_counter() - start)
     return min(times)
+
+
+def write_ascii_stl(path: str, corners: np.ndarray, normals: np.ndarray) -> None:
+    """An ASCII STL file of triangles ``corners`` (F, 3, 3) with ``normals`` (F, 3), indented as CAD tools do."""
+    facet = ("  facet normal {:e} {:e} {:e}\n    outer loop\n" + "      vertex {:e} {:e} {:e}\n" * 3
+             + "    endloop\n  endfacet\n")
+    values = np.concatenate([normals, corners.reshape(-1, 9)], axis=1).tolist()
+    with open(path, "w") as f:
+        f.write("solid mesh\n" + "".join(facet.format(*row) for row in values) + "endsolid mesh\n")
 
 
 def main() -> None:
@@ -91,9 +100,13 @@ def main() -> None:
 
         sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=args.sphere_resolution)
         sphere.compute_triangle_normals()
-        for name in ("mesh.obj", "mesh.off", "mesh.stl", "mesh.ply", "mesh_ascii.ply"):
+        for name in ("mesh.obj", "mesh.off", "mesh.stl", "mesh_ascii.stl", "mesh.ply", "mesh_ascii.ply"):
             path = os.path.join(folder, name)
-            o3d.io.write_triangle_mesh(path, sphere, write_ascii="ascii" in name)
+            if name == "mesh_ascii.stl":  # Open3D writes binary STL only
+                write_ascii_stl(path, np.asarray(sphere.vertices)[np.asarray(sphere.triangles)],
+                                np.asarray(sphere.triangle_normals))
+            else:
+                o3d.io.write_triangle_mesh(path, sphere, write_ascii="ascii" in name)
             ours = best_seconds(lambda: io.read(path), args.repeats)
             theirs = best_seconds(lambda: o3d.io.read_triangle_mesh(path).sample_points_uniformly(io.MESH_POINTS),
                                   args.repeats)

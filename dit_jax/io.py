@@ -31,6 +31,7 @@ failure leaves nothing half-written.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import re
 import tempfile
@@ -251,30 +252,35 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
 
 def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
     """The bytes of an OBJ, OFF or ASCII STL file with its vertices moved and its normals turned: each such line
-    is written again as its words joined by single spaces, a comment at its end kept."""
-    with open(path, "r", encoding="utf-8", errors="surrogateescape") as f:
+    is written again as its words joined by single spaces, a comment at its end and its line end kept."""
+    with open(path, "r", encoding="utf-8", errors="surrogateescape", newline="") as f:  # "\r\n" stays
         lines = f.readlines()
     numbers = _mesh_coordinate_lines(path, ext, lines)
     rows = [lines[n].rstrip("\r\n") for n in numbers]
-    comments = [""] * len(rows)
+    tails = [lines[n][len(row):] for n, row in zip(numbers, rows)]  # the line ends
     if any("#" in row for row in rows):
         parts = [row.partition("#") for row in rows]
         rows = [code for code, _, _ in parts]
-        comments = [f" {hash_}{comment}" if hash_ else "" for _, hash_, comment in parts]
+        tails = [f" {hash_}{comment}{end}" if hash_ else end for (_, hash_, comment), end in zip(parts, tails)]
     words, offsets = _row_words(rows)
-    keywords = [words[i].lower() for i in offsets[:-1].tolist()] if ext != ".off" else [""] * len(rows)
-    starts = np.asarray([{"v": 1, "vn": 1, "vertex": 1, "facet": 2}.get(k, 0) for k in keywords], np.int64)
+    # per line: where its three numbers start (after "v", "vn", "vertex", "facet normal"), and whether they are
+    # a normal, which turns but does not move
+    kind = {"v": (1, False), "vn": (1, True), "vertex": (1, False), "facet": (2, True)}
+    first = map(str.lower, _picked(words, offsets[:-1])) if ext != ".off" else itertools.repeat("", len(rows))
+    starts, normal = np.array([kind.get(word, (0, False)) for word in first], np.int64).reshape(-1, 2).T
     if (np.diff(offsets) < starts + 3).any():
         raise CloudFileError(path, "a vertex or normal line has fewer than three coordinates")
     index = (offsets[:-1] + starts)[:, None] + np.arange(3)
-    normal = np.asarray([k in ("vn", "facet") for k in keywords], bool)
     xyz = _floats(_picked(words, index)).reshape(-1, 3) @ rotation.T
-    xyz += np.where(normal[:, None], 0.0, translation)  # normals turn, points move
-    for i, value in zip(index.ravel().tolist(), map(repr, xyz.ravel().tolist())):
-        words[i] = value
-    bounds = offsets.tolist()
-    for n, a, b, comment in zip(numbers, bounds[:-1], bounds[1:], comments):
-        lines[n] = " ".join(words[a:b]) + comment + lines[n][len(lines[n].rstrip("\r\n")):]
+    xyz += np.where(normal[:, None].astype(bool), 0.0, translation)
+    # All rows rebuilt at once: words and separators interleaved, the moved numbers put in place, one join.
+    pieces = np.full(2 * len(words), " ", object)
+    pieces[0::2] = words
+    pieces[2 * offsets[1:] - 1] = "\n"
+    pieces[2 * index.ravel()] = list(map(repr, xyz.ravel().tolist()))
+    moved = "".join(pieces.tolist()).split("\n")
+    for n, row, tail in zip(numbers, moved, tails):
+        lines[n] = row + tail
     return "".join(lines).encode("utf-8", errors="surrogateescape")
 
 
@@ -451,8 +457,10 @@ def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
     if ext == ".obj":
         return [i for i, line in enumerate(lines) if line.startswith(("v ", "vn ", "v\t", "vn\t"))]
     if ext == ".stl":
-        return [i for i, line in enumerate(lines)
-                if line.lstrip()[:6].lower() == "vertex" or line.lstrip()[:5].lower() == "facet"]
+        text = "".join(lines)
+        starts = [m.start() for m in _STL_COORDINATE_LINE.finditer(text)]
+        line_starts = np.cumsum([0] + [len(line) for line in lines])
+        return (np.searchsorted(line_starts, starts, side="right") - 1).tolist()
     return _off_layout(path, lines)[0]
 
 
@@ -1083,8 +1091,9 @@ def _row_words(rows: list[str]) -> tuple[list[str], np.ndarray]:
     words = text.split()
     raw = np.frombuffer(text.encode("utf-8", errors="surrogateescape"), np.uint8)
     space = _ASCII_SPACE[raw]
-    first = ~space & np.concatenate([[True], space[:-1]])  # the first byte of each word
-    counts = np.bincount(np.cumsum(raw == 10)[first], minlength=len(rows))
+    first = np.flatnonzero(~space & np.concatenate([[True], space[:-1]]))  # the first byte of each word
+    row = np.searchsorted(np.flatnonzero(raw == 10), first)  # newlines before it
+    counts = np.bincount(row, minlength=len(rows))
     # A row with a newline of its own, or a space outside ASCII (which str.split splits on), is counted again
     # row by row: either way the byte count disagrees with the words found.
     if len(counts) != len(rows) or counts.sum() != len(words):
@@ -1185,6 +1194,9 @@ def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
     return vertices, _fans(corners, sizes)
 
 
+# ASCII STL lines that hold a corner ("vertex x y z") or a normal ("facet normal x y z"), indented or not
+_STL_VERTEX_ROW = re.compile(r"^[^\S\n]*vertex(?![^\s])([^\n]*)", re.MULTILINE | re.IGNORECASE)
+_STL_COORDINATE_LINE = re.compile(r"^[^\S\n]*(?:vertex|facet)(?![^\s])", re.MULTILINE | re.IGNORECASE)
 _STL_RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
 
 
@@ -1204,10 +1216,13 @@ def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
         corners = np.fromfile(path, _STL_RECORD, count=count, offset=84)["corners"].reshape(-1, 3)
     elif head.lstrip().lower().startswith(b"solid"):
         with open(path, "r", encoding="ascii", errors="replace") as f:
-            rows = [line.split()[1:4] for line in f if line.lstrip().lower().startswith("vertex")]
+            rows = _STL_VERTEX_ROW.findall(f.read())
         if len(rows) % 3:
             raise CloudFileError(path, f"ASCII STL with {len(rows)} vertices, not three per facet")
-        corners = np.asarray(rows, np.float64).reshape(-1, 3)
+        words, offsets = _row_words(rows)
+        if (np.diff(offsets) < 3).any():
+            raise CloudFileError(path, "an STL vertex has fewer than three coordinates")
+        corners = _floats(_picked(words, offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
     else:
         raise CloudFileError(path, "not an STL file (neither 'solid' text nor a binary file of its size)")
     # STL repeats each corner in every facet that uses it; sampling needs no shared vertices

@@ -440,6 +440,37 @@ def test_text_meshes_with_comments_colours_and_odd_spacing_read_and_move(tmp_pat
 
 
 @pytest.mark.parametrize("end", ["\n", "\r\n"])
+def test_ascii_stl_and_obj_read_and_move_whatever_their_indentation_case_and_line_ends(tmp_path, end):
+    """CAD tools indent ASCII STL, some write it in capitals, Windows ends lines with CRLF: the corners are read
+    all the same, and a moved file keeps every other line and every line end as it was."""
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    triangles = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 1], [2, 0, 1], [0, 3, 1]]], float)
+    stl = ["solid part", "  facet normal 0 0 1", "    outer loop", "      vertex 0 0 0", "\tvertex 1 0 0",
+           "      vertex 0 1 0", "    endloop", "  endfacet", "FACET NORMAL 0 0 1", "OUTER LOOP",
+           "VERTEX 0 0 1", "VERTEX 2.0e0 0 1", "VERTEX 0 3 1", "ENDLOOP", "ENDFACET", "endsolid part"]
+    obj = ["# part", "v 0 0 0", "v 1 0 0", "v 0 1 0", "vn 0 0 1", "f 1 2 3"]
+    rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([1.0, 2.0, 3.0])
+    for name, lines, unchanged in (("part.stl", stl, [0, 2, 6, 7, 9, 13, 14, 15]), ("part.obj", obj, [0, 5])):
+        (tmp_path / name).write_bytes(end.join(lines + [""]).encode())
+        vertices, faces = io.read_mesh(tmp_path / name)
+        expected = triangles if name.endswith("stl") else triangles[:1]
+        np.testing.assert_array_equal(vertices[faces], expected)
+        io.move_file(tmp_path / name, tmp_path / f"moved_{name}", rotation, translation)
+        vertices, faces = io.read_mesh(tmp_path / f"moved_{name}")
+        np.testing.assert_allclose(vertices[faces], expected @ rotation.T + translation, atol=1e-12)
+        moved = (tmp_path / f"moved_{name}").read_bytes().decode()
+        assert moved.count(end) == len(lines) and moved.endswith(end) and moved.count("\n") == len(lines)
+        assert [moved.split(end)[i] for i in unchanged] == [lines[i] for i in unchanged]
+    normal = (tmp_path / "moved_part.stl").read_bytes().decode().split(end)[8].split()
+    assert normal[:2] == ["FACET", "NORMAL"]
+    np.testing.assert_allclose(np.array(normal[2:], float), rotation @ [0, 0, 1], atol=1e-12)
+    (tmp_path / "short.stl").write_text("solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0\nvertex 1 0 0\n"
+                                        "vertex 0 1 0\nendloop\nendfacet\nendsolid s\n")
+    _bad(tmp_path / "short.stl", "an STL vertex has fewer than three coordinates")
+
+
+@pytest.mark.parametrize("end", ["\n", "\r\n"])
 def test_a_moved_ascii_ply_finds_its_vertices_after_other_elements(tmp_path, end):
     """Reading and moving an ASCII PLY locate its vertex rows alike: after the header and one line per item
     of every element before them, whatever the line ends."""
