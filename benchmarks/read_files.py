@@ -6,8 +6,9 @@ and to write each file moved (``io.move_file``, what ``dit-register --out`` does
 The cloud is random normal points (float64 where the format keeps it; PCD is float32), read with
 ``drop_nonfinite=True``; compressed PCD (those points, and an organized 1280 x 960 depth-camera cloud with NaN
 pixels) and the meshes are written by Open3D (a UV sphere: 300 gives 179,402 vertices and 358,800 triangles;
-ASCII STL, which Open3D cannot write, by this script), the LAS file by laspy (where installed). Prints a markdown table of the best of ``--repeats`` runs; the mesh
-rows' reads include sampling ``io.MESH_POINTS`` surface points.
+ASCII STL, which Open3D cannot write, by this script), the LAS file by laspy (where installed). Prints a
+markdown table of the best of ``--repeats`` runs; the mesh rows' reads include sampling ``io.MESH_POINTS``
+surface points.
 """
 
 from __future__ import annotations

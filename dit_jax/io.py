@@ -457,8 +457,8 @@ def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
     if ext == ".obj":
         return [i for i, line in enumerate(lines) if line.startswith(("v ", "vn ", "v\t", "vn\t"))]
     if ext == ".stl":
-        text = "".join(lines)
-        starts = [m.start() for m in _STL_COORDINATE_LINE.finditer(text)]
+        text = "\n" + "".join(lines)  # so the first line has a line end before it too
+        starts = [m.start() for m in _STL_COORDINATE_LINE.finditer(text)]  # = where the lines start in the file
         line_starts = np.cumsum([0] + [len(line) for line in lines])
         return (np.searchsorted(line_starts, starts, side="right") - 1).tolist()
     return _off_layout(path, lines)[0]
@@ -1114,6 +1114,11 @@ def _ints(words: list[str]) -> np.ndarray:
     return np.fromiter(map(int, words), np.int64, len(words))
 
 
+def _leading_xyz(words: list[str], offsets: np.ndarray) -> np.ndarray:
+    """(R, 3) floats: the first three words of each row (see :func:`_row_words`; each row holds at least three)."""
+    return _floats(_picked(words, offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+
+
 def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """(F, 3) triangles splitting each polygon (``counts[i]`` consecutive entries of ``corners``) into a fan."""
     per_polygon = np.maximum(counts - 2, 0)  # a "face" of one or two corners has no area: nothing
@@ -1137,7 +1142,7 @@ def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
     if len(short):
         line = text.count("\n", 0, list(re.finditer(r"^v[ \t]", text, re.MULTILINE))[short[0]].start()) + 1
         raise CloudFileError(path, f"line {line}: a vertex needs three coordinates")
-    vertices = _floats(_picked(vertex_words, vertex_offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+    vertices = _leading_xyz(vertex_words, vertex_offsets)
     faces = [row for kind, row in rows if kind == "f"]
     if any("/" in face for face in faces):  # "v/vt/vn": the vertex
         faces = re.sub(r"(?<=\S)/\S*", "", "\n".join(faces)).split("\n")
@@ -1183,7 +1188,7 @@ def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
     vertex_words, vertex_offsets = _row_words(code(vertex_lines))
     if (np.diff(vertex_offsets) < 3).any():
         raise CloudFileError(path, "an OFF vertex has fewer than three coordinates")
-    vertices = _floats(_picked(vertex_words, vertex_offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+    vertices = _leading_xyz(vertex_words, vertex_offsets)
     face_words, face_offsets = _row_words(code(face_lines))
     sizes = _ints(_picked(face_words, face_offsets[:-1]))
     if (np.diff(face_offsets) <= sizes).any() or (sizes < 0).any():
@@ -1194,9 +1199,11 @@ def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
     return vertices, _fans(corners, sizes)
 
 
-# ASCII STL lines that hold a corner ("vertex x y z") or a normal ("facet normal x y z"), indented or not
+# ASCII STL lines that hold a corner ("vertex x y z") or a normal ("facet normal x y z"), indented or not. Where
+# lines are found in a file read without newline translation, a match starts at the end of the line before it
+# ("\n", or a "\r" of its own: old Mac files end lines so), which is faster than a look-behind.
 _STL_VERTEX_ROW = re.compile(r"^[^\S\n]*vertex(?![^\s])([^\n]*)", re.MULTILINE | re.IGNORECASE)
-_STL_COORDINATE_LINE = re.compile(r"^[^\S\n]*(?:vertex|facet)(?![^\s])", re.MULTILINE | re.IGNORECASE)
+_STL_COORDINATE_LINE = re.compile(r"[\r\n][^\S\r\n]*(?:vertex|facet)(?![^\s])", re.IGNORECASE)
 _STL_RECORD = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
 
 
@@ -1222,7 +1229,7 @@ def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
         words, offsets = _row_words(rows)
         if (np.diff(offsets) < 3).any():
             raise CloudFileError(path, "an STL vertex has fewer than three coordinates")
-        corners = _floats(_picked(words, offsets[:-1, None] + np.arange(3))).reshape(-1, 3)
+        corners = _leading_xyz(words, offsets)
     else:
         raise CloudFileError(path, "not an STL file (neither 'solid' text nor a binary file of its size)")
     # STL repeats each corner in every facet that uses it; sampling needs no shared vertices

@@ -470,6 +470,19 @@ def test_ascii_stl_and_obj_read_and_move_whatever_their_indentation_case_and_lin
     _bad(tmp_path / "short.stl", "an STL vertex has fewer than three coordinates")
 
 
+def test_an_ascii_stl_with_old_mac_line_ends_is_moved(tmp_path):
+    """Lines ended by a lone "\r" are lines too, for reading and for moving alike."""
+    stl = "solid s\rfacet normal 0 0 1\r outer loop\r  vertex 0 0 0\r  vertex 1 0 0\r  vertex 0 1 0\r endloop\r" \
+          "endfacet\rendsolid s\r"
+    (tmp_path / "cr.stl").write_bytes(stl.encode())
+    rotation, translation = np.eye(3)[[1, 2, 0]], np.array([1.0, 2.0, 3.0])
+    io.move_file(tmp_path / "cr.stl", tmp_path / "moved.stl", rotation, translation)
+    vertices, faces = io.read_mesh(tmp_path / "moved.stl")
+    np.testing.assert_array_equal(vertices[faces][0], np.array(
+        [[0, 0, 0], [1, 0, 0], [0, 1, 0]]) @ rotation.T + translation)
+    assert (tmp_path / "moved.stl").read_bytes().count(b"\r") == stl.count("\r")
+
+
 @pytest.mark.parametrize("end", ["\n", "\r\n"])
 def test_a_moved_ascii_ply_finds_its_vertices_after_other_elements(tmp_path, end):
     """Reading and moving an ASCII PLY locate its vertex rows alike: after the header and one line per item
