@@ -18,7 +18,9 @@ estimate it was handed.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
+import os
 from typing import Sequence
 
 import numpy as np
@@ -55,6 +57,12 @@ GRID_POINTS = 500
 #: thickened to a million points, refining on the whole target took 5-7 times as long for the same result
 #: within 0.1 degrees (docs/BENCHMARKS.md, "Dense scans"); the dragon's own 42,000-point scans are used whole.
 TARGET_POINTS = 50_000
+
+#: :func:`refine` runs its searched descents side by side (threads) only on targets of at least this many
+#: points: there the k-d tree queries, which release the GIL, dominate (Stanford Dragon scans of 42,000
+#: points: 1.3 times as fast on two cores), while on clouds of 1,000 points the threads contend for NumPy's
+#: small steps and gain nothing (docs/BENCHMARKS.md, "The translation search side by side").
+PARALLEL_MIN_TARGET = 10_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,7 +287,8 @@ def _translation_offsets(span: float, step: float) -> np.ndarray:
 def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
            scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT,
            rounds: int = 2, max_points: int = 2_000, max_target_points: int | None = TARGET_POINTS,
-           translation_search: tuple[float, float, int] | None = TRANSLATION_SEARCH) -> ICPResult:
+           translation_search: tuple[float, float, int] | None = TRANSLATION_SEARCH,
+           workers: int | None = None) -> ICPResult:
     """DIT's refinement of a global estimate: the best fit among several ICP runs and the estimate itself.
 
     Each round runs every :data:`REFINE_CANDIDATES` ICP from the current estimate (distances times
@@ -298,7 +307,9 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
     this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
     target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
-    units of ``scale``, or None for the plain descent.
+    units of ``scale``, or None for the plain descent; ``workers``: threads for the searched descents
+    (default: one per start, at most the machine's cores, on targets of at least :data:`PARALLEL_MIN_TARGET`
+    points, else 1; any number gives the result of running them one after another).
     Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
     """
     from scipy.spatial import cKDTree
@@ -340,8 +351,19 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
         # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
         grid_scores = trimmed_fit(src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS,
                                   cap=step * scale)
-        for k in np.argsort(grid_scores, kind="stable")[:starts]:
-            run, run_score, run_iterations = descend(start[0], start[1] + offsets[k])
+        chosen = np.argsort(grid_scores, kind="stable")[:starts]
+        # The searched descents are independent NumPy and scipy work (which releases the GIL), so they run
+        # side by side; they are then weighed in the grid's order, which keeps the result the serial one's.
+        if workers is None:
+            workers = min(len(chosen), os.cpu_count() or 1) if len(tgt) >= PARALLEL_MIN_TARGET else 1
+        workers = max(1, int(workers))
+        descents = lambda k: descend(start[0], start[1] + offsets[k])
+        if workers > 1 and len(chosen) > 1:
+            with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+                searched = list(pool.map(descents, chosen))
+        else:
+            searched = [descents(k) for k in chosen]
+        for run, run_score, run_iterations in searched:
             iterations += run_iterations
             shift_ok = max_shift is None or mean_shift(src, run.rotation, run.translation, *start) <= max_shift * scale
             if run.iterations and shift_ok and run_score < best_score:

@@ -232,6 +232,20 @@ def test_translation_search_pulls_back_views_slid_along_each_other(seed):
     assert rotation_angle_deg(searched.rotation.T @ truth) < 1.0
 
 
+def test_searched_descents_side_by_side_give_the_serial_result():
+    """The translation search's descents run in threads; the result (motion, fit, iterations) must be the
+    one of running them one after another, whatever the number of threads."""
+    src, tgt, truth, t = _box_views(2)
+    start, shifted = euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0]
+    serial = icp.refine(src, tgt, start, shifted, workers=1)
+    for workers in (None, 2, 3):
+        threaded = icp.refine(src, tgt, start, shifted, workers=workers)
+        np.testing.assert_array_equal(threaded.rotation, serial.rotation)
+        np.testing.assert_array_equal(threaded.translation, serial.translation)
+        assert (threaded.fitness, threaded.rmse, threaded.iterations) == (serial.fitness, serial.rmse,
+                                                                          serial.iterations)
+
+
 def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
     from scipy.spatial import cKDTree
 
