@@ -60,7 +60,7 @@ TARGET_POINTS = 50_000
 
 #: :func:`refine` runs its searched descents side by side (threads) only on targets of at least this many
 #: points: there the k-d tree queries, which release the GIL, dominate (Stanford Dragon scans of 42,000
-#: points: 1.3 times as fast on two cores), while on clouds of 1,000 points the threads contend for NumPy's
+#: points: 1.3-1.6 times as fast on two cores), while on clouds of 1,000 points the threads contend for NumPy's
 #: small steps and gain nothing (docs/BENCHMARKS.md, "The translation search side by side").
 PARALLEL_MIN_TARGET = 10_000
 
