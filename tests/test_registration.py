@@ -313,16 +313,17 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
 
 
 def test_rotation_search_registers_pairs_far_beyond_the_training_range(modelnet_shapes):
-    """Disjoint halves of four test shapes, the target turned 150 degrees (the network is trained up to about
-    86): the shipped network alone lands more than 30 degrees off on every one (139-178 with the sixth stage's
-    weights); from the 24 turned starts it brings two within 10 degrees, the network alone's precision on
-    such halves (512 points: 7.3 and 0.51 with the seventh stage's weights, 2026-12-02; 4.4 and 0.45 with the
-    sixth's, 2026-12-01; the other two are a dresser and a tent, which a half turn maps nearly onto
-    themselves, so the unturned start stays and the result is what it was)."""
+    """Disjoint halves of three test shapes, the target turned 150 degrees (the network is trained up to about
+    86): the shipped network alone lands more than 30 degrees off on every one (177 with the seventh stage's
+    weights); from the 24 turned starts it brings two within 10 degrees, the network alone's precision on such
+    halves (512 points: 7.3 and 0.51 with the seventh stage's weights, 2026-12-02; 4.4 and 0.45 with the
+    sixth's, 2026-12-01). The third is a tent, which a half turn maps nearly onto itself, so the unturned start
+    stays and the result is what it was. (A dresser that does the same was the fourth shape until 2026-12-03,
+    dropped to shorten the suite.)"""
     model_ = registration.load(n_points=512, verdict_rule="fitness", refine="none")
     truth = euler_zyx_to_matrix([150.0, 30.0, -20.0])
     plain, searched = [], []
-    for index in range(4):
+    for index in (0, 1, 3):
         shape = modelnet_shapes[index].astype(np.float64)
         src, tgt = shape[0::2], shape[1::2] @ truth.T + [0.3, -0.2, 0.1]
         plain.append(_rotation_error_deg(model_.register(src, tgt).rotation, truth))
