@@ -352,7 +352,7 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
 
     The two processes prepare the data at once (under the lock). (Until 2026-12-03 a third process took the
     first step on two devices apart and compared Adam's first moment leaf by leaf; folding the two layouts into
-    one run saves that process's compilation, about a minute of the suite.)
+    one run saves that process's compilation: 102 -> 70 s alone.)
     """
     prepared = str(tmp_path / "prepared")
     args = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--set", "max_steps=12", "--set",
