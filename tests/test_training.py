@@ -37,12 +37,12 @@ def _equal_params(dir_a, dir_b):
     return jax.tree.all(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b))
 
 
-def _step_setup(config, prepared, devices=None, optimizer=None):
+def _step_setup(config, prepared):
     train_ds, _ = training.make_datasets(config, prepared)
     # The optimizer train() builds for this config: the step compiles to the program tiny_run's does, so
     # one of them finds it in the session's compilation cache.
-    optimizer = optimizer or training.make_optimizer(config, config.max_steps)
-    mesh = training.make_mesh(devices)
+    optimizer = training.make_optimizer(config, config.max_steps)
+    mesh = training.make_mesh()
     state = training.replicate(training.init_state(config, optimizer), mesh)
     return train_ds, mesh, state, training.make_train_step(config, optimizer, mesh)
 
