@@ -147,7 +147,7 @@ def test_attention_in_blocks_changes_nothing(params):
 def test_remat_gives_the_same_gradients_with_dropout(params):
     """Rematerialised blocks (``remat=True``) recompute the same forward pass, dropout masks included, so the
     training gradients are those of the stored activations; the parameter tree is the same too. (One
-    iteration: gradients do not cross iterations, and a second doubled the test's time.)"""
+    iteration, since gradients do not cross iterations, and the tree from ``jax.eval_shape``: 32 -> 21 s.)"""
     src, tgt = _pair(7, n=40, m=40, batch=1)
     key = jax.random.key(3)
 
