@@ -32,10 +32,13 @@ _IGNORED_BY = {
 }
 
 
-def _registrar_options(args, best_direction) -> dict:
-    """The options of ``registration.load`` that evaluate.py's flags set for real scans."""
-    options = {"n_points": args.n_points, "n_iters": args.iters, "best_direction": best_direction}
-    return {name: value for name, value in options.items() if value is not None}
+def _inference_changes(args) -> dict:
+    """The changes to the checkpoint's inference settings (:class:`dit_jax.pipeline.InferenceSettings`) that
+    evaluate.py's flags ask for."""
+    changes = {"n_points": args.n_points, "n_iters": args.iters, "refine": args.refine,
+               "best_direction": None if args.best_direction is None else args.best_direction == "on",
+               "verdict_rule": "fitness" if args.no_verdict else None}
+    return {name: value for name, value in changes.items() if value is not None}
 
 
 def main(argv=None) -> int:
@@ -77,8 +80,7 @@ def main(argv=None) -> int:
                         help="skip the agreement verdict's second registration (target onto source) of every pair")
     parser.add_argument("--best-direction", choices=["on", "off"], default=None,
                         help="DIT+ICP keeps the better fitting of its two directions (source onto target, target "
-                             "onto source), as dit-register --best-direction; default: the package's "
-                             "(registration.DEFAULT_BEST_DIRECTION)")
+                             "onto source), as dit-register --best-direction; default: the checkpoint's")
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -98,16 +100,16 @@ def main(argv=None) -> int:
             parser.error(f"--gmcce-threshold: expected a number or 'authors', got {args.gmcce_threshold!r}")
 
     compile_cache.from_args(args)
-    from dit_jax import evaluation, registration
+    from dit_jax import evaluators, registration
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.data.shapes import DataError
 
-    best_direction = None if args.best_direction is None else args.best_direction == "on"
+    inference = _inference_changes(args)
     try:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
         if args.angle_sweep:
             setting = settings[0] if args.settings != ["clean"] else "independent_clean"
-            results = evaluation.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
+            results = evaluators.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
                                              unseen=args.unseen, pairs_per_angle=args.max_pairs or 24,
                                              n_points=args.n_points, progress=not args.no_progress,
                                              refine=args.refine == "icp")
@@ -115,21 +117,18 @@ def main(argv=None) -> int:
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
             return 0
         if args.scans:
-            results = evaluation.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
+            results = evaluators.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
                                                 baselines=args.baselines, max_pairs=args.max_pairs,
-                                                progress=not args.no_progress, refine=args.refine == "icp",
-                                                registrar_options=_registrar_options(args, best_direction))
+                                                progress=not args.no_progress, inference=inference)
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
             return 0
-        results = evaluation.evaluate(checkpoint, args.out, data_dir=args.data_dir, settings=settings,
-                                      unseen=args.unseen, variant=args.variant, n_points=args.n_points,
-                                      max_pairs=args.max_pairs, n_iters=args.iters,
-                                      gmcce_threshold=args.gmcce_threshold, baselines=args.baselines,
-                                      batch_size=args.batch_size, progress=not args.no_progress,
+        results = evaluators.evaluate(checkpoint, args.out, data_dir=args.data_dir, settings=settings,
+                                      unseen=args.unseen, variant=args.variant, max_pairs=args.max_pairs,
+                                      baselines=args.baselines, inference=inference,
+                                      gmcce_threshold=args.gmcce_threshold, batch_size=args.batch_size,
                                       compute_dtype="bfloat16" if args.bfloat16 else "float32",
-                                      reuse=args.reuse, refine=args.refine == "icp", verdict=not args.no_verdict,
-                                      best_direction=best_direction)
+                                      progress=not args.no_progress, reuse=args.reuse)
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -19,24 +19,13 @@ of scans into one frame (see its ``--help``).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
 well, and the result is trusted where the two motions agree closely (``--verdict fitness``: where enough of
-the source lands on the target, one registration instead of two). Trusted results are right about 19 times in
-20; a suspect one is only unconfirmed (strict by design: most right results on clouds that share no point are
-suspect too). It is still printed and written, a one-line warning goes to stderr, and the exit status is 3
-(``--no-verdict-status`` keeps it 0).
+the source lands on the target, one registration instead of two). A suspect result is unconfirmed, not
+necessarily wrong: it is still printed and written, a one-line warning goes to stderr, and the exit status
+is 3 (``--no-verdict-status`` keeps it 0). How often trusted and suspect results are right: the README.
 
-Range (shipped weights, measured 2026-12-02, docs/eval_modelnet40_unseen/angle_sweep.md): on clouds sampled
-independently, as real scans are, rotations up to about 75 degrees as it ships, refined by ICP (median
-1.2-1.7 degrees), and up to about 30 with --refine none (within 10 degrees on 62-94 % of pairs); beyond that
-it fails. On two scans of the Stanford Dragon 24 degrees apart the median error is 0.12 degrees (14 of 15
-pairs within 1 degree, 15 of 15 within 2; 48 degrees apart: 0.37, 11 of 15 within 1, 13 within 5) and 1.81
-with --refine none (docs/eval_stanford_dragon, 2026-12-02). --refine none is faster (on those 42,000-point
-scans about 0.8 s a pair against 5.3-8.9 s on 2 CPU cores, both with the verdict's second registration;
-2026-12-02).
-For clouds that may be turned further, --any-rotation starts the network from 24 turns of SRC and goes on from
-the best fitting: on independently sampled test pairs turned 120-180 degrees, 62 % within 5 degrees instead of
-0-25 % (8 pairs per angle; 2026-12-01), at 4-6 times the time; it can lose a noisy pair to a half-turn that
-fits better, and it does not help scans that barely overlap (the dragon 48-96 degrees apart), so it is off by
-default.
+The network handles rotations within its training range; --refine none is faster and less accurate, and
+--any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time
+(measured ranges and times: docs/eval_modelnet40_unseen/angle_sweep.md and docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -102,7 +91,7 @@ def _parser() -> argparse.ArgumentParser:
                              "strict by design; larger trusts more right results and more wrong ones, README)")
     parser.add_argument("--best-direction", choices=("on", "off"), default=None,
                         help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
-                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: on)")
+                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: the checkpoint's)")
     parser.add_argument("--no-verdict-status", action="store_true",
                         help=f"exit 0 even when the verdict does not confirm the result (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
@@ -225,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.best_direction is not None:
             kwargs["best_direction"] = args.best_direction == "on"
         if args.max_disagreement is not None:
-            kwargs["max_disagreement"] = dict.fromkeys(registration.REFINEMENTS, args.max_disagreement)
+            kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
         model = registration.load(args.checkpoint, **kwargs)
         try:
             with warnings.catch_warnings(record=True) as caught:

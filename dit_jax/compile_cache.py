@@ -1,8 +1,8 @@
 """JAX's persistent compilation cache for the command-line tools (``dit-register``, ``train.py``, ``evaluate.py``).
 
-XLA compiles DIT's registration for each config and cloud size; on two CPU cores that takes longer than the
-registration itself (docs/BENCHMARKS.md, "Start-up: the persistent compilation cache"). With the cache on, a second process with the same
-shapes loads the compiled program from disk instead.
+XLA compiles DIT's registration for each config and cloud size; on a CPU that takes longer than the
+registration itself. With the cache on, a second process with the same shapes loads the compiled program
+from disk instead (timings: docs/BENCHMARKS.md).
 
 The directory, in order: ``--compile-cache DIR``; the environment variable ``DIT_JAX_COMPILE_CACHE``;
 ``$XDG_CACHE_HOME/dit-jax/xla``, else ``~/.cache/dit-jax/xla``. ``--no-compile-cache`` (or the variable set

@@ -76,13 +76,12 @@ class DITConfig:
         says: "highest" (the default: float32 products on every backend, the numbers reference_check
         verifies), or the explicit opt-ins "tf32" (``lax.Precision.HIGH``: TensorFloat-32 on NVIDIA GPUs,
         three bfloat16 passes on TPUs) and "bfloat16" (bfloat16 operands with float32 accumulation). JAX's
-        own default on NVIDIA GPUs is TF32, which moved the reference check's scores by 4.8e-3 on an H100
-        (issue 18; docs/BENCHMARKS.md). The geometry
-        (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
+        own default on NVIDIA GPUs is TF32, which moves the reference check's scores (docs/BENCHMARKS.md).
+        The geometry (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
       remat: rematerialise every PSE layer and PFT block in the backward pass (``jax.checkpoint``): training
         keeps only each block's input and recomputes the rest, with the same gradients. Inference is
-        unaffected. Off by default: on a CPU the paper train step peaked higher with it (16.9 GB against
-        16.3) and ran 23 % slower (docs/BENCHMARKS.md); it is for accelerators short of memory.
+        unaffected. Off by default: on a CPU it saves no peak memory and costs time (docs/BENCHMARKS.md); it
+        is for accelerators short of memory.
     """
 
     emb_dims: int = 512

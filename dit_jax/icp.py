@@ -53,15 +53,13 @@ TRANSLATION_SEARCH = (0.3, 0.1, 3)
 #: Source points (a seeded random subset) that score the translation grid of :func:`refine`.
 GRID_POINTS = 500
 #: :func:`refine` pairs its source points (at most ``max_points``, 2,000) with a seeded random subset of at
-#: most this many target points: denser targets only slow the k-d tree. On scans of the Stanford Dragon
-#: thickened to a million points, refining on the whole target took 5-7 times as long for the same result
-#: within 0.1 degrees (docs/BENCHMARKS.md, "Dense scans"); the dragon's own 42,000-point scans are used whole.
+#: most this many target points: denser targets only slow the k-d tree, for the same result
+#: (docs/BENCHMARKS.md, "Dense scans").
 TARGET_POINTS = 50_000
 
 #: :func:`refine` runs its searched descents side by side (threads) only on targets of at least this many
-#: points: there the k-d tree queries, which release the GIL, dominate (Stanford Dragon scans of 42,000
-#: points: 1.3-1.6 times as fast on two cores), while on clouds of 1,000 points the threads contend for NumPy's
-#: small steps and gain nothing (docs/BENCHMARKS.md, "The translation search side by side").
+#: points: there the k-d tree queries, which release the GIL, dominate, while on small clouds the threads
+#: contend for NumPy's small steps and gain nothing (docs/BENCHMARKS.md, "The translation search side by side").
 PARALLEL_MIN_TARGET = 10_000
 
 
@@ -235,9 +233,9 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -
 #: :func:`best_start` keeps the first estimate (the unturned start's) unless another fits the clouds better
 #: by this factor (its score below this share of the first's): a symmetric shape fits a turned copy of
 #: itself nearly as well as the truth, and where the motion is small the unturned start is the right one.
-#: Chosen on validation pairs of training shapes, three settings that share no point, turned 0-180 degrees:
-#: 0.7 keeps the unturned start's accuracy up to 30 degrees and gains most beyond (docs/BENCHMARKS.md,
-#: "Clouds at any rotation").
+#: Chosen on validation pairs of training shapes, three settings that share no point, turned 0-180 degrees,
+#: as the value that keeps the unturned start's accuracy for small turns and gains most beyond
+#: (docs/BENCHMARKS.md, "Clouds at any rotation").
 START_MARGIN = 0.7
 #: The short ICP of :func:`start_scores`, which ranks the starts: pairing distances in units of the clouds' radius.
 START_DISTANCES = (0.1, 0.05)

@@ -9,8 +9,8 @@ those points out instead), or rows that are not three coordinates. Formats:
 * PLY: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``; the ``x``, ``y``, ``z`` properties of the
   ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped. A PLY file
   with faces (a ``face`` element with ``vertex_indices``) is a mesh, sampled as the others are.
-* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python: 0.1-0.8 s for a
-  million points, docs/BENCHMARKS.md "Reading files") with fields ``x y z`` (any others skipped).
+* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python; timings in
+  docs/BENCHMARKS.md "Reading files") with fields ``x y z`` (any others skipped).
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third (normals, colours, intensity) are ignored, ``#`` starts a comment, and a first
   line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
@@ -881,8 +881,8 @@ def _pcd_compressed_table(path: str, layout: _PcdLayout) -> np.ndarray:
 
 
 def _lzf_decompress(data: bytes, size: int, path: str) -> bytes:
-    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format; pure Python: 0.1-0.8 s for 12-15 MB
-    of output, depending on how many short repeats it holds).
+    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format, in pure Python; its time
+    grows with how many short repeats the data hold).
 
     The stream is a sequence of tokens, each opened by a control byte: below 32, a literal run of that many
     bytes plus one; otherwise a back reference whose length (plus two) is the top three bits, extended by one

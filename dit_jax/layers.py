@@ -60,7 +60,7 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
               chunk: int = 0, *, precision: str) -> jax.Array:
     """softmax(q k^T / divisor) v for each head: q (N, h, d), k (M, h, d), v (M, h, d_v) -> (N, h, d_v).
 
-    The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend does ~12 % faster than
+    The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend runs faster than
     the points-first layout (no transposes around the batched matmuls). With ``0 < chunk < N`` the query
     rows go ``chunk`` at a time (rows are independent, so the result is the same): the (h, N, M) logits
     never exist at once, and memory grows linearly in N instead of N M. Each block is rematerialised in the

@@ -254,8 +254,7 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     large = src.shape[1] * tgt.shape[1] > _MAP_PAIRS_ABOVE
     if large or jax.default_backend() == "cpu":
         # One pair at a time: memory stays that of one pair, and on CPU it is faster than the vmapped
-        # batch (paper config, 1000 points, batch 8: 2.26 s per pair against 3.87; the matmuls of one pair
-        # already fill the cores, and the batched ones pay for transposes).
+        # batch (the matmuls of one pair already fill the cores, and the batched ones pay for transposes).
         return jax.lax.map(lambda pair: _register_one(params, pair[0], pair[1], config), (src, tgt))
     return jax.vmap(_register_one, in_axes=(None, 0, 0, None))(params, src, tgt, config)
 

@@ -110,9 +110,8 @@ def close_loop(motions: np.ndarray, centres: np.ndarray | None = None,
     With ``centres`` the poses then go on to the least-squares fit of all links at once, each link's misfit
     measured where the scans are rather than at their frames' origins (a scanner's origin lies far from what
     it scans, so a small turn there is a large shift on the object): its rotation's angle times ``scale`` and
-    how far it moves the centre of the scan it moves (:func:`link_misfit`). On the dragon's 15 scans that
-    brings the points closer to the truth, 1.33 -> 1.13 mm off (median; worst 2.21 -> 1.80 mm), and on those
-    scans' true links with simulated errors by 3 % on average (docs/BENCHMARKS.md).
+    how far it moves the centre of the scan it moves (:func:`link_misfit`). On real scan series that brings
+    the points closer to the truth (docs/BENCHMARKS.md).
 
     Args:
       motions: (K, 4, 4).

@@ -88,8 +88,9 @@ def tiny_checkpoint(tmp_path_factory) -> str:
     config = configs.tiny()
     path = tmp_path_factory.mktemp("ckpt") / "tiny"
     return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_min_fitness": 0.0,
-                                  "verdict_max_disagreement": {"none": 180.0, "icp": 180.0}})
+                           extra={"inference_settings": {"n_points": 128, "min_fitness": 0.0,
+                                                         "max_disagreement_network": 180.0,
+                                                         "max_disagreement_icp": 180.0}})
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:

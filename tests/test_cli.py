@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, cli, configs, io, model, registration
+from dit_jax import checkpoint, cli, configs, io, model, pipeline, registration
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -59,10 +59,9 @@ def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
     code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json",
                        "--refine", "none")
     assert code == 0 and json.loads(out)["refinement"] is None and json.loads(out)["refine_seconds"] == 0
-    # --help states the package's default for --best-direction, which lives in registration (imported late).
-    state = "on" if registration.DEFAULT_BEST_DIRECTION else "off"
+    # --help names where --best-direction's default lives: the checkpoint's inference settings.
     option_help = " ".join(cli._parser().format_help().split()).split("--best-direction")[-1]
-    assert f"(default: {state})" in option_help.split("--no-verdict-status")[0]
+    assert "(default: the checkpoint's)" in option_help.split("--no-verdict-status")[0]
 
 
 def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, tiny_checkpoint, pair, monkeypatch):
@@ -70,13 +69,13 @@ def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, 
     the turn it went on from; the JSON report carries it too."""
     folder, _, _ = pair
     batches = []
-    original = registration.model_lib.register
+    original = pipeline.model_lib.register
 
     def counting(params, src, tgt, config):
         batches.append(src.shape[0])
         return original(params, src, tgt, config)
 
-    monkeypatch.setattr(registration.model_lib, "register", counting)
+    monkeypatch.setattr(pipeline.model_lib, "register", counting)
     code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
                          "--refine", "none", "--any-rotation")
     assert code == 0, err
@@ -270,8 +269,9 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
     is 3 (0 with --no-verdict-status)."""
     config = configs.tiny()
     ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_min_fitness": threshold,
-                                  "verdict_max_disagreement": {"none": threshold, "icp": threshold}})
+                           extra={"inference_settings": {"n_points": 128, "min_fitness": threshold,
+                                                         "max_disagreement_network": threshold,
+                                                         "max_disagreement_icp": threshold}})
     folder, _, _ = pair
     code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
                          "--out", tmp_path / "moved.ply", "--json", "--verdict", rule)
@@ -279,9 +279,9 @@ def test_a_suspect_result_warns_and_exits_3_but_is_still_written(capsys, tmp_pat
     assert code == expected and report["verdict"] == ("suspect" if expected else "trusted")
     assert report["verdict_rule"] == rule and 0.0 <= report["fitness"] <= 1.0
     if rule == "agreement":
-        assert report["max_disagreement_deg"] == threshold and 0.0 <= report["agreement_deg"] <= 180.0
+        assert report["threshold"] == threshold and 0.0 <= report["agreement_deg"] <= 180.0
     else:
-        assert report["min_fitness"] == threshold and report["agreement_deg"] is None
+        assert report["threshold"] == threshold and report["agreement_deg"] is None
     assert (tmp_path / "moved.ply").exists()
     if expected:
         assert err.count("\n") == 1 and err.startswith("dit-register: warning: the result is not confirmed")
@@ -298,13 +298,14 @@ def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, 
     A value outside 0-180, or beside --verdict fitness, is refused with status 2 before any work."""
     config = configs.tiny()
     ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_points": 128, "verdict_max_disagreement": {"none": -1.0, "icp": -1.0}})
+                           extra={"inference_settings": {"n_points": 128, "max_disagreement_network": -1.0,
+                                                         "max_disagreement_icp": -1.0}})
     folder, _, _ = pair
     for refine in ("none", "icp"):
         code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--json",
                              "--refine", refine, "--max-disagreement", 180)
         report = json.loads(out)
-        assert code == 0 and err == "" and report["verdict"] == "trusted" and report["max_disagreement_deg"] == 180
+        assert code == 0 and err == "" and report["verdict"] == "trusted" and report["threshold"] == 180
     for argv, fragment in ((("--max-disagreement", -0.5), "between 0 and 180"),
                            (("--max-disagreement", 181), "between 0 and 180"),
                            (("--max-disagreement", 1, "--verdict", "fitness"), "cannot go with --verdict fitness")):
@@ -335,7 +336,7 @@ def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_cl
         rotation = np.asarray(report["matrix"])[:3, :3]
         error = np.degrees(np.arccos(np.clip((np.trace(rotation.T @ truth) - 1) / 2, -1, 1)))
         assert (error < 5) == right, (source, error)
-        trusted = report["agreement_deg"] <= report["max_disagreement_deg"]
+        trusted = report["agreement_deg"] <= report["threshold"]
         assert report["verdict"] == ("trusted" if trusted else "suspect"), report
         assert (code, "not confirmed" in err) == ((0, False) if trusted else (3, True)), (source, code, err)
         if not right:

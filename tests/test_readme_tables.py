@@ -1,12 +1,6 @@
-"""scripts/readme_tables.py: the README's summary tables, ranked as the README says they are."""
+"""dit_jax.release.readme_tables: the README's summary tables, ranked as the README says they are."""
 
-import importlib.util
-import os
-
-_SPEC = importlib.util.spec_from_file_location(
-    "readme_tables", os.path.join(os.path.dirname(__file__), "..", "scripts", "readme_tables.py"))
-readme_tables = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(readme_tables)
+from dit_jax.release import readme_tables
 
 
 def _stats(success, within, iso, seconds=0.1):

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, registration
+from dit_jax import checkpoint, configs, model, pipeline, registration
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -60,9 +60,9 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
     cloud = np.random.default_rng(1).uniform(size=(3001, 3))
     np.testing.assert_array_equal(registration.farthest_point_sample(cloud, 200, seed=0),
                                   _farthest_point_sample_float64(cloud, 200, 0))
-    before = registration._farthest_points._cache_size()
+    before = pipeline._farthest_points._cache_size()
     registration.farthest_point_sample(cloud[:2990], 200, seed=0)
-    assert registration._farthest_points._cache_size() == before
+    assert pipeline._farthest_points._cache_size() == before
 
 
 @pytest.mark.parametrize("bad,fragment", [
@@ -124,7 +124,7 @@ def test_clouds_far_apart_are_centred_each_on_its_own(dragon_dir):
     offset = np.array([1e6 * np.ptp(pair.source, axis=0).max(), 0.0, 0.0])
     options = {"refine": "none", "verdict_rule": "fitness"}
     auto, shared = registration.load(**options), registration.load(centring="shared", **options)
-    assert auto.centring == "auto"
+    assert auto.settings.centring == "auto"
     far = auto.register(pair.source, pair.target + offset)
     assert _rotation_error_deg(far.rotation, pair.rotation) < 5.0
     assert np.linalg.norm(far.translation - pair.translation - offset) < 0.05 * offset[0] / 1e6
@@ -147,9 +147,10 @@ def test_result_matrix_and_apply_agree(tiny_registrar):
 
 def test_shipped_weights_load_by_default():
     registrar = registration.load()
-    assert registrar.refine == "icp", "ICP after the network is the default"
+    assert registrar.settings.refine == "icp", "ICP after the network is the default"
     path = registration.shipped_weights()
-    assert registrar.n_points == checkpoint.read_extra(path).get("inference_points", 1000)
+    assert registrar.settings == registration.settings_from_extra(checkpoint.read_extra(path))
+    assert registrar.settings.n_points == 1000 and registrar.settings.agreement_bands_icp is not None
     assert registrar.config == checkpoint.read_config(path)
 
 
@@ -198,7 +199,7 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
         plain = model_.register(src, tgt, refine="none")
         refined = model_.register(src, tgt)  # ICP is the default
         assert plain.refinement is None and refined.refinement == "icp" and refined.refine_seconds > 0
-        assert refined.fitness != plain.fitness and refined.verdict == (refined.fitness >= refined.min_fitness)
+        assert refined.fitness != plain.fitness and refined.verdict == (refined.fitness >= refined.threshold)
         plain_errors.append(_rotation_error_deg(plain.rotation, truth))
         if plain_errors[-1] > 5.0:
             assert refined.fitness > plain.fitness, (index, plain_errors[-1])
@@ -231,9 +232,9 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
         wrong = model_.register(shape, modelnet_shapes[index + 10].astype(np.float64) @ truth.T)
         assert right.verdict_rule == wrong.verdict_rule == "agreement"
         assert _rotation_error_deg(right.rotation, truth) < 1.0 and right.agreement < 0.5 and right.verdict
-        assert wrong.agreement > wrong.max_disagreement and not wrong.verdict
+        assert wrong.agreement > wrong.threshold and not wrong.verdict
     cheap = registration.load(verdict_rule="fitness", refine="none").register(shape, shape @ truth.T)
-    assert np.isnan(cheap.agreement) and cheap.verdict == (cheap.fitness >= cheap.min_fitness)
+    assert np.isnan(cheap.agreement) and cheap.verdict == (cheap.fitness >= cheap.threshold)
     with pytest.raises(ValueError, match="verdict_rule"):
         registration.load(verdict_rule="vote")
 
@@ -255,12 +256,12 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
             return icp.ICPResult(off, offset, 1.0, 0.0, 1)
         return icp.ICPResult(truth.T, -truth.T @ offset, 1.0, 0.0, 1)  # backward: exact
 
-    monkeypatch.setattr(registration.icp_lib, "refine", fake_refine)
+    monkeypatch.setattr(pipeline.icp_lib, "refine", fake_refine)
     results = {}
-    bands = {"icp": [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]}  # how often right, by agreement
+    bands = [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]  # how often right, by agreement
     for best in (False, True):
         registrar = registration.Registrar(tiny_registrar.params, tiny_registrar.config, n_points=96,
-                                           best_direction=best, agreement_bands=bands if best else None)
+                                           best_direction=best, agreement_bands_icp=bands if best else None)
         results[best] = registrar.register(src, tgt)
     assert results[False].direction == "forward" and _rotation_error_deg(results[False].rotation, off) < 1e-6
     assert results[True].direction == "backward" and _rotation_error_deg(results[True].rotation, truth) < 1e-6
@@ -274,11 +275,11 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
                                              "30 % were within 5 deg")
     assert results[True].to_json()["agreement_band"] == {"low_deg": 10.0, "high_deg": 30.0,
                                                          "validation_pairs": 20, "within_5_deg": 6}
-    assert registration._agreement_band(bands["icp"], 5.0) is None  # a band of 5 results: not quoted
-    assert registration._agreement_band(bands["icp"], 90.0) == (30.0, None, 40, 2)
+    assert pipeline.agreement_band(bands, 5.0) is None  # a band of 5 results: not quoted
+    assert pipeline.agreement_band(bands, 90.0) == (30.0, None, 40, 2)
     shipped = registration.load(refine="none")
-    assert shipped.best_direction is registration.DEFAULT_BEST_DIRECTION
-    assert sum(pairs for _, pairs, _ in shipped.agreement_bands["icp"]) == 640  # the shipped record's bands
+    assert shipped.settings.best_direction is pipeline.InferenceSettings().best_direction
+    assert sum(pairs for _, pairs, _ in shipped.settings.agreement_bands_icp) == 640  # the shipped record's bands
 
 
 def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registrar, monkeypatch):
@@ -289,7 +290,7 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     from dit_jax import geometry
 
     def exact_network(params, src, tgt, config):
-        rotations, translations = zip(*(registration.icp_lib.procrustes(np.asarray(s, np.float64),
+        rotations, translations = zip(*(pipeline.icp_lib.procrustes(np.asarray(s, np.float64),
                                                                          np.asarray(t, np.float64))
                                         for s, t in zip(src, tgt)))
         b, n = src.shape[:2]
@@ -301,13 +302,13 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3] + [3.0, -2.0, 1.0]
     truth = euler_zyx_to_matrix([150.0, -40.0, 70.0])
     tgt = src @ truth.T + [0.5, 0.2, -0.1]
-    monkeypatch.setattr(registration.model_lib, "register", exact_network)
+    monkeypatch.setattr(pipeline.model_lib, "register", exact_network)
     turns = []
     for kept in (0, 5, 23):
-        monkeypatch.setattr(registration.icp_lib, "best_start", lambda scores, kept=kept: kept)
+        monkeypatch.setattr(pipeline.icp_lib, "best_start", lambda scores, kept=kept: kept)
         result = tiny_registrar.register(src, tgt, rotation_search=True)
         np.testing.assert_allclose(result.apply(src), tgt, atol=1e-6)
-        assert result.start_turn == pytest.approx(geometry.rotation_angle_deg(registration.SEARCH_TURNS[kept]))
+        assert result.start_turn == pytest.approx(geometry.rotation_angle_deg(pipeline.SEARCH_TURNS[kept]))
         turns.append(result.start_turn)
     assert turns[0] == 0.0 and turns[1] > 0.0
 

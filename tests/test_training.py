@@ -122,10 +122,11 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
 
 def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared, tiny_run):
     """validate_at_start=False: no step-0 validation (what a short GPU lease cannot afford to compile), the
-    end's still runs. A run stopped before any validation still leaves weights: scripts/device_stage.py then
-    bundles its latest checkpoints, and export_params reads them."""
-    import importlib.util
+    end's still runs. A run stopped before any validation still leaves weights: dit_jax.release.device_stage
+    then bundles its latest checkpoints, and export_params reads them."""
     import tarfile
+
+    from dit_jax.release import device_stage
 
     # tiny_run's config but for the flag: the same train step, which the session's compilation cache holds.
     config = dataclasses.replace(TINY, validate_at_start=False)
@@ -133,9 +134,6 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared,
     records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["split"] == "val"] == [6, 12]
 
-    spec = importlib.util.spec_from_file_location("device_stage", ROOT / "scripts" / "device_stage.py")
-    device_stage = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(device_stage)
     never_validated = tmp_path / "stopped"
     shutil.copytree(tiny_run[0], never_validated)
     shutil.rmtree(never_validated / "best")

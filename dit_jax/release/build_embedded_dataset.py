@@ -1,7 +1,7 @@
 """Rebuilds dit-jax's embedded dataset from Debian's ``sweethome3d-furniture`` package.
 
     apt-get install sweethome3d-furniture          # or: apt-get download sweethome3d-furniture
-    python scripts/build_embedded_dataset.py [--furniture-dir DIR | --deb FILE.deb]
+    python -m dit_jax.release.build_embedded_dataset [--furniture-dir DIR | --deb FILE.deb]
 
 Every furniture model of the package's five catalogues (CC0 and CC-BY 3.0 CAD models) is read from its OBJ
 mesh, turned z-up, sampled with 1024 points uniformly over its surface area (seeded by the model's id, so the
@@ -156,7 +156,7 @@ def build(furniture_dir: pathlib.Path) -> None:
     )
     lines = ["# Embedded dataset: attribution", "",
              f"`sh3d_furniture_1024.npz` holds {len(records)} point clouds of {N_POINTS} points, sampled by",
-             "`scripts/build_embedded_dataset.py` from the 3D models of Debian's `sweethome3d-furniture` package",
+             "`python -m dit_jax.release.build_embedded_dataset` from the 3D models of Debian's `sweethome3d-furniture` package",
              "(version 1.8-1; https://www.sweethome3d.com/importModels.jsp). The clouds are derived works of",
              "these models, shared under the same licences:", ""]
     for catalogue, (licence, holder) in sorted(LICENCES.items()):

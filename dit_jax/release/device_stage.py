@@ -2,13 +2,13 @@
 
 Here, where the data is, pack the training shapes once (the machine there has no ../shared and no TFDS)::
 
-    python scripts/device_stage.py pack --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen \
+    python -m dit_jax.release.device_stage pack --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen \
         --out runs/device_data/mn40_train.npz
 
 There (the device tool carries runs/device_data), from the repository root, either with ``--steps N`` or
 with ``--seconds`` alone (then the recipe is timed first, at the cost of compiling it twice)::
 
-    PYTHONPATH=. JAX_DEFAULT_MATMUL_PRECISION=highest python3 scripts/device_stage.py run \
+    PYTHONPATH=. JAX_DEFAULT_MATMUL_PRECISION=highest python -m dit_jax.release.device_stage run \
         --packed runs/device_data/mn40_train.npz --out $OUT --seconds 540 \
         --run corr --run nocorr:correspondence_weight=0.0 -- <train.py arguments shared by the runs>
 
@@ -18,7 +18,7 @@ learning-rate schedule whole, starts the runs side by side, stops any run still 
 best checkpoint so far is kept, or its latest where it never validated: ``--set validate_at_start=False``
 skips the validation before the first step, whose compiling ate most of a 15-minute lease), and writes to
 ``--out`` for each run one ``NAME.tar`` (``best/`` or ``checkpoints/``,
-``metrics.jsonl``, ``train_config.json``: what ``scripts/ship_weights.py`` and
+``metrics.jsonl``, ``train_config.json``: what ``dit-ship-weights`` and
 ``dit_jax.training.export_params`` read) and a log. Each run is ``python train.py``'s ``training.train``
 with the given arguments; the data are the packed shapes (:mod:`dit_jax.data.packed`), recorded under the
 directory they were packed from.
@@ -36,8 +36,8 @@ import sys
 import tarfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+#: The repository root: release steps run from it (``python -m dit_jax.release.device_stage``), where train.py is.
+ROOT = os.getcwd()
 
 
 def _use_packed(path: str) -> None:
@@ -86,7 +86,7 @@ def _seconds_per_step(workdir: str) -> tuple[float, float]:
 
 
 def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.Popen:
-    cmd = [sys.executable, os.path.abspath(__file__), "worker", "--packed", args.packed, "--compile-cache",
+    cmd = [sys.executable, "-m", "dit_jax.release.device_stage", "worker", "--packed", args.packed, "--compile-cache",
            args.compile_cache, "--workdir", os.path.join(args.workdir, name), "--", *train_args]
     log = open(os.path.join(log_dir, f"{name}.log"), "w")
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1")

@@ -1,18 +1,11 @@
-"""scripts/choose_inference.py's verdict choice: the rule that sets the shipped thresholds, made again from
-kept evidence, and what it writes into a checkpoint."""
-
-import importlib.util
-import os
+"""dit_jax.release.calibrate: the rule that sets the shipped thresholds, made again from kept evidence, and
+what it writes into a checkpoint's inference settings."""
 
 import jax
 import numpy as np
 
-from dit_jax import checkpoint, configs, model
-
-_SPEC = importlib.util.spec_from_file_location(
-    "choose_inference", os.path.join(os.path.dirname(__file__), "..", "scripts", "choose_inference.py"))
-choose_inference = importlib.util.module_from_spec(_SPEC)
-_SPEC.loader.exec_module(choose_inference)
+from dit_jax import checkpoint, configs, model, registration
+from dit_jax.release import calibrate
 
 
 def _evidence(errors, agreement, settings):
@@ -23,10 +16,10 @@ def test_largest_threshold_keeps_95_percent_of_the_trusted_results_right():
     # 20 right results agreeing within 0.4 deg, one failure at 0.9, 5 right ones at 1.4, 3 failures at 1.9.
     agreement = np.r_[np.full(20, 0.4), 0.9, np.full(5, 1.4), np.full(3, 1.9)]
     errors = np.r_[np.full(20, 1.0), 40.0, np.full(5, 1.0), np.full(3, 30.0)]
-    assert choose_inference.largest_threshold(errors, agreement) == 1.5  # 25 of 26 right; at 2.0, 25 of 29
+    assert calibrate.largest_threshold(errors, agreement) == 1.5  # 25 of 26 right; at 2.0, 25 of 29
     errors[20:26] = 30.0  # from 0.9 on, every result is wrong
-    assert choose_inference.largest_threshold(errors, agreement) == 1.0  # 20 of 21 right; at 1.5, 20 of 26
-    assert choose_inference.largest_threshold(np.full(4, 30.0), np.full(4, 0.1)) is None
+    assert calibrate.largest_threshold(errors, agreement) == 1.0  # 20 of 21 right; at 1.5, 20 of 26
+    assert calibrate.largest_threshold(np.full(4, 30.0), np.full(4, 0.1)) is None
 
 
 def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_trusting_none_of_the_pool():
@@ -34,7 +27,7 @@ def test_choice_pools_the_settings_that_share_no_point_and_falls_back_to_trustin
     settings = ["clean"] * 10 + ["independent_clean"] * 10
     icp = _evidence([0.1] * 10 + [1.0] * 9 + [50.0], [0.01] * 10 + [0.3] * 9 + [2.5], settings)
     alone = _evidence([0.1] * 10 + [1.0, 30.0] * 5, [0.01] * 10 + [0.3] * 10, settings)
-    report = choose_inference.choose_from_evidence({"none": alone, "icp": icp}, ["independent_clean"])
+    report = calibrate.choose_from_evidence({"none": alone, "icp": icp}, ["independent_clean"])
     assert report["verdict_max_disagreement"] == {"none": 0.25, "icp": 2.0}
     assert report["verdict_fallback"] == ["none"]
     on_clean = report["verdict_agreement_on_validation"]["none"]["clean"]
@@ -46,7 +39,7 @@ def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results()
     # No threshold reaches 95 %: 0.25 trusts 10 results, 8 right; 0.5 trusts 20, 18 right; 1.0 trusts 30, 25 right.
     agreement = np.r_[np.full(10, 0.2), np.full(10, 0.4), np.full(10, 0.9), np.full(10, 20.0)]
     errors = np.r_[np.full(8, 1.0), 30.0, 30.0, np.full(10, 1.0), np.full(7, 1.0), np.full(3, 30.0), np.full(10, 30.0)]
-    report = choose_inference.choose_from_evidence(
+    report = calibrate.choose_from_evidence(
         {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
     assert report["verdict_max_disagreement"] == {"icp": 0.5} and report["verdict_fallback"] == ["icp"]
     # A threshold trusting fewer results than a band needs is not taken, however right they are.
@@ -54,26 +47,28 @@ def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results()
     agreement[:10] = np.r_[np.full(5, 0.2), np.full(5, 0.4)]
     agreement[10:20] = 0.9
     errors[10:13] = 30.0
-    report = choose_inference.choose_from_evidence(
+    report = calibrate.choose_from_evidence(
         {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
     assert report["verdict_max_disagreement"] == {"icp": 0.5}  # 10 trusted, all right; 0.25 trusts only 5
     # Where every threshold trusts a few but fewer than a band needs, the smallest.
-    assert choose_inference.fallback_threshold([{"passed": 3, "passed_right": 1.0}] * 11) == 0.25
+    assert calibrate.fallback_threshold([{"passed": 3, "passed_right": 1.0}] * 11) == 0.25
 
 
-def test_record_writes_the_thresholds_and_says_so_in_the_note(tmp_path):
+def test_record_writes_the_thresholds_into_the_inference_settings(tmp_path):
     config = configs.tiny()
     path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config,
-                           extra={"note": "Trained somewhere.", "verdict_max_disagreement": {"none": 1.0, "icp": 1.5}})
+                           extra={"note": "Trained somewhere.",
+                                  "inference_settings": {"max_disagreement_network": 1.0, "n_points": 128}})
     before = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
     report = {"verdict_max_disagreement": {"none": 0.25, "icp": 0.5}, "verdict_pool": ["independent_clean"],
               "pairs_per_setting": 128, "verdict_fallback": ["none"]}
-    choose_inference.record(str(path), report)
+    calibrate.record(str(path), report)
     extra = checkpoint.read_extra(path)
-    assert extra["verdict_max_disagreement"] == {"none": 0.25, "icp": 0.5}
-    assert extra["note"].startswith("Trained somewhere. Verdict (agreement) thresholds chosen on ")
-    assert "128 validation pairs" in extra["note"] and "(were 1.0 and 1.5)" in extra["note"]
-    assert "0.25 deg alone, 0.5 with ICP" in extra["note"] and "the network alone" in extra["note"]
+    settings = registration.settings_from_extra(extra)
+    assert (settings.max_disagreement_network, settings.max_disagreement_icp) == (0.25, 0.5)
+    assert settings.n_points == 128, "settings the choice does not touch are kept"
+    assert extra["calibration"]["verdict_fallback"] == ["none"] and extra["note"] == "Trained somewhere."
+    assert registration.load(path).settings == settings
     after = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
     assert after == before, "the params' files are untouched"
 
@@ -85,16 +80,16 @@ def test_agreement_bands_count_each_band_and_agree_with_the_recorded_curve(tmp_p
     agreement = rng.exponential(3.0, 400)
     errors = np.where(rng.random(400) < np.exp(-agreement / 4), 1.0, 30.0)  # the closer, the likelier right
     settings = ["independent_clean"] * 400
-    report = choose_inference.choose_from_evidence({"icp": _evidence(errors, agreement, settings)},
+    report = calibrate.choose_from_evidence({"icp": _evidence(errors, agreement, settings)},
                                                    ["independent_clean"])
     bands = report["verdict_agreement_bands"]["icp"]
-    assert [b[0] for b in bands] == [*choose_inference.AGREEMENT_GRID, None]
+    assert [b[0] for b in bands] == [*calibrate.AGREEMENT_GRID, None]
     assert sum(b[1] for b in bands) == 400 and sum(b[2] for b in bands) == int((errors <= 5).sum())
     assert bands[2] == [1.0, int(((agreement > 0.5) & (agreement <= 1)).sum()),
                         int(((agreement > 0.5) & (agreement <= 1) & (errors <= 5)).sum())]
     config = configs.tiny()
     path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config)
     report["pairs_per_setting"] = 400
-    choose_inference.record(str(path), report)
-    assert checkpoint.read_extra(path)["verdict_agreement_bands"]["icp"] == bands
-    assert choose_inference.bands_from_record(str(path))["icp"] == bands
+    calibrate.record(str(path), report)
+    stored = registration.load(path).settings.agreement_bands_icp
+    assert stored == tuple(tuple(band) for band in bands)

@@ -7,7 +7,7 @@ views see go to one of them at random, so the two clouds share no point; each ge
 The target is then turned by 30 degrees about the vertical, tilted 5 degrees, moved 0.35 m and shuffled.
 The true motion is printed and written to examples/chair_truth.txt.
 
-    python scripts/make_example_pair.py
+    python -m dit_jax.release.make_example_pair
 """
 
 import os

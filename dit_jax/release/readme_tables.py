@@ -1,7 +1,7 @@
 """Prints the README's summary tables of an evaluate.py output directory, from its results.json.
 
-    python scripts/readme_tables.py docs/eval_modelnet40_unseen [--before OLD/results.json]
-    python scripts/readme_tables.py --verdict docs/eval_stanford_dragon docs/eval_modelnet40_unseen
+    python -m dit_jax.release.readme_tables docs/eval_modelnet40_unseen [--before OLD/results.json]
+    python -m dit_jax.release.readme_tables --verdict docs/eval_stanford_dragon docs/eval_modelnet40_unseen
 
 Two tables per directory: which method is best per setting and the runner-up (ranked by success, then the
 share within 5 degrees and 0.05, then the lower mean isotropic rotation error), with DIT's and DIT+ICP's
@@ -18,7 +18,7 @@ import argparse
 import json
 import os
 
-from dit_jax import evaluation
+from dit_jax.evaluators import common as evaluation
 
 #: evaluate.py's names of the network's own rows; every other method is a baseline.
 NETWORK = (evaluation.METHOD_DIT, evaluation.METHOD_DIT_ICP)

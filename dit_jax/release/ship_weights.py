@@ -1,15 +1,14 @@
 """Exports a training run's best params as the weights that ship with dit-jax (dit_jax/weights/...).
 
-    python scripts/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
-    python scripts/ship_weights.py runs/mix --command "..." --choice runs/mix/inference_choice.json
+    dit-ship-weights runs/mn40-clean --command "python train.py ..." [--out DIR]
+    dit-ship-weights runs/mix --command "..." --choice runs/mix/choice.json
 
 Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
-the run's metrics.jsonl, its last validation figures, and ``inference_points`` (1000, the authors' test
-protocol), which the registration API and evaluate.py use by default. ``--choice`` (the output of
-scripts/choose_inference.py) is then recorded as ``choose_inference.py --record`` records one: the inference
-settings into the shipped config, the fitness verdict's threshold (``verdict_min_fitness``) and the agreement
-verdict's thresholds, with the bands quoted beside them, into its record.
+the run's metrics.jsonl, its last validation figures, and its inference settings
+(:class:`dit_jax.pipeline.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
+``--choice`` (the output of ``dit-calibrate``) is then recorded into those settings as ``dit-calibrate
+--record`` records one.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
 history travels with the weights.
 """
@@ -19,20 +18,20 @@ import json
 import os
 import shutil
 
-import choose_inference  # scripts/choose_inference.py, beside this script
-from dit_jax import checkpoint, registration, training
+from dit_jax import checkpoint, pipeline, registration, training
+from dit_jax.release import calibrate
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="dit-ship-weights", description=__doc__.split("\n\n")[0])
     parser.add_argument("workdir")
     parser.add_argument("--command", required=True, help="the command(s) that trained it, for the record")
     parser.add_argument("--out", default=registration.shipped_weights())
     parser.add_argument("--inference-points", type=int, default=1000)
     parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
     parser.add_argument("--choice", default=None, help="inference settings and verdict threshold to ship "
-                                                       "(scripts/choose_inference.py's output)")
-    args = parser.parse_args()
+                                                       "(dit-calibrate's output)")
+    args = parser.parse_args(argv)
 
     records = [json.loads(line) for line in open(os.path.join(args.workdir, "metrics.jsonl"))]
     train = [r for r in records if r.get("split") == "train"]
@@ -51,7 +50,7 @@ def main() -> None:
         "steps_run": max(per_step) if per_step else 0,
         "train_seconds": round(sum(per_step.values()) * log_every),
         "last_validation": val[-1] if val else None,
-        "inference_points": args.inference_points,
+        registration.SETTINGS_KEY: pipeline.InferenceSettings(n_points=args.inference_points).to_dict(),
         "note": args.note,
     })
     params, config = checkpoint.restore(path)
@@ -62,8 +61,8 @@ def main() -> None:
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
     checkpoint.save(args.out, params, config, extra=extra)
-    if args.choice:  # written as choose_inference.py --record writes a choice into any checkpoint
-        choose_inference.record(args.out, json.load(open(args.choice)))
+    if args.choice:
+        calibrate.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
     print(f"wrote {args.out} ({size / 2 ** 20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
 

@@ -1,12 +1,12 @@
 """The baselines' refinement against DIT's, after the same global estimates, on validation pairs.
 
 ``fpfh_ransac_icp`` and ``fgr_icp`` refine their global estimate with the single ICP schedule tuned for them
-per setting (``scripts/tune_baselines.py``); DIT + ICP uses :func:`dit_jax.icp.refine`, the best fit among
+per setting (``dit-tune-baselines``); DIT + ICP uses :func:`dit_jax.icp.refine`, the best fit among
 several ICP runs. This asks whether the baselines would be stronger with DIT's refinement: each global
 estimate (tuned options per setting) is refined both ways and scored as the tuning scores (success,
 share within 5 degrees and 0.05, median rotation error). Validation pairs of training shapes only.
 
-    python scripts/compare_baseline_refinement.py --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
+    python python -m dit_jax.release.compare_baseline_refinement --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
 
 Prints a markdown table. ``--write`` also makes it the last tuning stage: per setting, each of
 ``fpfh_ransac_icp`` and ``fgr_icp`` keeps whichever refinement scores better there (ties keep the single
@@ -27,8 +27,7 @@ import numpy as np
 from dit_jax import baselines, icp, training
 from dit_jax.data.pairs import SETTINGS
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from tune_baselines import score  # noqa: E402  (the tuning's own score, so the two tables compare)
+from dit_jax.release.tune_baselines import score  # the tuning's own score, so the two tables compare
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TUNED_PATH = ROOT / "dit_jax" / baselines.TUNED_FILE
@@ -52,7 +51,7 @@ def main() -> None:
     tuned_json = json.loads(TUNED_PATH.read_text())
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").
     single = tuned_json.get("refinement", {}).get("single_icp_method", {})
-    command = ("python scripts/compare_baseline_refinement.py " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
+    command = ("python python -m dit_jax.release.compare_baseline_refinement " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
                + ("--unseen " if args.unseen else "") + f"--pairs {args.pairs}" + (" --write" if args.write else ""))
     lines = [f"{datetime.date.today().isoformat()}: `{command}` (validation pairs of training shapes)", "",
              "success % / within 5 deg, 0.05 % / median deg; the better score (success + within 5) in bold", "",
@@ -86,7 +85,8 @@ def main() -> None:
     print(lines[-1])
     if args.write:
         choice = tuned_json["choice"]
-        record = {"date": datetime.date.today().isoformat(), "command": command, "pairs": args.pairs,
+        # No date in the package's file: the tuning's report in docs/ carries it.
+        record = {"command": command, "pairs": args.pairs,
                   "single_icp_method": {}, "scores": scores}
         chosen = []
         for name, per_setting in scores.items():

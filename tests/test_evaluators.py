@@ -6,14 +6,15 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, evaluation, model, registration
+from dit_jax import checkpoint, configs, evaluators as evaluation, model, pipeline, registration
+from dit_jax.evaluators import common, report, synthetic
 
 
 @pytest.fixture(scope="module")
 def tiny_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "model"
     config = configs.tiny()
-    checkpoint.save(path, model.init(jax.random.key(0), config), config, extra={"n_points": 128})
+    checkpoint.save(path, model.init(jax.random.key(0), config), config, extra={"inference_settings": {"n_points": 128}})
     return str(path)
 
 
@@ -26,7 +27,7 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png",
                                        "worst_clean.png", "worst_high_noise_partial.png"]
     saved = json.loads((out / "results.json").read_text())
-    assert saved["n_points"] == 128, "the training run's point count is the default"
+    assert saved["n_points"] == 128, "the checkpoint's inference point count is the default"
     for setting in ("clean", "high_noise_partial"):
         dit = saved["settings"][setting]["DIT"]
         assert dit["pairs"] == 4 and dit["seconds_per_pair"] > 0 and dit["chamfer"] >= 0
@@ -39,16 +40,13 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     clean = saved["settings"]["clean"]
     for method in ("DIT", "DIT+ICP"):
         assert clean[method]["verdict"]["rule"].startswith("target onto source agrees within")
-    assert clean["DIT"]["verdict"]["extra_seconds_per_pair"] > 0
-    if registration.DEFAULT_BEST_DIRECTION:
-        # DIT+ICP keeps the better of its two directions, so both are its own time, none the verdict's extra.
-        assert clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"] == 0 and "backward_kept" in clean["DIT+ICP"]
-    else:
-        assert clean["DIT"]["verdict"]["extra_seconds_per_pair"] < clean["DIT+ICP"]["verdict"]["extra_seconds_per_pair"]
+    # DIT+ICP keeps the better of its two directions (the default), and says how often the second.
+    assert "backward_kept" in clean["DIT+ICP"]
     # Each pair's evidence is kept, so a later threshold can be scored on these pairs without rerunning them:
     # at the thresholds they were written with, re-scoring changes nothing; at a negative one it trusts nothing.
     assert clean["DIT"]["per_pair"]["pair"] == [0, 1, 2, 3] and len(clean["DIT+ICP"]["per_pair"]["agreement"]) == 4
-    written = {"none": registration.DEFAULT_MAX_DISAGREEMENT["none"], "icp": registration.DEFAULT_MAX_DISAGREEMENT["icp"]}
+    defaults = pipeline.InferenceSettings()
+    written = {"none": defaults.max_disagreement_network, "icp": defaults.max_disagreement_icp}
     unchanged = evaluation.rescore_agreement(json.loads(json.dumps(saved)), written)
     assert json.dumps(unchanged, sort_keys=True) == json.dumps(saved, sort_keys=True)  # (NaN != NaN as a dict value)
     strict = evaluation.rescore_agreement(json.loads(json.dumps(saved)), {"none": -1.0, "icp": -1.0})
@@ -56,7 +54,7 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         verdict = strict["settings"]["clean"][method]["verdict"]
         assert verdict["passed"] == 0 and verdict["rule"].endswith("within -1 deg")
         assert strict["settings"]["clean"][method]["rot_mae"] == clean[method]["rot_mae"]
-    assert "within -1 deg" in evaluation.markdown_tables(strict)
+    assert "within -1 deg" in report.markdown_tables(strict)
     assert len(clean["DIT"]["per_pair"]["fitness"]) == 4
     assert "DIT's verdict (target onto source agrees" in (out / "results.md").read_text()
     assert "DIT's verdict (fitness" in (out / "results.md").read_text()
@@ -66,16 +64,14 @@ def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpo
     """By default one inference setting for every data setting (the checkpoint's own); settings whose clouds
     share no point read every point of the shapes. (Run here with DIT+ICP keeping its better direction.)"""
     results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean", "scan_high_noise"),
-                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False, best_direction=True)
+                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False,
+                                  inference={"best_direction": True})
     for setting in ("independent_clean", "scan_high_noise"):
         assert results["setting_info"][setting]["gmcce_threshold"] == configs.tiny().gmcce_threshold
         assert results["settings"][setting]["DIT"]["pairs"] == 3
         # With best_direction, DIT+ICP reports how often it kept the target-onto-source registration.
         assert 0 <= results["settings"][setting]["DIT+ICP"]["backward_kept"] <= 3
     assert "the second on" in (tmp_path / "e" / "results.md").read_text()
-    with pytest.raises(ValueError, match="best_direction"):
-        evaluation.evaluate(tiny_checkpoint, str(tmp_path / "f"), max_pairs=1, prepared_dir=str(tmp_path / "p"),
-                            progress=False, verdict=False, best_direction=True)
 
 
 def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
@@ -108,7 +104,8 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
     out = tmp_path / "out"
     assert evaluate.main(["--checkpoint", tiny_checkpoint, "--scans", str(tmp_path), "--skips", "1", "--n-points",
                           "96", "--iters", "2", "--refine", "none", "--out", str(out), "--no-progress"]) == 0
-    assert json.loads((out / "results.json").read_text())["dit"] == {"n_points": 96, "n_iters": 2}
+    dit = json.loads((out / "results.json").read_text())["dit"]
+    assert (dit["n_points"], dit["n_iters"], dit["inference_settings"]["refine"]) == (96, 2, "none")
     assert "DIT sees 96 points of each scan" in (out / "results.md").read_text()
     for argv in (["--scans", str(tmp_path), "--no-verdict"], ["--scans", str(tmp_path), "--unseen"],
                  ["--scans", str(tmp_path), "--angle-sweep"],
@@ -144,8 +141,7 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["checkpoint"] == os.path.abspath(registration.shipped_weights())
     assert "verdict" not in saved["settings"]["clean"]["DIT"] and "verdict_fitness" in saved["settings"]["clean"]["DIT"]
-    extra = checkpoint.read_extra(registration.shipped_weights())
-    assert saved["n_points"] == (extra.get("inference_points") or extra.get("n_points") or 1000)
+    assert saved["n_points"] == registration.load().settings.n_points
 
 
 def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch):
@@ -156,7 +152,7 @@ def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch):
     def never(*args, **kwargs):
         raise AssertionError("a reused baseline was run again")
 
-    monkeypatch.setattr(evaluation, "predict_baseline", never)
+    monkeypatch.setattr(synthetic, "predict_baseline", never)
     again = evaluation.evaluate(None, str(tmp_path / "b"), settings=("clean",), max_pairs=3, baselines=["icp"],
                                 prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"))
     assert again["settings"]["clean"]["icp"] == json.loads(json.dumps(first["settings"]["clean"]["icp"]))
@@ -174,7 +170,7 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
     names = ["fpfh_ransac_icp"] if baselines.available() else []
     results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("clean",),
                                   max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
-                                  worst_pairs=False, verdict=False)
+                                  worst_pairs=False, inference={"verdict_rule": "fitness"})
     rows = results["settings"]["clean"]
     assert rows["DIT"]["rot_iso"] < 0.01
     assert rows["DIT+ICP"]["rot_iso"] <= rows["DIT"]["rot_iso"] + 1e-6
@@ -186,20 +182,20 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
 
 
 def test_refinement_summary_counts_the_pairs_dit_had_close():
-    summary = evaluation.refinement_summary(__import__("numpy").array([2.0, 20.0, 8.0]),
+    summary = common.refinement_summary(__import__("numpy").array([2.0, 20.0, 8.0]),
                                             __import__("numpy").array([0.5, 30.0, 1.5]))
     assert (summary["good"], summary["good_within_goal"], summary["good_worst_after"]) == (2, 1, 1.5)
     assert summary["mean_before"] == 10.0 and "2 pairs DIT alone had within 10 deg, 1 end" in \
-        evaluation.refinement_line(summary)
+        report.refinement_line(summary)
 
 
 def test_refinement_summary_tells_misses_the_data_place_elsewhere():
     import numpy as np
 
     before, after = np.array([2.0, 5.0, 8.0, 30.0]), np.array([0.5, 3.0, 1.5, 2.0])
-    summary = evaluation.refinement_summary(before, after, np.array([False, True, False, True]))
+    summary = common.refinement_summary(before, after, np.array([False, True, False, True]))
     assert summary["good_missed_data"] == 1  # pair 2: a miss the data prefer; pair 4: DIT was not close
-    assert "of the 2 that do not, 1 end where the clouds fit better" in evaluation.refinement_line(summary)
+    assert "of the 2 that do not, 1 end where the clouds fit better" in report.refinement_line(summary)
 
 
 def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(tmp_path):
@@ -212,35 +208,27 @@ def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(
     scored = {"DIT": {"worst": {"pair": 0, "rot_err": 3.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}},
               "icp": {"rot_iso": 1.0}}
     path = tmp_path / "worst.png"
-    missing = evaluation.plot_worst_pairs([pair], scored, str(path), "worst pairs")
+    missing = report.plot_worst_pairs([pair], scored, str(path), "worst pairs")
     assert missing == ["icp"]
     assert path.stat().st_size > 1000
-    assert evaluation.plot_worst_pairs([pair], {"icp": {}}, str(tmp_path / "none.png"), "t") == ["icp"]
+    assert report.plot_worst_pairs([pair], {"icp": {}}, str(tmp_path / "none.png"), "t") == ["icp"]
     assert not (tmp_path / "none.png").exists(), "nothing drawable: no picture at all"
 
 
-def test_choose_direction_keeps_the_better_fitting_motion_per_pair():
-    """DIT+ICP with ``best_direction``: per pair the forward motion or the inverse of the backward one,
-    whichever fits; the time counts both directions, and whether the kept motion beats the truth is
-    recomputed for it."""
-    import numpy as np
-    from dit_jax.data.pairs import euler_zyx_to_matrix
+def test_evaluation_registers_each_pair_as_register_does(tmp_path):
+    """evaluate.py's DIT and DIT+ICP rows come from the same pipeline users call: on a test pair, the motion
+    scored is the one ``register`` returns for that pair (the network's and the refined one)."""
+    from dit_jax.data import pairs as pairs_lib, shapes as shapes_lib
 
-    rng = np.random.default_rng(0)
-    truth, offset = euler_zyx_to_matrix([30.0, -10.0, 5.0]), np.array([0.2, -0.1, 0.3])
-    src = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3]
-    pairs = [{"src": src, "tgt": src @ truth.T + offset, "R": truth, "t": offset}] * 2
-    off = euler_zyx_to_matrix([20.0, 0.0, 0.0]) @ truth
-    exact_back = (truth.T, -truth.T @ offset)
-    refined = {"R": np.stack([off, truth]), "t": np.stack([offset, offset]), "seconds": np.array([1.0, 1.0]),
-               "beats_truth": np.array([False, False])}
-    # Pair 0: forward 20 degrees off, backward exact; pair 1: forward exact, backward 20 degrees off.
-    backward = {"R": np.stack([exact_back[0], off.T]), "t": np.stack([exact_back[1], -off.T @ offset]),
-                "seconds": np.array([0.5, 0.5])}
-    chosen = evaluation.choose_direction(refined, backward, pairs, np.arange(2))
-    assert chosen["backward"].tolist() == [True, False]
-    np.testing.assert_allclose(chosen["R"], np.stack([truth, truth]), atol=1e-12)
-    np.testing.assert_allclose(chosen["t"], np.stack([offset, offset]), atol=1e-12)
-    np.testing.assert_allclose(chosen["seconds"], [1.5, 1.5])
-    assert chosen["beats_truth"].tolist() == [False, False]
-    assert refined["R"][0] is not chosen["R"][0] and np.allclose(refined["R"][0], off), "the input is left alone"
+    registrar = registration.load()
+    results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("independent_clean",),
+                                  max_pairs=1, prepared_dir=str(tmp_path / "p"), progress=False, worst_pairs=False)
+    shapes = shapes_lib.load_shapes(None, "test", data_dir=str(tmp_path / "p"),
+                                    n_points=pairs_lib.shape_points(None, 1000, ["independent_clean"]))
+    pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=1000))[0]
+    result = registrar.register(pair["src"], pair["tgt"])
+    rows = results["settings"]["independent_clean"]
+    for method, motion in (("DIT+ICP", result), ("DIT", result.network)):
+        expected = np.degrees(np.arccos(np.clip((np.trace(motion.rotation.T @ pair["R"]) - 1) / 2, -1, 1)))
+        assert rows[method]["per_pair"]["rot_err"][0] == pytest.approx(expected, abs=2e-3), method  # float32 error
+    assert rows["DIT+ICP"]["per_pair"]["agreement"][0] == pytest.approx(result.agreement, abs=1e-4)

@@ -1,7 +1,7 @@
 """Tunes the classical baselines (and DIT's ICP refinement) on validation pairs of training shapes, never on
 test pairs, and writes the choice that evaluate.py and the API use by default.
 
-    python scripts/tune_baselines.py --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
+    python -m dit_jax.release.tune_baselines --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
 
 Validation pairs: the training split's held-out shapes (categories 0-19 with ``--unseen``), ``--pairs`` per
 setting, every setting of :data:`dit_jax.data.pairs.SETTINGS`. Each configuration is scored per setting by
@@ -18,7 +18,7 @@ unknown: real scans, users' clouds). The search, in stages:
 
 Writes ``dit_jax/baselines_tuned.json`` (the choice, read by :func:`dit_jax.baselines.tuned`) and
 ``docs/baselines_tuning.md`` / ``.json`` (grid, every score, the choice). Then run
-``scripts/compare_baseline_refinement.py --write``, the last stage: it lets each ``*_icp`` baseline take DIT's
+``python -m dit_jax.release.compare_baseline_refinement --write``, the last stage: it lets each ``*_icp`` baseline take DIT's
 own refinement (:func:`dit_jax.icp.refine`) where that scores better on 48 validation pairs per setting.
 """
 
@@ -157,18 +157,15 @@ def main() -> None:
 
     # Stage 3: refinement after each chosen global estimate, after DIT's, and the plain ICP.
     if args.checkpoint != "none":
-        from dit_jax import model, registration
+        from dit_jax import registration
+        from dit_jax.evaluators import common
 
-        registrar = registration.load(args.checkpoint, verdict_rule="fitness")  # estimates only: one direction
+        # The network's estimates through the pipeline, one direction: what the refinements start from.
+        registrar = registration.load(args.checkpoint, verdict_rule="fitness", refine="none")
         dit_est = {}
         for setting, b in batches.items():
-            out = []
-            for start in range(0, len(b["src"]), 8):
-                sl = slice(start, start + 8)
-                r, t, _ = model.register(registrar.params, jnp.asarray(b["src"][sl]), jnp.asarray(b["tgt"][sl]),
-                                         registrar.config)
-                out += [(np.asarray(ri, np.float64), np.asarray(ti, np.float64)) for ri, ti in zip(r, t)]
-            dit_est[setting] = out
+            est = common.run_dit(registrar, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
+            dit_est[setting] = list(zip(est.rotation, est.translation))
         report["rows"]["DIT"] = [row("DIT", {}, dit_est)]
     for method in ("fpfh_ransac", "fgr", "DIT"):
         if method == "DIT":
@@ -217,7 +214,8 @@ def main() -> None:
     os.makedirs(os.path.dirname(args.report) or ".", exist_ok=True)
     with open(args.report + ".json", "w") as f:
         json.dump(rounded(report), f, separators=(",", ":"))
-    shipped = {"date": report["date"], "command": report["command"], "report": args.report + ".md",
+    # No date in the package's file: the report in docs/ carries it.
+    shipped = {"command": report["command"], "report": args.report + ".md",
                "choice": {m: {t: c["options"] for t, c in per.items()} for m, per in report["choice"].items()}}
     with open(args.out_json, "w") as f:
         json.dump(shipped, f, indent=1)

@@ -1,0 +1,150 @@
+"""Evaluation on real scans with known poses (:mod:`dit_jax.data.scans`): DIT, DIT+ICP and the baselines on
+pairs of scans, in the users' path (:meth:`dit_jax.registration.Registrar.register_pairs`)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from typing import Sequence
+
+import numpy as np
+
+from dit_jax import baselines as baselines_lib
+from dit_jax import icp as icp_lib, pipeline
+from dit_jax.evaluators import report
+from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, SCAN_THRESHOLDS, agreement_rule, fitness_rule,
+                                       progress_bar, refinement_summary, rotation_error_deg, run_dit,
+                                       verdict_summary, Estimates)
+
+
+def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(R, t, seconds)`` of baseline ``name`` on one pair of scans in their own units (``tgt ~ src @ R.T + t``):
+    it gets every point, in the unit sphere it is tuned for (:func:`dit_jax.pipeline.normalise`)."""
+    started = time.perf_counter()
+    src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, tgt, "shared")
+    rotation, translation = baselines_lib.get(name)(src_n, tgt_n)
+    rotation = np.asarray(rotation, np.float64)
+    translation = pipeline.to_caller_units(rotation, np.asarray(translation, np.float64), src_centre, tgt_centre,
+                                           scale)
+    return rotation, translation, time.perf_counter() - started
+
+
+def summarise_scans(rows: list[dict]) -> dict:
+    """Median rotation error, shares within :data:`SCAN_THRESHOLDS`, median relative translation error and
+    mean seconds of one method's rows (each with ``rot_err``, ``trans_err_rel``, ``seconds``)."""
+    rot = np.array([r["rot_err"] for r in rows])
+    out = {"pairs": len(rows), "rot_median": float(np.median(rot)), "rot_mean": float(np.mean(rot)),
+           "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
+           "seconds_per_pair": float(np.mean([r["seconds"] for r in rows]))}
+    out.update({f"within_{t:g}": int(np.sum(rot <= t)) for t in SCAN_THRESHOLDS})
+    return out
+
+
+def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
+                   baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
+                   inference: dict | None = None, worst_pairs: bool = True) -> dict:
+    """DIT (and baselines) on pairs of real range scans with known poses (:mod:`dit_jax.data.scans`).
+
+    Pairs: scan i with scan i + ``skip`` for each skip (1: adjacent, 2: every second one). Writes
+    ``results.md``, ``results.json`` (every pair's errors, the verdicts), ``success_ratio.png`` and
+    ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT and DIT+ICP (one run of
+    the pipeline; ``inference``: changes to the checkpoint's settings, ``{"refine": "none"}`` drops DIT+ICP)
+    and ``baselines`` (their tuned options for any setting). Errors: isotropic rotation error in degrees, and
+    translation error over the target's bounding-box diagonal.
+    """
+    from dit_jax import registration
+    from dit_jax.data import scans as scans_lib
+
+    if checkpoint_dir is None and not baselines:
+        raise ValueError("nothing to evaluate: give a checkpoint or baselines")
+    all_scans = scans_lib.load_scans(scans_dir)
+    registrar = registration.load(checkpoint_dir, **(inference or {})) if checkpoint_dir is not None else None
+    pair_sets = {f"skip{k}": scans_lib.scan_pairs(all_scans, k)[:max_pairs] for k in skips}
+    bar = progress_bar(progress, sum(map(len, pair_sets.values())) * (len(baselines) + bool(registrar)),
+                       "evaluate scans")
+    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
+               "pair_sets": {}, "pair_set_info": {}}
+    if registrar is not None:
+        results["dit"] = {"n_points": registrar.settings.n_points,
+                          "n_iters": registrar.settings.model_config(registrar.config).n_iters,
+                          "inference_settings": registrar.settings.to_dict()}
+    for set_name, set_pairs in pair_sets.items():
+        results["pair_set_info"][set_name] = {
+            "pairs": len(set_pairs), "angle": float(np.mean([rotation_error_deg(p.rotation, np.eye(3))
+                                                             for p in set_pairs]))}
+        estimates = {}
+        if registrar is not None:
+            if bar is not None:
+                bar.set_postfix_str(f"{set_name}: DIT")
+            estimates = run_dit(registrar, [(p.source, p.target) for p in set_pairs], batch_size=1, bar=bar)
+        for name in baselines:
+            if bar is not None:
+                bar.set_postfix_str(f"{set_name}: {name}")
+            found = []
+            for pair in set_pairs:
+                found.append(register_baseline(name, pair.source, pair.target))
+                if bar is not None:
+                    bar.update(1)
+            rotation, translation, seconds = (np.array(a) for a in zip(*found))
+            estimates[name] = Estimates(rotation, translation, seconds)
+        results["pair_sets"][set_name] = {}
+        for method, est in estimates.items():
+            rows = []
+            for k, pair in enumerate(set_pairs):
+                rotation, translation = est.rotation[k], est.translation[k]
+                extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
+                row = {"pair": pair.name, "rot_err": rotation_error_deg(rotation, pair.rotation),
+                       "trans_err_rel": float(np.linalg.norm(translation - pair.translation)) / extent,
+                       "seconds": float(est.seconds[k]),
+                       "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist()}
+                if method == METHOD_DIT_ICP:
+                    row["beats_truth"] = icp_lib.fits_better(pair.source, pair.target, (rotation, translation),
+                                                             (pair.rotation, pair.translation))
+                if est.fitness is not None:
+                    row["fitness"] = float(est.fitness[k])
+                    verdict_settings = registrar.settings
+                    refine = "icp" if method == METHOD_DIT_ICP else "none"
+                    if est.agreement is not None:
+                        row.update(agreement=float(est.agreement[k]),
+                                   verdict=bool(est.agreement[k] <= verdict_settings.max_disagreement(refine)))
+                    else:
+                        row.update(verdict=bool(est.fitness[k] >= verdict_settings.min_fitness))
+                rows.append(row)
+            summary = summarise_scans(rows)
+            if rows and "verdict" in rows[0]:
+                refine = "icp" if method == METHOD_DIT_ICP else "none"
+                rule = (agreement_rule(registrar.settings.max_disagreement(refine))
+                        if registrar.settings.verdict_rule == "agreement"
+                        else fitness_rule(registrar.settings.min_fitness))
+                summary["verdict"] = verdict_summary(np.array([r["rot_err"] for r in rows]),
+                                                     np.array([r["verdict"] for r in rows]), rule)
+            results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
+        done = results["pair_sets"][set_name]
+        if METHOD_DIT_ICP in done:
+            done[METHOD_DIT_ICP]["summary"]["refinement"] = refinement_summary(
+                np.array([r["rot_err"] for r in done[METHOD_DIT]["rows"]]),
+                np.array([r["rot_err"] for r in done[METHOD_DIT_ICP]["rows"]]),
+                np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]))
+        if worst_pairs:
+            by_name = {p.name: p for p in set_pairs}
+            worst = []
+            for method, r in done.items():
+                row = max(r["rows"], key=lambda x: x["rot_err"])
+                pair, matrix = by_name[row["pair"]], np.asarray(row["matrix"])
+                worst.append({"method": method, "pair": row["pair"], "src": pair.source, "tgt": pair.target,
+                              "R": matrix[:3, :3], "t": matrix[:3, 3], "truth": (pair.rotation, pair.translation)})
+            os.makedirs(out_dir, exist_ok=True)
+            report.plot_worst(os.path.join(out_dir, f"worst_{set_name}.png"), f"worst pair of each method: "
+                              f"{set_name} ({os.path.basename(os.path.normpath(scans_dir))})", worst)
+    if bar is not None:
+        bar.close()
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "results.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    table = report.scan_tables(results)
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(table)
+    report.plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
+    results["table"] = table
+    return results

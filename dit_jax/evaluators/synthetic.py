@@ -1,0 +1,270 @@
+"""Evaluation on synthetic pairs: DIT and the classical baselines on the same test pairs of ModelNet40 or the
+embedded set, in the paper's tables and figures (the job behind ``python evaluate.py``).
+
+For each data setting, :func:`evaluate` makes the deterministic test pairs (:mod:`dit_jax.data.pairs`),
+registers them through the registration pipeline (:mod:`dit_jax.pipeline`, as users run it: rows ``DIT``, the
+network's result, and ``DIT+ICP``, the refined one) and with the chosen baselines at their tuned options for
+that setting (:func:`dit_jax.baselines.tuned_options`), and writes to ``out_dir``:
+
+* ``results.md``: tables shaped like the paper's (RMSE / MAE of Euler angles and of translation), plus
+  isotropic errors, RPM-Net's Chamfer distance, success ratio (the paper's criterion), the share within 5
+  degrees and 0.05, the same share up to the shape's symmetry (:func:`dit_jax.metrics.within_up_to_symmetry`)
+  and time per pair;
+* ``results.json``: every number, with per-category breakdowns and the success-ratio sweeps;
+* ``success_ratio.png``, ``registrations.png`` and ``worst_<setting>.png`` (each method's worst pair).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from typing import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from dit_jax import baselines as baselines_lib
+from dit_jax import icp as icp_lib, metrics
+from dit_jax.configs import GMCCE_THRESHOLDS
+from dit_jax.data import pairs as pairs_lib
+from dit_jax.data import shapes as shapes_lib
+from dit_jax.evaluators import report
+from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, Estimates, agreement_rule, fitness_rule,
+                                       progress_bar, refinement_summary, run_dit, verdict_summary)
+
+
+#: The rotation error that "within ... up to symmetry" (:func:`dit_jax.metrics.within_up_to_symmetry`) allows,
+#: with the success curve's paired translation, 0.05.
+SYMMETRY_DEGREES = 5.0
+
+
+def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None,
+                     setting: str | None = None):
+    """A baseline's :class:`Estimates` of pairs ``indices`` of ``dataset``, with its options tuned for
+    ``setting`` (:func:`dit_jax.baselines.tuned_options`)."""
+    method = baselines_lib.get(name, setting)
+    rotations, translations, seconds = [], [], []
+    for n in indices:
+        pair = dataset[int(n)]
+        t0 = time.perf_counter()
+        rotation, translation = method(pair["src"], pair["tgt"])
+        seconds.append(time.perf_counter() - t0)
+        rotations.append(rotation)
+        translations.append(translation)
+        if bar is not None:
+            bar.update(1)
+    return Estimates(np.stack(rotations), np.stack(translations), np.asarray(seconds))
+
+
+def complete_shapes(truth: dict) -> np.ndarray:
+    """The complete, noise-free shape of each pair in its source frame, (B, P, 3), from a batch of
+    :meth:`~dit_jax.data.pairs.PairDataset.batch` (whose ``tgt_clean`` holds it in the target frame)."""
+    return np.einsum("bji,bnj->bni", truth["R"], truth["tgt_clean"] - truth["t"][:, None])
+
+
+def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
+          min_fitness: float | None = None, max_disagreement: float | None = None,
+          symmetry_tolerance: np.ndarray | None = None) -> dict:
+    """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
+    distance, the share within 5 degrees up to the shape's symmetry, time per pair, the per-category
+    breakdown, the worst pair, each pair's rotation error, surface error and verdict evidence (``per_pair``)
+    and, where ``pred`` carries that evidence (``fitness``, ``agreement``), how its verdicts do at
+    ``min_fitness`` and ``max_disagreement``. ``symmetry_tolerance`` (P,): the pairs'
+    :func:`dit_jax.metrics.symmetry_tolerance`, the same for every method (computed here when not given)."""
+    truth = dataset.batch(indices)
+    result = metrics.summarise(pred.rotation, pred.translation, truth["R"], truth["t"])
+    shapes = complete_shapes(truth)
+    chamfer = []
+    for start in range(0, len(indices), 16):
+        sl = slice(start, start + 16)
+        r, t = pred.rotation[sl], pred.translation[sl]
+        src_moved = np.einsum("bij,bnj->bni", r, truth["src"][sl]) + t[:, None]
+        src_clean_moved = np.einsum("bij,bnj->bni", r, shapes[sl]) + t[:, None]
+        chamfer.append(metrics.chamfer_distance(src_moved, truth["tgt"][sl], src_clean_moved, truth["tgt_clean"][sl]))
+    result["chamfer"] = float(np.mean(np.concatenate(chamfer)))
+    result["seconds_per_pair"] = float(np.mean(pred.seconds))
+    errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(pred.rotation), jnp.asarray(truth["R"])))
+    surface = metrics.surface_error(shapes, pred.rotation, pred.translation, truth["R"], truth["t"])
+    if symmetry_tolerance is None:
+        symmetry_tolerance = metrics.symmetry_tolerance(shapes, truth["R"], truth["t"], SYMMETRY_DEGREES)
+    up_to_symmetry = metrics.within_up_to_symmetry(
+        errors, np.linalg.norm(np.asarray(pred.translation, np.float64) - truth["t"], axis=-1), surface,
+        symmetry_tolerance, SYMMETRY_DEGREES)
+    result["within_up_to_symmetry"] = float(np.mean(up_to_symmetry))
+    worst = int(np.argmax(errors))  # kept, so a later --reuse run can still draw this method's worst pair
+    result["worst"] = {"pair": int(indices[worst]), "rot_err": float(errors[worst]),
+                       "R": np.asarray(pred.rotation[worst]).tolist(), "t": np.asarray(pred.translation[worst]).tolist()}
+    # Per pair, so a verdict threshold chosen later can be scored on these pairs without registering them again.
+    result["per_pair"] = {"pair": np.asarray(indices).tolist(), "rot_err": np.round(errors, 5).tolist(),
+                          "surface_error": np.round(surface, 6).tolist(), "up_to_symmetry": up_to_symmetry.tolist()}
+    for evidence in ("agreement", "fitness"):
+        if getattr(pred, evidence) is not None:
+            result["per_pair"][evidence] = np.round(np.asarray(getattr(pred, evidence), np.float64), 5).tolist()
+    if pred.agreement is not None and max_disagreement is not None:
+        result["verdict"] = verdict_summary(errors, pred.agreement <= max_disagreement,
+                                            agreement_rule(max_disagreement))
+    if pred.fitness is not None and min_fitness is not None:
+        result["verdict_fitness"] = verdict_summary(errors, pred.fitness >= min_fitness, fitness_rule(min_fitness))
+    by_category = {}
+    for label in np.unique(truth["label"]):
+        rows = truth["label"] == label
+        name = shape_names[label] if 0 <= label < len(shape_names) else "uncategorised"
+        s = metrics.summarise(pred.rotation[rows], pred.translation[rows], truth["R"][rows], truth["t"][rows])
+        by_category[name] = {k: s[k] for k in ("pairs", "rot_mae", "trans_mae", "rot_iso", "success")}
+    result["by_category"] = by_category
+    return result
+
+
+def _reusable(reuse: str | None, data_dir, unseen: bool, variant: str, n_points: int) -> dict:
+    """The per-setting method scores of an earlier ``results.json`` made on the same pairs, else {}."""
+    if not reuse:
+        return {}
+    path = os.path.join(reuse, "results.json")
+    if not os.path.exists(path):
+        raise ValueError(f"--reuse {reuse}: no results.json there")
+    with open(path) as f:
+        old = json.load(f)
+    info = next(iter(old.get("setting_info", {}).values()), {})
+    same = (old.get("data") == (data_dir or "embedded") and old.get("n_points") == n_points
+            and info.get("split") == ("unseen" if unseen else "seen") and info.get("variant") == variant)
+    if not same:
+        raise ValueError(f"--reuse {reuse}: made on other pairs (data, split, variant or point count differ)")
+    return old["settings"]
+
+
+def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
+             settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
+             max_pairs: int | None = None, baselines: Sequence[str] = (), inference: dict | None = None,
+             gmcce_threshold: float | str | None = None, compute_dtype: str = "float32", batch_size: int = 8,
+             prepared_dir: str | None = None, progress: bool = True, reuse: str | None = None,
+             worst_pairs: bool = True) -> dict:
+    """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
+
+    Args:
+      checkpoint_dir: a model checkpoint (:mod:`dit_jax.checkpoint`); None evaluates the baselines alone.
+      max_pairs: evaluate only the first pairs of each setting (all by default).
+      inference: changes to the checkpoint's :class:`~dit_jax.pipeline.InferenceSettings` (e.g.
+        ``{"refine": "none"}`` drops the DIT+ICP row, ``{"verdict_rule": "fitness"}`` the second direction).
+      gmcce_threshold: None runs the model as it ships; "authors" uses the authors' threshold for each
+        setting (:data:`GMCCE_THRESHOLDS`); a number uses that threshold everywhere.
+      compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
+      reuse: an earlier output directory of this function: baselines it scored on the same pairs with the
+        same options are taken from its ``results.json`` instead of rerun.
+      worst_pairs: draw each method's worst pair of each setting (``worst_<setting>.png``).
+    """
+    if checkpoint_dir is None and not baselines:
+        raise ValueError("nothing to evaluate: give a checkpoint or baselines")
+    registrar = None
+    if checkpoint_dir is not None:
+        from dit_jax import registration
+
+        loaded = registration.load(checkpoint_dir, **(inference or {}))
+        registrar = registration.Registrar(loaded.params, loaded.config.replace(compute_dtype=compute_dtype),
+                                           loaded.settings)
+    n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
+    test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir,
+                                         n_points=pairs_lib.shape_points(data_dir, n_points, settings))
+    os.makedirs(out_dir, exist_ok=True)
+    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
+               "n_points": n_points, "model_config": registrar and registrar.config.to_dict(),
+               "inference_settings": registrar and registrar.settings.to_dict(), "compute_dtype": compute_dtype,
+               "settings": {}, "setting_info": {}}
+    datasets = {}
+    for setting in settings:
+        ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen,
+                                                                       variant=variant, n_points=n_points))
+        datasets[setting] = (ds, np.arange(min(len(ds), max_pairs or len(ds))))
+    bar = progress_bar(progress, sum(len(ix) for _, ix in datasets.values()) * (len(baselines) + bool(registrar)),
+                       "evaluate")
+    earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
+    first_dit = None
+    for setting, (ds, indices) in datasets.items():
+        threshold = (None if gmcce_threshold is None else GMCCE_THRESHOLDS[setting] if gmcce_threshold == "authors"
+                     else float(gmcce_threshold))
+        preds: dict[str, Estimates] = {}
+        if registrar is not None:
+            if bar is not None:
+                bar.set_postfix_str(f"{setting}: DIT")
+            run = registrar if threshold is None else _with_settings(registrar, gmcce_threshold=threshold)
+            preds.update(run_dit(run, [(ds[int(n)]["src"], ds[int(n)]["tgt"]) for n in indices],
+                                 batch_size=batch_size, bar=bar))
+        reused = {}
+        for name in baselines:
+            old = earlier.get(setting, {}).get(name)
+            options = baselines_lib.tuned_options(name, setting).to_dict()
+            if old is not None and old["pairs"] == len(indices) and old.get("options") == options:
+                reused[name] = old
+                if bar is not None:
+                    bar.update(len(indices))
+                continue
+            if bar is not None:
+                bar.set_postfix_str(f"{setting}: {name}")
+            preds[name] = predict_baseline(name, ds, indices, bar, setting)
+        truth = ds.batch(indices)
+        tolerance = (metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
+                     if preds else None)
+        inference_settings = registrar.settings if registrar else None
+        scored = {}
+        for name, pred in preds.items():
+            verdict_options = {}
+            if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP):
+                verdict_options = dict(min_fitness=inference_settings.min_fitness,
+                                       max_disagreement=inference_settings.max_disagreement(
+                                           "icp" if name == METHOD_DIT_ICP else "none"))
+            scored[name] = score(pred, ds, indices, test_shapes.shape_names, symmetry_tolerance=tolerance,
+                                 **verdict_options)
+        for name in baselines:
+            if name in scored:
+                scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
+        order = [m for m in (METHOD_DIT, METHOD_DIT_ICP) if m in scored] + list(baselines)
+        if METHOD_DIT_ICP in scored:
+            errors = {m: np.array(scored[m]["per_pair"]["rot_err"]) for m in (METHOD_DIT, METHOD_DIT_ICP)}
+            refined = preds[METHOD_DIT_ICP]
+            beats_truth = np.array([icp_lib.fits_better(ds[int(n)]["src"], ds[int(n)]["tgt"],
+                                                        (refined.rotation[k], refined.translation[k]),
+                                                        (truth["R"][k], truth["t"][k]))
+                                    for k, n in enumerate(indices)])
+            scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(errors[METHOD_DIT], errors[METHOD_DIT_ICP],
+                                                                      beats_truth)
+            if refined.backward is not None:
+                scored[METHOD_DIT_ICP]["backward_kept"] = int(np.sum(refined.backward))
+        results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
+        model_config = registrar and run.settings.model_config(run.config)
+        results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
+                                            "variant": variant,
+                                            "gmcce_threshold": model_config and model_config.gmcce_threshold,
+                                            "n_iters": model_config and model_config.n_iters}
+        if first_dit is None and METHOD_DIT in preds:
+            first_dit = (setting, ds, preds[METHOD_DIT])
+        if worst_pairs and preds:
+            missing = report.plot_worst_pairs(ds, results["settings"][setting],
+                                              os.path.join(out_dir, f"worst_{setting}.png"),
+                                              f"worst pair of each method: {setting} ({results['data']}, "
+                                              f"{'unseen' if unseen else 'seen'} split)")
+            if missing:
+                print(f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
+                      f"keep their worst pair", file=sys.stderr)
+    if bar is not None:
+        bar.close()
+    with open(os.path.join(out_dir, "results.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    table = report.markdown_tables(results)
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(table)
+    report.plot_success(results, os.path.join(out_dir, "success_ratio.png"))
+    if first_dit is not None:
+        setting, ds, pred = first_dit
+        shown = np.arange(min(3, len(pred.rotation)))
+        report.plot_registrations(ds, pred, shown, os.path.join(out_dir, "registrations.png"),
+                                  f"DIT on {results['data']} ({setting})")
+    results["table"] = table
+    return results
+
+
+def _with_settings(registrar, **changes):
+    """A registrar sharing ``registrar``'s model, with changed inference settings."""
+    from dit_jax import registration
+
+    return registration.Registrar(registrar.params, registrar.config, registrar.settings, **changes)

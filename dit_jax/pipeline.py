@@ -1,0 +1,638 @@
+"""The registration pipeline: every registration in dit-jax runs through :func:`register_pairs`.
+
+A batch of pairs goes through four stages, each a function of its own:
+
+1. :func:`sample_and_normalise`: checks both clouds (:func:`check_cloud`), resamples each to the settings'
+   point count by farthest-point sampling (:func:`farthest_point_sample`) and moves both into the unit
+   sphere with one shared scale (:func:`normalise`; centring per :attr:`InferenceSettings.centring`);
+2. :func:`network`: the jitted :func:`dit_jax.model.register` on the batch, padded to a fixed batch size so
+   one compiled program serves every batch of a shape; with ``rotation_search``, from the 24 turns of
+   :data:`SEARCH_TURNS` of each source, going on from the best fitting (:func:`dit_jax.icp.best_start`).
+   Under the agreement verdict the batch runs the other way too (target onto source);
+3. :func:`refine_pair`: ICP on the full clouds (:func:`dit_jax.icp.refine`), both directions side by side,
+   keeping the better fitting direction where :attr:`InferenceSettings.best_direction` says so;
+4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
+
+:meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
+calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
+Every setting of the pipeline lives in one frozen :class:`InferenceSettings`, saved with the weights.
+
+Motions map back to the caller's units (stage 2): with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and
+``y' = R x' + t'``, ``y = R x + s t' + c_y - R c_x``.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import functools
+import os
+import time
+import warnings
+from typing import Any, Callable, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dit_jax import geometry, icp as icp_lib
+from dit_jax import model as model_lib
+from dit_jax.configs import PRECISIONS, DITConfig
+
+#: What the pipeline can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
+REFINEMENTS = ("none", "icp")
+#: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
+CENTRINGS = ("auto", "shared", "separate")
+#: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
+VERDICTS = ("agreement", "fitness")
+#: The turns of the source that ``rotation_search`` starts the network from: the 24 rotations of a cube, the
+#: identity first (:func:`dit_jax.geometry.cube_rotations`). Every rotation lies within 62.8 degrees of one.
+SEARCH_TURNS = geometry.cube_rotations()
+#: ``centring="auto"`` centres each cloud on its own centroid where the two sampled clouds' centroids lie more
+#: than this many times the larger one's radius apart, else both on their common centroid. Centred together,
+#: clouds far apart shrink to two specks in the unit sphere; training offsets the target by under one radius.
+FAR_APART = 10.0
+#: Stage 1 warns (:class:`SizeMismatchWarning`) where one cloud's radius is this many times the other's: two
+#: views of one object differ far less, millimetres and metres 1000 times, and a rigid motion cannot rescale.
+SIZE_RATIO_WARNING = 10.0
+#: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
+MIN_BAND_PAIRS = 10
+
+
+#: The fields of :class:`InferenceSettings` that override the model config's inference options.
+MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterations", "precision")
+
+
+class InputError(ValueError):
+    """A cloud that DIT cannot register; the message names it."""
+
+
+class SizeMismatchWarning(UserWarning):
+    """The two clouds differ in size far more than views of one object do: most likely different units."""
+
+
+@dataclasses.dataclass(frozen=True)
+class InferenceSettings:
+    """Every setting of the registration pipeline, in one place. A checkpoint stores its own (chosen on
+    validation pairs by :mod:`dit_jax.release.calibrate`); these defaults serve checkpoints that record none.
+
+    Attributes:
+      n_points: points per cloud the network sees (stage 1).
+      fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
+        sampling, which keeps sampling linear in the cloud's size.
+      seed: farthest-point sampling's start and ICP's subsets: results are deterministic for a seed.
+      centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
+        its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
+        more than :data:`FAR_APART` radii apart, else "shared".
+      n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision: override the model config's
+        (:class:`dit_jax.configs.DITConfig`) where set; None keeps the config's.
+      refine: "icp" refines the network's estimate on the full clouds (stage 3); "none" does not.
+      rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
+      verdict_rule: "agreement": register the target onto the source too and trust the result where the two
+        agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
+        the sampled source points land on the target (one registration).
+      best_direction: with ICP and the agreement verdict, return whichever direction fits the clouds better
+        (:func:`dit_jax.icp.fits_better`); the verdict is the same either way.
+      min_fitness: the fitness verdict's threshold, a share (above 1 trusts nothing).
+      max_disagreement_network, max_disagreement_icp: the agreement verdict's thresholds (degrees) for the
+        network alone and with ICP (below 0 trusts nothing, 180 everything).
+      agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
+        agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
+        :attr:`Result.agreement_band`.
+    """
+
+    n_points: int = 1000
+    fps_pool: int = 50_000
+    seed: int = 0
+    centring: str = "auto"
+    n_iters: int | None = None
+    gmcce_threshold: float | None = None
+    gmcce_min_keep: float | None = None
+    guard_iterations: bool | None = None
+    precision: str | None = None
+    refine: str = "icp"
+    rotation_search: bool = False
+    verdict_rule: str = "agreement"
+    best_direction: bool = True
+    min_fitness: float = 0.5
+    max_disagreement_network: float = 3.0
+    max_disagreement_icp: float = 6.0
+    agreement_bands_network: tuple | None = None
+    agreement_bands_icp: tuple | None = None
+
+    def __post_init__(self):
+        for name, allowed in (("centring", CENTRINGS), ("refine", REFINEMENTS), ("verdict_rule", VERDICTS)):
+            value = getattr(self, name)
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        if self.precision is not None and self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {self.precision!r}")
+        if self.n_points < 1 or self.fps_pool < 1:
+            raise ValueError(f"n_points and fps_pool must be positive, got {self.n_points} and {self.fps_pool}")
+        if self.n_iters is not None and self.n_iters < 1:
+            raise ValueError(f"n_iters must be at least 1, got {self.n_iters}")
+        for name in ("agreement_bands_network", "agreement_bands_icp"):
+            bands = getattr(self, name)
+            if bands is not None:  # stored as tuples, so the settings stay immutable
+                object.__setattr__(self, name, tuple(tuple(band) for band in bands))
+
+    def replace(self, **changes: Any) -> "InferenceSettings":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "InferenceSettings":
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown inference settings: {', '.join(unknown)}")
+        return cls(**values)
+
+    def model_config(self, config: DITConfig) -> DITConfig:
+        """``config`` with the settings' overrides of the model's inference options applied."""
+        changes = {name: getattr(self, name) for name in MODEL_OVERRIDES if getattr(self, name) is not None}
+        return config.replace(**changes) if changes else config
+
+    def max_disagreement(self, refine: str) -> float:
+        """The agreement verdict's threshold (degrees) for ``refine`` ("none" or "icp")."""
+        return self.max_disagreement_icp if refine == "icp" else self.max_disagreement_network
+
+    def agreement_bands(self, refine: str) -> tuple | None:
+        return self.agreement_bands_icp if refine == "icp" else self.agreement_bands_network
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """A registration, in the caller's units: ``tgt ~ src @ rotation.T + translation``.
+
+    Attributes:
+      rotation: (3, 3) float64.
+      translation: (3,) float64.
+      matrix: (4, 4) float64 homogeneous transform.
+      source_indices: (n,) rows of the caller's source cloud the network saw.
+      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
+      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
+      inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
+      fitness: share of the sampled source points the motion lays within ``fitness_radius`` point spacings of
+        the target (:func:`dit_jax.geometry.fitness`).
+      seconds: wall time of the network (both directions under the agreement verdict; with
+        ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
+        included unless the call ran several batches (:func:`network`).
+      refinement: "icp" where ICP refined the network's estimate, else None.
+      refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
+      verdict: True ("trusted") where the model's own evidence confirms the result, False ("suspect") where it
+        does not; a suspect result is unconfirmed, not necessarily wrong.
+      verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
+      threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
+      agreement: degrees between the rotation and the inverse of the one found registering the target onto
+        the source (refined alike); NaN under the fitness verdict.
+      direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
+        ``best_direction`` where it fits better).
+      start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
+        estimate started from; 0 for the unturned start.
+      agreement_band: ``(low, high, pairs, right)``: the band of agreement (low, high] degrees this result
+        falls in, how many validation results fell in it and how many of those were within 5 degrees of the
+        truth; None where the settings record no bands, no agreement was measured or the band is small.
+      network: where ICP refined the result, the network's own result before it (its verdict judged by the
+        network's threshold); None otherwise.
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    matrix: np.ndarray
+    source_indices: np.ndarray
+    correspondences: np.ndarray
+    confidence: np.ndarray
+    inlier_ratio: float
+    fitness: float
+    seconds: float
+    refinement: str | None
+    refine_seconds: float
+    verdict: bool
+    verdict_rule: str
+    threshold: float
+    agreement: float
+    direction: str
+    start_turn: float
+    agreement_band: tuple | None
+    network: "Result | None"
+
+    @property
+    def total_seconds(self) -> float:
+        """Network and refinement together."""
+        return self.seconds + self.refine_seconds
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Moves (N, 3) points by the estimated transform."""
+        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+    def to_json(self) -> dict:
+        return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
+                "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
+                "fitness": self.fitness, "verdict": "trusted" if self.verdict else "suspect",
+                "verdict_rule": self.verdict_rule, "threshold": self.threshold,
+                "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
+                "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
+                "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
+                "direction": self.direction, "start_turn_deg": self.start_turn,
+                "agreement_band": None if self.agreement_band is None else dict(zip(
+                    ("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band))}
+
+    def evidence(self) -> str:
+        """One line of what the verdict rests on, e.g. for a report or a warning."""
+        if self.verdict_rule == "agreement":
+            line = (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
+                    f"this one's inverse (trusted up to {self.threshold:g} deg)")
+            if self.agreement_band is not None:
+                low, high, pairs, right = self.agreement_band
+                band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
+                line += (f"; of the {pairs} validation results that {band} deg, "
+                         f"{100 * right / pairs:.0f} % were within 5 deg")
+            return line
+        return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
+                f"(trusted from {100 * self.threshold:.0f} %)")
+
+    def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
+        """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
+        after the motion from two viewpoints, with the motion, inlier ratio and fitness in the title (and the
+        error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
+        from dit_jax import plotting
+
+        return plotting.plot_registration(path, np.asarray(src), np.asarray(tgt), self.rotation, self.translation,
+                                          title=title, inlier_ratio=self.inlier_ratio, fitness=self.fitness,
+                                          truth=truth, label="DIT + ICP" if self.refinement else "DIT")
+
+
+# ------------------------------------------------------------------------------ stage 1: sample and normalise
+
+
+def check_cloud(name: str, points, min_points: int) -> np.ndarray:
+    """Returns ``points`` as (N, 3) float64 or raises :class:`InputError` saying what is wrong with it."""
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{name}: not an array of coordinates ({err})") from None
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise InputError(f"{name}: expected N x 3 coordinates, got shape {array.shape}")
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise InputError(f"{name}: expected real coordinates, got dtype {array.dtype}")
+    array = array.astype(np.float64, copy=False)
+    bad = ~np.isfinite(array).all(axis=1)
+    if bad.any():
+        raise InputError(f"{name}: {int(bad.sum())} of {len(array)} points have NaN or Inf coordinates")
+    if len(array) < min_points:
+        raise InputError(f"{name}: {len(array)} points; the model needs at least {min_points}")
+    extent = float(np.ptp(array, axis=0).max())
+    if extent <= 1e-9 * max(1.0, float(np.abs(array).max())):
+        raise InputError(f"{name}: all {len(array)} points are the same point")
+    # A line leaves the rotation about itself undetermined, whatever the other cloud. Its spread across the
+    # line is zero up to rounding; a millionth of the spread along it is a line in float32, the network's type.
+    centred = array - array.mean(axis=0)
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))  # ascending
+    if spread[1] <= 1e-6 * spread[2]:
+        raise InputError(f"{name}: its {len(array)} points lie on one line, so no rotation about that line "
+                         f"can be told from another")
+    return array
+
+
+def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: int | None = None) -> np.ndarray:
+    """Indices of ``n`` points spread over the cloud by farthest-point sampling.
+
+    Each point taken is the one farthest from all taken before (ties: the lowest index), starting from a
+    seeded random point, in one jitted loop (:func:`_farthest_points`) in float32.
+
+    Args:
+      points: (N, 3).
+      n: how many to take; all N (in order) when N <= n.
+      seed: picks the first point (and the random thinning).
+      pool: above this many points the cloud is first thinned uniformly at random to ``pool`` points.
+
+    Returns:
+      (min(N, n),) int64 indices into ``points``, no repeats.
+    """
+    count = len(points)
+    if count <= n:
+        return np.arange(count)
+    rng = np.random.default_rng(seed)
+    candidates = np.sort(rng.choice(count, pool, replace=False)) if pool and count > pool else np.arange(count)
+    cloud = np.asarray(points[candidates], np.float64)
+    first = int(rng.integers(len(cloud)))
+    # Centred before float32, so that squared distances keep their digits far from the origin. Padded to one
+    # of a few sizes per power of two (at most 1/8 more), so clouds of similar size share one compilation.
+    cloud = (cloud - cloud.mean(axis=0)).astype(np.float32)
+    step = 1 << max(len(cloud).bit_length() - 4, 0)
+    padded = np.zeros((3, -(-len(cloud) // step) * step), np.float32)
+    padded[:, :len(cloud)] = cloud.T
+    chosen = _farthest_points(padded, np.int32(len(cloud)), np.int32(first), n)
+    return candidates[np.asarray(chosen, np.int64)]
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _farthest_points(xyz: jax.Array, count: jax.Array, first: jax.Array, n: int) -> jax.Array:
+    """Farthest-point sampling of the first ``count`` columns of ``xyz`` (3, P), from column ``first``.
+
+    Coordinates as three rows and the arg-max as a max then a min over indices: XLA's CPU backend vectorises
+    both, where a (P, 3) layout and ``jnp.argmax`` (one reduction of value-index pairs) run several times
+    slower. Padding columns start at distance -1 and are never taken. Returns (n,) int32.
+    """
+    x, y, z = xyz
+    index = jnp.arange(x.shape[0], dtype=jnp.int32)
+
+    def distances(i):
+        return (x - x[i]) ** 2 + (y - y[i]) ** 2 + (z - z[i]) ** 2
+
+    def body(i, state):
+        chosen, nearest = state
+        farthest = jnp.min(jnp.where(nearest == jnp.max(nearest), index, x.shape[0]))
+        return chosen.at[i].set(farthest), jnp.minimum(nearest, distances(farthest))
+
+    nearest = jnp.where(index < count, distances(first), -1.0)
+    chosen = jnp.zeros(n, jnp.int32).at[0].set(first)
+    return jax.lax.fori_loop(1, n, body, (chosen, nearest))[0]
+
+
+def normalise(src: np.ndarray, tgt: np.ndarray, centring: str = "shared"):
+    """Centres (per ``centring``, see :class:`InferenceSettings`) and scales two clouds into the unit sphere
+    with one shared scale, the largest distance of a point from its centre. src (N, 3), tgt (M, 3).
+
+    Returns ``(src_n, tgt_n, src_centre (3,), tgt_centre (3,), scale)``, float64."""
+    src_centre, tgt_centre = src.mean(axis=0), tgt.mean(axis=0)
+    if centring == "auto":
+        radius = max(float(np.linalg.norm(c - centre, axis=1).max())
+                     for c, centre in ((src, src_centre), (tgt, tgt_centre)))
+        centring = "separate" if np.linalg.norm(src_centre - tgt_centre) > FAR_APART * radius else "shared"
+    if centring == "shared":
+        src_centre = tgt_centre = np.concatenate([src, tgt]).mean(axis=0)
+    scale = max(float(np.linalg.norm(src - src_centre, axis=1).max()),
+                float(np.linalg.norm(tgt - tgt_centre, axis=1).max()))
+    return (src - src_centre) / scale, (tgt - tgt_centre) / scale, src_centre, tgt_centre, scale
+
+
+def to_caller_units(rotation: np.ndarray, translation: np.ndarray, src_centre: np.ndarray, tgt_centre: np.ndarray,
+                    scale: float) -> np.ndarray:
+    """The translation of a motion found between normalised clouds, in the caller's frame:
+    ``s t' + c_y - R c_x``."""
+    return scale * translation + tgt_centre - rotation @ src_centre
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalised:
+    """Stage 1's output for one pair: the caller's clouds (float64), the rows sampled from each, the sampled
+    clouds in the unit sphere (float32) and the centres and scale that map motions back."""
+
+    src: np.ndarray
+    tgt: np.ndarray
+    src_indices: np.ndarray
+    tgt_indices: np.ndarray
+    src_n: np.ndarray
+    tgt_n: np.ndarray
+    src_centre: np.ndarray
+    tgt_centre: np.ndarray
+    scale: float
+
+
+def sample_and_normalise(src, tgt, settings: InferenceSettings, min_points: int) -> Normalised:
+    """Stage 1 for one pair: src (N, 3), tgt (M, 3) in any units; raises :class:`InputError` on a cloud DIT
+    cannot register and warns (:class:`SizeMismatchWarning`) on clouds of very different sizes."""
+    src = check_cloud("source", src, min_points)
+    tgt = check_cloud("target", tgt, min_points)
+    _warn_on_size_mismatch(src, tgt)
+    src_idx = farthest_point_sample(src, settings.n_points, seed=settings.seed, pool=settings.fps_pool)
+    tgt_idx = farthest_point_sample(tgt, settings.n_points, seed=settings.seed + 1, pool=settings.fps_pool)
+    src_n, tgt_n, src_centre, tgt_centre, scale = normalise(src[src_idx], tgt[tgt_idx], settings.centring)
+    return Normalised(src, tgt, src_idx, tgt_idx, src_n.astype(np.float32), tgt_n.astype(np.float32),
+                      src_centre, tgt_centre, scale)
+
+
+def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
+    """Warns where the radius of src (N, 3) or tgt (M, 3) is :data:`SIZE_RATIO_WARNING` times the other's."""
+    radius = [float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) for c in (src, tgt)]
+    big = int(radius[1] > radius[0])
+    ratio = radius[big] / radius[1 - big]
+    if ratio >= SIZE_RATIO_WARNING:
+        names = ("source", "target")
+        warnings.warn(f"{names[big]} is {ratio:,.0f} times the size of {names[1 - big]} (radius {radius[big]:.4g} "
+                      f"against {radius[1 - big]:.4g}): are both in the same units, and free of stray far-off points? "
+                      "A rigid motion cannot rescale one onto the other", SizeMismatchWarning, stacklevel=5)
+
+
+# ------------------------------------------------------------------------------------------ stage 2: network
+
+def network(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, *, rotation_search: bool = False,
+            seed: int = 0, batch_size: int | None = None):
+    """Stage 2: the network's estimates in the normalised frame, ``tgt_n ~ src_n @ R.T + t``.
+
+    Args:
+      params, config: the model (``config`` with the settings' overrides applied).
+      src_n: (B, N, 3) float32 normalised sources; tgt_n: (B, M, 3) targets.
+      rotation_search: start each pair from the 24 turns of :data:`SEARCH_TURNS` of its source, about the
+        source's centroid c; an estimate (R', t') of a turned source Q x is one of the source itself,
+        ``R = R' Q``, ``t = t' + R' c - R c``, and :func:`dit_jax.icp.best_start` picks the one to go on from.
+      seed: the search's scoring subsets.
+      batch_size: pairs per call; a short last batch is padded with repeats, so every batch runs one compiled
+        program (default: B, one call). Where several batches run, the first compiles before the timings.
+
+    Returns:
+      ``(R (B, 3, 3), t (B, 3), extras, start_turn (B,), seconds (B,))``, float64 but ``extras`` (the model's,
+      per pair, :func:`dit_jax.model.register`); ``start_turn`` in degrees; ``seconds`` each pair's share of
+      its batch's wall time.
+    """
+    if rotation_search:
+        found = [_search_one(params, config, src_n[i], tgt_n[i], seed) for i in range(len(src_n))]
+        rotation, translation, extras, turns, seconds = zip(*found)
+        return (np.stack(rotation), np.stack(translation), jax.tree.map(lambda *a: np.stack(a), *extras),
+                np.asarray(turns), np.asarray(seconds))
+    return _batched(params, config, src_n, tgt_n, batch_size or len(src_n))
+
+
+def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, batch_size: int):
+    outputs, seconds = [], []
+    for start in range(0, len(src_n), batch_size):
+        real = min(batch_size, len(src_n) - start)
+        rows = np.r_[start:start + real, np.full(batch_size - real, start + real - 1)]
+        src, tgt = jnp.asarray(src_n[rows]), jnp.asarray(tgt_n[rows])
+        if start == 0 and len(src_n) > batch_size:  # many batches: compile outside their timings
+            jax.block_until_ready(model_lib.register(params, src, tgt, config))
+        started = time.perf_counter()
+        out = jax.device_get(model_lib.register(params, src, tgt, config))
+        seconds.append(np.full(real, (time.perf_counter() - started) / real))
+        outputs.append(jax.tree.map(lambda a: a[:real], out))
+    rotation, translation, extras = jax.tree.map(lambda *a: np.concatenate(a), *outputs)
+    return (np.asarray(rotation, np.float64), np.asarray(translation, np.float64), extras,
+            np.zeros(len(src_n)), np.concatenate(seconds))
+
+
+def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int):
+    started = time.perf_counter()
+    points = np.asarray(src_n, np.float64)
+    centre = points.mean(axis=0)
+    turned = (points - centre) @ SEARCH_TURNS.transpose(0, 2, 1) + centre
+    targets = np.repeat(tgt_n[None], len(SEARCH_TURNS), axis=0)
+    found, shifts, extras, _, _ = _batched(params, config, turned.astype(np.float32), targets, len(SEARCH_TURNS))
+    rotations = found @ SEARCH_TURNS
+    translations = shifts + found @ centre - rotations @ centre
+    k = icp_lib.best_start(icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), rotations, translations,
+                                                seed=seed))
+    turn = round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6)  # 0, 90, 120 or 180
+    return (rotations[k], translations[k], jax.tree.map(lambda a: a[k], extras), turn,
+            time.perf_counter() - started)
+
+
+# ------------------------------------------------------------------------------------------ stage 3: refine
+
+
+@dataclasses.dataclass(frozen=True)
+class Refined:
+    """Stage 3's output for one pair, in the caller's units: the kept motion, the forward and backward
+    refined rotations (the agreement's evidence; backward None with one direction) and which was kept."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    forward_rotation: np.ndarray
+    backward_rotation: np.ndarray | None
+    direction: str
+    seconds: float
+
+
+def refine_pair(pair: Normalised, forward: tuple, backward: tuple | None, *, best_direction: bool,
+                seed: int) -> Refined:
+    """Stage 3 for one pair: refines ``forward`` (R, t), source onto target, and ``backward``, target onto
+    source (None: one direction), by :func:`dit_jax.icp.refine` on the full clouds, side by side; with
+    ``best_direction``, keeps the inverse of the backward motion where it lays the source onto the target
+    better (:func:`dit_jax.icp.fits_better`)."""
+    started = time.perf_counter()
+    jobs = [(pair.src, pair.tgt, *forward)]
+    if backward is not None:
+        jobs.append((pair.tgt, pair.src, *backward))
+    # Independent NumPy and scipy work, which releases the GIL: two threads take about half the serial time.
+    with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
+        refined = list(pool.map(lambda job: icp_lib.refine(*job, scale=pair.scale, seed=seed), jobs))
+    rotation, translation, direction = refined[0].rotation, refined[0].translation, "forward"
+    back_rotation = None
+    if backward is not None:
+        back = refined[1]
+        back_rotation = back.rotation
+        inverse = (back.rotation.T, -back.rotation.T @ back.translation)
+        if best_direction and icp_lib.fits_better(pair.src, pair.tgt, inverse, (rotation, translation)):
+            (rotation, translation), direction = inverse, "backward"
+    return Refined(rotation, translation, refined[0].rotation, back_rotation, direction,
+                   time.perf_counter() - started)
+
+
+# ------------------------------------------------------------------------------------------ stage 4: verdict
+
+
+def judge(settings: InferenceSettings, refine: str, fitness: float, forward_rotation: np.ndarray,
+          backward_rotation: np.ndarray | None) -> tuple[bool, float, float, tuple | None]:
+    """Stage 4: ``(verdict, threshold, agreement, agreement_band)`` of one result. The agreement verdict
+    trusts a result whose two directions' rotations (``forward_rotation``, source onto target, and
+    ``backward_rotation``, target onto source) are within ``settings.max_disagreement(refine)`` degrees of
+    inverse; the fitness verdict one whose ``fitness`` reaches ``settings.min_fitness``."""
+    if settings.verdict_rule == "agreement":
+        threshold = settings.max_disagreement(refine)
+        agreement = geometry.rotation_angle_deg(forward_rotation @ backward_rotation)
+        return agreement <= threshold, threshold, agreement, agreement_band(settings.agreement_bands(refine),
+                                                                            agreement)
+    return fitness >= settings.min_fitness, settings.min_fitness, float("nan"), None
+
+
+def agreement_band(bands: Sequence | None, agreement: float) -> tuple | None:
+    """The (low, high, pairs, right) of ``bands`` (((upper or None, pairs, right), ...), increasing) that
+    ``agreement`` (degrees) falls in; None without bands or agreement, or for a band of too few pairs."""
+    if not bands or not np.isfinite(agreement):
+        return None
+    low = 0.0
+    for high, pairs, right in bands:
+        if high is None or agreement <= high:
+            return (low, high, int(pairs), int(right)) if pairs >= MIN_BAND_PAIRS else None
+        low = high
+    return None
+
+
+# ------------------------------------------------------------------------------------------ the pipeline
+
+
+def register_pairs(params, config: DITConfig, settings: InferenceSettings, pairs: Sequence[tuple], *,
+                   batch_size: int = 8, on_pair: Callable[[int], None] | None = None) -> list[Result]:
+    """Registers each ``(src (N, 3), tgt (M, 3))`` of ``pairs``, in the caller's units, through the four stages.
+
+    Pairs whose sampled clouds have the same sizes go through the network together, ``batch_size`` at a time.
+    ``on_pair(count)`` is called as pairs finish (a progress bar's ``update``). Raises :class:`InputError` on
+    the first cloud DIT cannot register, before any network work.
+    """
+    run_config = settings.model_config(config)
+    need = model_lib.min_points(run_config)
+    prepared = []
+    for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
+        prepared.append(sample_and_normalise(src, tgt, settings, need))
+    both_ways = settings.verdict_rule == "agreement"
+    groups: dict[tuple, list[int]] = {}
+    for i, p in enumerate(prepared):
+        groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
+    estimates: list[dict] = [{} for _ in prepared]
+    for rows in groups.values():
+        src_n = np.stack([prepared[i].src_n for i in rows])
+        tgt_n = np.stack([prepared[i].tgt_n for i in rows])
+        options = dict(rotation_search=settings.rotation_search, seed=settings.seed, batch_size=batch_size)
+        forward = network(params, run_config, src_n, tgt_n, **options)
+        backward = network(params, run_config, tgt_n, src_n, **options) if both_ways else None
+        rotation, translation, extras, turns, seconds = forward
+        for k, i in enumerate(rows):
+            p = prepared[i]
+            estimate = {"rotation": rotation[k], "extras": {name: v[k] for name, v in extras.items()},
+                        "turn": float(turns[k]), "seconds": float(seconds[k]),
+                        "translation": to_caller_units(rotation[k], translation[k], p.src_centre, p.tgt_centre,
+                                                       p.scale)}
+            if backward is not None:
+                back_rotation, back_translation, _, back_turns, back_seconds = backward
+                estimate.update(back_rotation=back_rotation[k], back_turn=float(back_turns[k]),
+                                back_translation=to_caller_units(back_rotation[k], back_translation[k],
+                                                                 p.tgt_centre, p.src_centre, p.scale),
+                                seconds=float(seconds[k] + back_seconds[k]))
+            estimates[i] = estimate
+    results = []
+    for p, e in zip(prepared, estimates):
+        results.append(_finish(p, e, settings, run_config))
+        if on_pair is not None:
+            on_pair(1)
+    return results
+
+
+def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConfig) -> Result:
+    """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`)."""
+    extras = e["extras"]
+    common = dict(source_indices=p.src_indices, correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
+                  confidence=np.asarray(extras["weights"], np.float64), inlier_ratio=float(extras["inlier_ratio"]),
+                  seconds=e["seconds"], verdict_rule=settings.verdict_rule)
+    back_rotation = e.get("back_rotation")
+    verdict, threshold, agreement, band = judge(settings, "none", float(extras["fitness"]), e["rotation"],
+                                                back_rotation)
+    network_result = _result(e["rotation"], e["translation"], fitness=float(extras["fitness"]), refinement=None,
+                             refine_seconds=0.0, verdict=verdict, threshold=threshold, agreement=agreement,
+                             direction="forward", start_turn=e["turn"], agreement_band=band, network=None, **common)
+    if settings.refine == "none":
+        return network_result
+    backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
+    refined = refine_pair(p, (e["rotation"], e["translation"]), backward, best_direction=settings.best_direction,
+                          seed=settings.seed)
+    # The fitness, as the model measures it, for the refined motion.
+    moved = ((p.src[p.src_indices] @ refined.rotation.T + refined.translation) - p.tgt_centre) / p.scale
+    tgt_j = jnp.asarray(p.tgt_n)
+    fitness = float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
+                                     config.fitness_radius * geometry.spacing(tgt_j)))
+    verdict, threshold, agreement, band = judge(settings, "icp", fitness, refined.forward_rotation,
+                                                refined.backward_rotation)
+    turn = e["turn"] if refined.direction == "forward" else e["back_turn"]
+    return _result(refined.rotation, refined.translation, fitness=fitness, refinement="icp",
+                   refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
+                   direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
+                   **common)
+
+
+def _result(rotation, translation, **fields) -> Result:
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = rotation, translation
+    return Result(rotation=np.asarray(rotation, np.float64), translation=np.asarray(translation, np.float64),
+                  matrix=matrix, verdict=bool(fields.pop("verdict")), **fields)
