@@ -65,7 +65,7 @@ def main() -> None:
     finally:
         registration.farthest_point_sample = jitted
     print(f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs; {args.first} ({len(src):,} points) onto "
-          f"{args.second} ({len(tgt):,}); {model.n_points} points per cloud; medians of {args.repeats} warm "
+          f"{args.second} ({len(tgt):,}); {model.settings.n_points} points per cloud; medians of {args.repeats} warm "
           f"calls\n")
     print("| farthest-point sampling | whole `register()` s | network s | rest (sampling, checks, transfers) s "
           "| whole / network |\n|---|---|---|---|---|")
