@@ -43,7 +43,7 @@ def main() -> None:
     from dit_jax import head, training
     from dit_jax.data import pairs, pipeline, shapes
 
-    base = training.PRESETS["quick"]
+    base = training.load_config("configs/quick.py")
     if no_tfds:  # the same shapes in the same order as the TFDS-prepared copy
         rows = list(shapes._read_embedded("train", base.n_points))
         all_shapes = shapes.Shapes(np.stack([r[1] for r in rows]), np.array([r[2] for r in rows]),

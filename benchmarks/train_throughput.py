@@ -1,8 +1,8 @@
 """Training throughput (pairs per second) and peak memory of a preset's train step on this machine.
 
-    python benchmarks/train_throughput.py --preset cpu
-    python benchmarks/train_throughput.py --preset paper                # the authors' 1000 points, batch 2
-    python benchmarks/train_throughput.py --preset paper --remat on     # blocks rematerialised
+    python benchmarks/train_throughput.py --config configs/cpu.py
+    python benchmarks/train_throughput.py --config configs/paper.py              # the authors' 1000 points, batch 2
+    python benchmarks/train_throughput.py --config configs/paper.py --remat on   # blocks rematerialised
 
 Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps). Peak
 memory: the process's peak resident set (VmHWM, compilation included) and, on an accelerator, the device's
@@ -20,11 +20,11 @@ import numpy as np
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--config", default="configs/cpu.py", help="a recipe file")
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--n-points", type=int, default=None)
     parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
-                        help="rematerialised blocks (DITConfig.remat): the preset's choice, or on / off")
+                        help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off")
     args = parser.parse_args()
 
     import jax
@@ -32,12 +32,11 @@ def main():
     from dit_jax import training
     from inference import peak_memory  # benchmarks/inference.py, beside this script
 
-    config = training.PRESETS[args.preset]
+    config = training.load_config(args.config)
     if args.n_points:
         config = dataclasses.replace(config, n_points=args.n_points)
     if args.remat != "preset":
-        overrides = dict(config.model_overrides, remat=args.remat == "on")
-        config = dataclasses.replace(config, model_overrides=tuple(sorted(overrides.items())))
+        config = dataclasses.replace(config, model=config.model.replace(remat=args.remat == "on"))
     optimizer = training.make_optimizer(config, 1000)
     mesh = training.make_mesh()
     state = training.replicate(training.init_state(config, optimizer), mesh)
@@ -61,7 +60,7 @@ def main():
     step_s = float(np.median(times))
     model_config = config.model_config()
     print(json.dumps({"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
-                      "preset": args.preset, "model": config.model, "n_points": n, "batch_size": b,
+                      "config": args.config, "n_points": n, "batch_size": b,
                       "train_iters": config.train_iters, "remat": model_config.remat,
                       "precision": model_config.precision, "compile_and_first_step_s": compile_s,
                       "step_s": step_s, "pairs_per_s": b / step_s, **peak_memory()}, indent=2))

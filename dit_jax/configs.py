@@ -38,8 +38,28 @@ PRECISIONS = ("highest", "tf32", "bfloat16")
 PSE_LAYERS = 8
 
 
+class Record:
+    """What the frozen settings dataclasses share: copies with changes, and a JSON-able dict both ways."""
+
+    def replace(self, **changes: Any):
+        """Returns a copy with ``changes`` applied (and validated)."""
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]):
+        """The record from :meth:`to_dict`'s output; an unknown field is an error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"unknown {cls.__name__} fields: {', '.join(unknown)}")
+        return cls(**values)
+
+
 @dataclasses.dataclass(frozen=True)
-class DITConfig:
+class DITConfig(Record):
     """Everything that shapes DIT and its iterative inference.
 
     Attributes:
@@ -139,20 +159,6 @@ class DITConfig:
         if problems:
             raise ValueError("invalid DITConfig: " + "; ".join(problems))
 
-    def replace(self, **changes: Any) -> "DITConfig":
-        """Returns a copy with ``changes`` applied (and validated)."""
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> "DITConfig":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown DITConfig fields: {', '.join(unknown)}")
-        return cls(**values)
 
 
 def paper(setting: str = "clean") -> DITConfig:

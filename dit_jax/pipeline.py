@@ -37,7 +37,7 @@ import numpy as np
 
 from dit_jax import geometry, icp as icp_lib
 from dit_jax import model as model_lib
-from dit_jax.configs import PRECISIONS, DITConfig
+from dit_jax.configs import PRECISIONS, DITConfig, Record
 
 #: What the pipeline can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
 REFINEMENTS = ("none", "icp")
@@ -72,7 +72,7 @@ class SizeMismatchWarning(UserWarning):
 
 
 @dataclasses.dataclass(frozen=True)
-class InferenceSettings:
+class InferenceSettings(Record):
     """Every setting of the registration pipeline, in one place. A checkpoint stores its own (chosen on
     validation pairs by :mod:`dit_jax.release.calibrate`); these defaults serve checkpoints that record none.
 
@@ -135,20 +135,6 @@ class InferenceSettings:
             bands = getattr(self, name)
             if bands is not None:  # stored as tuples, so the settings stay immutable
                 object.__setattr__(self, name, tuple(tuple(band) for band in bands))
-
-    def replace(self, **changes: Any) -> "InferenceSettings":
-        return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> "InferenceSettings":
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"unknown inference settings: {', '.join(unknown)}")
-        return cls(**values)
 
     def model_config(self, config: DITConfig) -> DITConfig:
         """``config`` with the settings' overrides of the model's inference options applied."""

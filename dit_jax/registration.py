@@ -37,13 +37,17 @@ class Registrar:
       params, config: the model (see :func:`load` to read them from a checkpoint).
       settings: the pipeline's settings (:class:`~dit_jax.pipeline.InferenceSettings`).
       **changes: fields of ``settings`` to change, e.g. ``refine="none"``.
+
+    Attributes:
+      settings: the settings in force; config: the model config the network runs (``config`` with the
+        settings' overrides applied); params: the network's parameters.
     """
 
     def __init__(self, params, config: DITConfig, settings: InferenceSettings | None = None, **changes):
         self.settings = (settings or InferenceSettings()).replace(**changes)
-        self.config = config
+        self.config = self.settings.model_config(config)  # what the network runs
         self.params = jax.tree_util.tree_map(jnp.asarray, params)
-        need = model_lib.min_points(self.settings.model_config(config))
+        need = model_lib.min_points(self.config)
         if self.settings.n_points < need:
             raise ValueError(f"n_points={self.settings.n_points} is below the model's minimum {need}")
 

@@ -30,12 +30,12 @@ from dit_jax.data import pipeline, shapes as shapes_lib
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Everything a training run depends on. Presets: :data:`PRESETS`.
+    """Everything a training run depends on. Recipes are files in the repository's ``configs/``
+    (``get_config()``, read by :func:`load_config`), as ``ml_collections`` ConfigDicts of these fields.
 
     Attributes:
-      model: a :mod:`dit_jax.configs` preset name; ``model_overrides`` changes its fields.
-      setting: data setting (one of :data:`dit_jax.data.pairs.SETTINGS`); it also picks the model's GMCCE
-        threshold for validation.
+      model: the network (:class:`dit_jax.configs.DITConfig`), e.g. ``configs.cpu(setting)``.
+      setting: data setting (one of :data:`dit_jax.data.pairs.SETTINGS`).
       settings: train on a mix of these settings instead (each batch from one of them, see
         :class:`dit_jax.data.pairs.MixedPairs`; repeat one to draw it more often); validation then covers
         each of them, and the mean over them chooses the best checkpoint.
@@ -68,13 +68,12 @@ class TrainConfig:
         not the authors'); 0 trains the authors' objective.
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
         whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
-        setting. Its network shape must match ``model``'s, or have fewer PFT layers (``--set
-        model.n_blocks=4`` from a 2-block checkpoint): then the network is grown in depth by
+        setting. Its network shape must match ``model``'s, or have fewer PFT layers
+        (``--config.model.n_blocks=4`` from a 2-block checkpoint): then the network is grown in depth by
         :func:`dit_jax.pft.deepen` and starts out computing what the checkpoint computes.
     """
 
-    model: str = "cpu"
-    model_overrides: tuple[tuple[str, Any], ...] = ()
+    model: DITConfig = dataclasses.field(default_factory=configs.cpu)
     setting: str = "clean"
     settings: tuple[str, ...] = ()
     data_dir: str | None = None
@@ -104,37 +103,70 @@ class TrainConfig:
     init_from: str | None = None
 
     def model_config(self) -> DITConfig:
-        return configs.get(self.model, self.setting).replace(**dict(self.model_overrides))
+        return self.model
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
-        d["model_overrides"] = [list(kv) for kv in self.model_overrides]
+        d["model"] = self.model.to_dict()
         d["lr_drops"] = list(self.lr_drops)
         d["settings"] = list(self.settings)
         return d
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> "TrainConfig":
+        """The config :meth:`to_json` (or a checkpoint's ``train_config``) wrote. Records that name the model
+        by preset (``"model": "cpu"`` with ``model_overrides``) are read as that preset with the changes."""
         d = dict(d)
-        d["model_overrides"] = tuple(tuple(kv) for kv in d.get("model_overrides", ()))
+        overrides = dict(tuple(kv) for kv in d.pop("model_overrides", ()))
+        model = d.get("model", "cpu")
+        d["model"] = (configs.get(model, d.get("setting", "clean")).replace(**overrides) if isinstance(model, str)
+                      else DITConfig.from_dict(model))
         d["lr_drops"] = tuple(d.get("lr_drops", ()))
         d["settings"] = tuple(d.get("settings", ()))
         return cls(**d)
 
+    def to_config_dict(self):
+        """This config as an ``ml_collections.ConfigDict`` (what a file in ``configs/`` returns); unset
+        optional fields are typed placeholders, so the command line can set them."""
+        import typing
 
-PRESETS: Mapping[str, TrainConfig] = {
-    # The authors' recipe (SPEC.md section 11): batch 2, Adam 3e-5, wd 1e-4, drops at 30/60/80 %.
-    "paper": TrainConfig(model="paper", n_points=1000, batch_size=2, epochs=100, lr=3e-5, weight_decay=1e-4,
-                         eval_every=2000, ckpt_every=1000),
-    # A CPU-sized network and point count that learns in hours on two cores.
-    "cpu": TrainConfig(model="cpu", n_points=512, batch_size=8, epochs=100, lr=1e-3),
-    # What `python train.py` runs: a short run on the embedded set that ends within minutes on two cores.
-    "quick": TrainConfig(model="cpu", n_points=256, batch_size=8, epochs=4, lr=1e-3, val_pairs=32,
-                         eval_every=50, ckpt_every=50, log_every=5),
-    # For tests.
-    "tiny": TrainConfig(model="tiny", n_points=64, batch_size=4, epochs=1, lr=1e-3, val_pairs=8, eval_every=10,
-                        ckpt_every=5, log_every=1),
-}
+        from ml_collections import ConfigDict
+        from ml_collections.config_dict import placeholder
+
+        def as_dict(record) -> dict:
+            hints = typing.get_type_hints(type(record))
+            out = {}
+            for field in dataclasses.fields(record):
+                value = getattr(record, field.name)
+                if dataclasses.is_dataclass(value):
+                    value = ConfigDict(as_dict(value))
+                elif value is None:
+                    value = placeholder(next(t for t in typing.get_args(hints[field.name]) if t is not type(None)))
+                out[field.name] = value
+            return out
+
+        return ConfigDict(as_dict(self))
+
+    @classmethod
+    def from_config_dict(cls, config) -> "TrainConfig":
+        """The TrainConfig of an ``ml_collections.ConfigDict`` made by :meth:`to_config_dict` (and changed)."""
+        d = config.to_dict()
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ValueError(f"unknown TrainConfig fields: {', '.join(unknown)}")
+        return cls.from_json(d)
+
+
+def load_config(path: str | os.PathLike) -> TrainConfig:
+    """The :class:`TrainConfig` of a recipe file (``configs/quick.py``): its ``get_config()``."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"recipe_{os.path.basename(path)[:-3]}", os.fspath(path))
+    if spec is None or not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such recipe file")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return TrainConfig.from_config_dict(module.get_config())
 
 
 class TrainState(struct.PyTreeNode):

@@ -6,6 +6,7 @@ the configured one: a product without its own precision would take the global on
 """
 
 import dataclasses
+import pathlib
 
 import jax
 import jax.extend
@@ -76,8 +77,8 @@ def test_every_product_of_registration_has_the_configured_precision(precision):
 
 @pytest.mark.parametrize("precision", configs.PRECISIONS)
 def test_every_product_of_the_train_step_has_the_configured_precision(precision):
-    config = dataclasses.replace(training.PRESETS["tiny"], n_points=24,
-                                 model_overrides=(("precision", precision),))
+    recipe = training.load_config(pathlib.Path(__file__).resolve().parents[1] / "configs" / "tiny.py")
+    config = dataclasses.replace(recipe, n_points=24, model=recipe.model.replace(precision=precision))
     optimizer = training.make_optimizer(config, 10)
     mesh = training.make_mesh(jax.devices()[:1])
     state = training.init_state(config, optimizer)

@@ -17,7 +17,11 @@ from conftest import random_rotation
 from dit_jax import losses, model, training
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-TINY = dataclasses.replace(training.PRESETS["tiny"], max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4)
+TINY_RECIPE = training.load_config(ROOT / "configs" / "tiny.py")
+TINY = dataclasses.replace(TINY_RECIPE, max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4)
+#: train.py's arguments for TINY.
+TINY_ARGS = ["--config", str(ROOT / "configs" / "tiny.py"), "--config.max_steps=12", "--config.ckpt_every=4",
+             "--config.eval_every=6", "--config.val_pairs=4"]
 
 
 @pytest.fixture(scope="module")
@@ -59,8 +63,10 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     from dit_jax.data import pipeline
 
     steps = 30
-    base = dataclasses.replace(training.PRESETS["tiny"], model="cpu", n_points=128, max_steps=steps, train_iters=1,
-                               model_overrides=(("n_blocks", 1),))
+    from dit_jax import configs
+
+    base = dataclasses.replace(TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), n_points=128, max_steps=steps,
+                               train_iters=1)
     optimizer = training.make_optimizer(base, steps)
     mesh = training.make_mesh()
     step = training.make_train_step(base, optimizer, mesh)
@@ -157,9 +163,8 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared,
 def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_run):
     _, whole = tiny_run  # the same run, uninterrupted
     workdir = tmp_path / "killed"
-    cmd = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--workdir", str(workdir), "--no-progress",
-           "--prepared-dir", prepared, "--set", "max_steps=12", "--set", "ckpt_every=4", "--set", "eval_every=6",
-           "--set", "val_pairs=4"]
+    cmd = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--workdir", str(workdir), "--no-progress",
+           "--prepared-dir", prepared]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and not (workdir / "checkpoints" / "4").exists():
@@ -184,7 +189,7 @@ def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
     with pytest.raises(training.TrainCheckpointError, match="does not restore"):
         training.train(dataclasses.replace(config, max_steps=8), str(tmp_path / "run"), resume=True,
                        prepared_dir=prepared, progress=False)
-    other = dataclasses.replace(config, model_overrides=(("n_blocks", 2),))
+    other = dataclasses.replace(config, model=config.model.replace(n_blocks=2))
     with pytest.raises(training.TrainCheckpointError, match="made for model"):
         training.train(other, str(tmp_path / "run"), resume=True, prepared_dir=prepared, progress=False)
 
@@ -230,35 +235,53 @@ def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_coun
     np.testing.assert_allclose(float(weighted - plain), 2.0 * 1.9 * 0.09 / 12, rtol=1e-4)
 
 
-def test_train_cli_rejects_unknown_fields(capsys):
+def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
+    """``--config FILE`` and ``--config.FIELD=VALUE`` (``--config.model.FIELD`` for the network): typed, and
+    unknown fields or values of the wrong type end in one line and status 2."""
     sys.path.insert(0, str(ROOT))
     import train
 
-    with pytest.raises(SystemExit):
-        train.parse(["--set", "bogus=1"])
-    assert "no such field" in capsys.readouterr().err
-    _, config, workdir = train.parse(["--preset", "tiny", "--set", "lr=0.5", "--set", "model.n_blocks=2"])
-    assert config.lr == 0.5 and config.model_config().n_blocks == 2 and workdir == "runs/tiny-clean"
-    # A flag reads true/false in any case; "false" is never a truthy string.
-    _, config, _ = train.parse(["--preset", "tiny", "--set", "differentiable=false", "--set", "validate_at_start=Off"])
-    assert config.differentiable is False and config.validate_at_start is False
-    for bad, fragment in (("differentiable=maybe", "expected true or false"), ("lr=fast", "expected a number"),
-                          ("model.n_blocks=two", "expected a number"), ("eval_every=2.5", "a whole number")):
-        with pytest.raises(SystemExit):
-            train.parse(["--preset", "tiny", "--set", bad])
-        assert fragment in capsys.readouterr().err, bad
+    _, config, workdir = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.lr=0.5",
+                                      "--config.model.n_blocks=2", "--config.max_steps=7"])
+    assert config.lr == 0.5 and config.model.n_blocks == 2 and config.max_steps == 7 and workdir == "runs/tiny-clean"
+    assert dataclasses.replace(config, lr=TINY_RECIPE.lr, max_steps=None,
+                               model=TINY_RECIPE.model) == TINY_RECIPE, "nothing else moves"
+    _, config, _ = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.differentiable=false",
+                                "--config.settings=('clean', 'independent_clean')"])
+    assert config.differentiable is False and config.settings == ("clean", "independent_clean")
+    _, default, workdir = train.parse([])
+    assert default == training.load_config(ROOT / "configs" / "quick.py") and workdir == "runs/quick-clean"
+    for bad in ("--config.bogus=1", "--config.lr=fast", "--config.model.n_blocks=two", "--preset=tiny"):
+        with pytest.raises(SystemExit) as exit_info:
+            train.parse([bad])
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and err.startswith("train.py: error:") and err.count("\n") == 1, bad
 
 
 def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
     sys.path.insert(0, str(ROOT))
     import train
 
-    config = dataclasses.replace(TINY, lr=0.123, model_overrides=(("n_blocks", 2),))
-    (tmp_path / "train_config.json").write_text(__import__("json").dumps(config.to_json()))
+    config = dataclasses.replace(TINY, lr=0.123, model=TINY.model.replace(n_blocks=2))
+    (tmp_path / "train_config.json").write_text(json.dumps(config.to_json()))
     _, resumed, _ = train.parse(["--workdir", str(tmp_path), "--resume"])
     assert resumed == config
-    _, explicit, _ = train.parse(["--workdir", str(tmp_path), "--resume", "--preset", "tiny"])
-    assert explicit == training.PRESETS["tiny"]
+    _, explicit, _ = train.parse(["--workdir", str(tmp_path), "--resume", "--config", str(ROOT / "configs" / "tiny.py")])
+    assert explicit == TINY_RECIPE
+
+
+def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path, tiny_run):
+    """Every file in configs/ (the shipped weights' runs included) gives a valid TrainConfig; a trained model
+    records the config it was trained with, readable back into the same type; a record that names the
+    model by preset (as the shipped weights' older runs do) reads as that preset with its changes."""
+    from dit_jax import checkpoint, configs
+
+    for path in sorted((ROOT / "configs").rglob("*.py")):
+        assert isinstance(training.load_config(path), training.TrainConfig), path
+    recorded = checkpoint.read_extra(tiny_run[1]["model"])["train_config"]
+    assert training.TrainConfig.from_json(recorded) == TINY
+    legacy = dict(TINY.to_json(), model="cpu", model_overrides=[["n_blocks", 1]])
+    assert training.TrainConfig.from_json(legacy).model == configs.cpu("clean").replace(n_blocks=1)
 
 
 def test_unseen_split_validates_on_held_out_training_categories(prepared):
@@ -288,7 +311,7 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     with pytest.raises(ValueError, match="does not have this run's shape"):
         training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
     # A deeper run starts from the shallower checkpoint grown in depth: the same registration to the bit.
-    deeper = dataclasses.replace(config, model_overrides=(("n_blocks", config.model_config().n_blocks + 1),))
+    deeper = dataclasses.replace(config, model=config.model.replace(n_blocks=config.model.n_blocks + 1))
     grown = training._initialise_from(training.init_state(deeper, optimizer), str(source), optimizer).params
     points = jax.random.normal(jax.random.PRNGKey(1), (1, 64, 3))
     moved = points @ jnp.asarray(random_rotation(np.random.default_rng(0)), jnp.float32).T
@@ -353,9 +376,7 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     one run saves that process's compilation: 102 -> 70 s alone.)
     """
     prepared = str(tmp_path / "prepared")
-    args = [sys.executable, str(ROOT / "train.py"), "--preset", "tiny", "--set", "max_steps=12", "--set",
-            "eval_every=6", "--set", "ckpt_every=4", "--set", "val_pairs=4", "--no-progress",
-            "--prepared-dir", prepared]
+    args = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--no-progress", "--prepared-dir", prepared]
     # two CPU devices per process, whatever device count the environment asks for
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=2")
@@ -385,7 +406,7 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     assert step_two == step_one == 12
     import optax
 
-    start = training.init_state(training.PRESETS["tiny"], optax.sgd(0.1)).params
+    start = training.init_state(TINY_RECIPE, optax.sgd(0.1)).params
     moved = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
                 for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(start)))
     differ = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))

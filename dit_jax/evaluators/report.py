@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 from typing import Sequence
 
 import jax.numpy as jnp
@@ -210,3 +212,12 @@ def plot_scan_success(results: dict, path: str) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_results(out_dir: str, results: dict, table: str) -> None:
+    """Writes an evaluation's ``results.json`` and its Markdown ``table`` (``results.md``) to ``out_dir``."""
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "results.json"), "w") as f:
+        json.dump(results, f, indent=2)
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(table)

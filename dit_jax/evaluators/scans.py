@@ -3,7 +3,6 @@ pairs of scans, in the users' path (:meth:`dit_jax.registration.Registrar.regist
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from typing import Sequence
@@ -139,12 +138,8 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                               f"{set_name} ({os.path.basename(os.path.normpath(scans_dir))})", worst)
     if bar is not None:
         bar.close()
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, "results.json"), "w") as f:
-        json.dump(results, f, indent=2)
     table = report.scan_tables(results)
-    with open(os.path.join(out_dir, "results.md"), "w") as f:
-        f.write(table)
+    report.write_results(out_dir, results, table)
     report.plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
     results["table"] = table
     return results

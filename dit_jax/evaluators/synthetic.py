@@ -248,11 +248,8 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                       f"keep their worst pair", file=sys.stderr)
     if bar is not None:
         bar.close()
-    with open(os.path.join(out_dir, "results.json"), "w") as f:
-        json.dump(results, f, indent=2)
     table = report.markdown_tables(results)
-    with open(os.path.join(out_dir, "results.md"), "w") as f:
-        f.write(table)
+    report.write_results(out_dir, results, table)
     report.plot_success(results, os.path.join(out_dir, "success_ratio.png"))
     if first_dit is not None:
         setting, ds, pred = first_dit

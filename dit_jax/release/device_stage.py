@@ -15,7 +15,7 @@ with ``--seconds`` alone (then the recipe is timed first, at the cost of compili
 ``run`` first times the shared recipe for a few steps (which also compiles the validation into a shared
 persistent cache), then chooses ``max_steps`` so that every run ends inside ``--seconds`` with its
 learning-rate schedule whole, starts the runs side by side, stops any run still going at the deadline (its
-best checkpoint so far is kept, or its latest where it never validated: ``--set validate_at_start=False``
+best checkpoint so far is kept, or its latest where it never validated: ``--config.validate_at_start=False``
 skips the validation before the first step, whose compiling ate most of a 15-minute lease), and writes to
 ``--out`` for each run one ``NAME.tar`` (``best/`` or ``checkpoints/``,
 ``metrics.jsonl``, ``train_config.json``: what ``dit-ship-weights`` and
@@ -130,15 +130,15 @@ def run(args) -> int:
     runs = []
     for spec in args.run:
         name, _, sets = spec.partition(":")
-        extra = [f"--set={s}" for s in sets.split(",") if s]
+        extra = [f"--config.{s}" for s in sets.split(",") if s]
         runs.append((name, extra))
     base = list(args.train_args)
 
     if args.steps:
         return _train_side_by_side(args, runs, base, start, deadline, args.steps, None)
     # Timing: the first run's recipe for a few steps, validation included (it fills the compile cache).
-    calib = [*base, *runs[0][1], f"--set=max_steps={args.calibration_steps}", "--set=log_every=10",
-             "--set=eval_every=1000000", "--set=ckpt_every=1000000"]
+    calib = [*base, *runs[0][1], f"--config.max_steps={args.calibration_steps}", "--config.log_every=10",
+             "--config.eval_every=1000000", "--config.ckpt_every=1000000"]
     proc = _launch("calibration", args, calib, args.out)
     try:
         proc.wait(timeout=max(60.0, deadline - time.time() - 120))
@@ -169,8 +169,8 @@ def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) ->
     ckpt_every = min(every, args.ckpt_every or every)
     procs = {}
     for name, extra in runs:
-        procs[name] = _launch(name, args, [*base, *extra, f"--set=max_steps={steps}", f"--set=eval_every={every}",
-                                           f"--set=ckpt_every={ckpt_every}"], args.out)
+        procs[name] = _launch(name, args, [*base, *extra, f"--config.max_steps={steps}",
+                                           f"--config.eval_every={every}", f"--config.ckpt_every={ckpt_every}"], args.out)
     for name, p in procs.items():
         try:
             p.wait(timeout=max(1.0, deadline - time.time() - args.margin / 2))

@@ -1,0 +1,30 @@
+"""Run 2 of 6 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from run 1's weights: 1000 steps, the
+best validation checkpoint kept (step 1000).
+
+As run then (``dit_jax.release.ship_weights`` recorded it):
+
+    python train.py --preset cpu --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --settings clean \
+        low_noise_partial high_noise_partial independent_clean independent_clean independent_high_noise_partial \
+        scan_low_noise scan_high_noise scan_high_noise --init-from dit_jax/weights/dit-cpu-modelnet40 --set \
+        max_steps=1000 --set lr=3e-4 --set 'lr_drops=(0.6,0.85)' --set match_radius=0.07 --set val_pairs=24 --set \
+        eval_every=125 --set ckpt_every=50 --workdir runs/mix (stopped at step 500); then the same with --resume \
+        --set lr=1e-3 --set 'lr_drops=(0.75,0.9)'
+"""
+
+from dit_jax import configs
+from dit_jax.training import TrainConfig
+
+
+def get_config():
+    return TrainConfig(model=configs.cpu('clean'),
+                       settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
+                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
+                       unseen=True,
+                       n_points=512,
+                       max_steps=1000,
+                       lr_drops=(0.75, 0.9),
+                       val_pairs=24,
+                       eval_every=125,
+                       ckpt_every=50,
+                       match_radius=0.07,
+                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()

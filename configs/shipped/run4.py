@@ -1,0 +1,32 @@
+"""Run 4 of 6 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from run 3's weights: 1200 steps, the
+best validation checkpoint kept (step 1200).
+
+As run then (``dit_jax.release.ship_weights`` recorded it):
+
+    python train.py --preset cpu --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --settings clean \
+        low_noise_partial high_noise_partial independent_clean independent_clean independent_high_noise_partial \
+        scan_low_noise scan_high_noise scan_high_noise --init-from dit_jax/weights/dit-cpu-modelnet40 --set \
+        max_steps=1200 --set match_radius=0.07 --set correspondence_weight=1.0 --set lr=3e-4 --set \
+        'lr_drops=(0.85,)' --set val_pairs=16 --set eval_every=100 --set ckpt_every=50 --no-progress --workdir \
+        runs/x26/stage5
+"""
+
+from dit_jax import configs
+from dit_jax.training import TrainConfig
+
+
+def get_config():
+    return TrainConfig(model=configs.cpu('clean'),
+                       settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
+                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
+                       unseen=True,
+                       n_points=512,
+                       max_steps=1200,
+                       lr=0.0003,
+                       lr_drops=(0.85,),
+                       val_pairs=16,
+                       eval_every=100,
+                       ckpt_every=50,
+                       match_radius=0.07,
+                       correspondence_weight=1.0,
+                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()
