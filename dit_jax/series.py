@@ -71,7 +71,7 @@ class SeriesResult:
         from dit_jax import plotting
 
         names = [f"{k}: {name}" for k, name in enumerate(names)] if names is not None else None
-        links = [(f"{a} onto {b}", link.agreement, link.max_disagreement, bool(link.verdict))
+        links = [(f"{a} onto {b}", link.agreement, link.threshold, bool(link.verdict))
                  for (a, b), link in zip(self.pairs, self.links)]
         if not np.isnan(self.loop_gap_deg):
             line = f"{len(self.poses)} scans, loop closed (gap {self.loop_gap_deg:.2f} deg before closing)"

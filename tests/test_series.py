@@ -87,7 +87,9 @@ class _ExactRegistrar:
         self.calls.append((a, b, refine))
         motion = np.linalg.inv(self.poses[b]) @ self.poses[a]
         return registration.Result(motion[:3, :3], motion[:3, 3], motion, np.arange(3), np.arange(3),
-                                   np.ones(3), 1.0, 1.0, 0.0, verdict=a != 3)
+                                   np.ones(3), 1.0, 1.0, 0.0, refinement=None, refine_seconds=0.0,
+                                   verdict=a != 3, verdict_rule="agreement", threshold=1.0, agreement=0.5,
+                                   direction="forward", start_turn=0.0, agreement_band=None, network=None)
 
 
 def test_register_series_links_neighbours_and_merges_into_the_first_frame():
