@@ -1,0 +1,75 @@
+"""The registration pipeline's settings and stages that need no network: one typed record of every inference
+setting, its round trip through a checkpoint, and the verdict's stage."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from dit_jax import checkpoint, configs, model, pipeline, registration
+
+
+def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
+    settings = pipeline.InferenceSettings(n_points=512, refine="none", agreement_bands_icp=[[1.0, 20, 19], [None, 5, 1]])
+    assert settings.agreement_bands_icp == ((1.0, 20, 19), (None, 5, 1)), "bands are stored immutable"
+    assert pipeline.InferenceSettings.from_dict(settings.to_dict()) == settings
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.n_points = 3
+    for bad, fragment in (({"refine": "gicp"}, "refine must be one of"), ({"centring": "middle"}, "centring"),
+                          ({"verdict_rule": "vote"}, "verdict_rule"), ({"precision": "half"}, "precision"),
+                          ({"n_iters": 0}, "n_iters"), ({"n_points": 0}, "positive")):
+        with pytest.raises(ValueError, match=fragment):
+            pipeline.InferenceSettings(**bad)
+    with pytest.raises(ValueError, match="unknown InferenceSettings fields: bogus"):
+        pipeline.InferenceSettings.from_dict({"bogus": 1})
+
+
+def test_settings_override_only_the_model_options_they_set():
+    config = configs.tiny()
+    assert pipeline.InferenceSettings().model_config(config) == config
+    changed = pipeline.InferenceSettings(n_iters=5, gmcce_threshold=0.5, precision="tf32").model_config(config)
+    assert (changed.n_iters, changed.gmcce_threshold, changed.precision) == (5, 0.5, "tf32")
+    assert changed.replace(n_iters=config.n_iters, gmcce_threshold=config.gmcce_threshold,
+                           precision=config.precision) == config
+
+
+def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
+    config = configs.tiny()
+    stored = pipeline.InferenceSettings(n_points=128, max_disagreement_icp=2.0, min_fitness=0.8)
+    path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config,
+                           extra={registration.SETTINGS_KEY: stored.to_dict()})
+    assert registration.load(path).settings == stored
+    assert registration.load(path, refine="none").settings == stored.replace(refine="none")
+    bare = checkpoint.save(tmp_path / "bare", model.init(jax.random.key(0), config), config)
+    assert registration.load(bare).settings == pipeline.InferenceSettings(), "defaults live in one place"
+
+
+def test_the_verdict_stage_judges_by_agreement_or_fitness():
+    quarter_turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    settings = pipeline.InferenceSettings(max_disagreement_network=1.0, max_disagreement_icp=100.0,
+                                          agreement_bands_icp=[[10.0, 50, 45], [None, 40, 2]])
+    verdict, threshold, agreement, band = pipeline.judge(settings, "none", 0.0, quarter_turn, quarter_turn.T)
+    assert verdict and threshold == 1.0 and agreement == pytest.approx(0.0, abs=1e-6) and band is None
+    verdict, threshold, agreement, band = pipeline.judge(settings, "icp", 0.0, quarter_turn, quarter_turn)
+    assert not verdict and threshold == 100.0 and agreement == pytest.approx(180.0) and band == (10.0, None, 40, 2)
+    fitness = settings.replace(verdict_rule="fitness", min_fitness=0.6)
+    assert pipeline.judge(fitness, "icp", 0.7, quarter_turn, None)[:2] == (True, 0.6)
+    assert not pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[0]
+    assert np.isnan(pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
+
+
+def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(100, 3))
+    near, far = src + 0.5, src + 1e4
+    src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, near, "auto")
+    np.testing.assert_allclose(src_centre, tgt_centre)  # a few radii apart: one shared centre
+    assert max(np.linalg.norm(src_n, axis=1).max(), np.linalg.norm(tgt_n, axis=1).max()) == pytest.approx(1.0)
+    _, tgt_n, src_centre, tgt_centre, _ = pipeline.normalise(src, far, "auto")
+    np.testing.assert_allclose(tgt_centre - src_centre, [1e4] * 3, atol=1e-6)
+    assert np.abs(tgt_n.mean(axis=0)).max() < 1e-9
+    rotation = np.eye(3)
+    # A motion found between the normalised clouds maps back into the caller's frame.
+    assert np.allclose(pipeline.to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0),
+                       tgt_centre - src_centre)
