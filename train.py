@@ -66,6 +66,9 @@ def parse(argv=None):
     program_argv, sys.argv = sys.argv, ["train.py", *argv]  # the config flag reads its overrides from sys.argv
     try:
         FLAGS = _define_flags()
+        if any(arg in ("-h", "--help", "--helpfull") for arg in argv):
+            print(__doc__.strip() + "\n\nflags:\n" + FLAGS.get_help(include_special_flags=False))
+            raise SystemExit(0)
         FLAGS(sys.argv)
     except (flags.Error, ValueError, TypeError, AttributeError) as err:  # AttributeError: an unknown field
         _usage_error(err)

@@ -251,6 +251,9 @@ def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
     assert config.differentiable is False and config.settings == ("clean", "independent_clean")
     _, default, workdir = train.parse([])
     assert default == training.load_config(ROOT / "configs" / "quick.py") and workdir == "runs/quick-clean"
+    with pytest.raises(SystemExit) as exit_info:
+        train.parse(["--help"])
+    assert exit_info.value.code == 0 and "--config.model.FIELD=VALUE" in capsys.readouterr().out
     for bad in ("--config.bogus=1", "--config.lr=fast", "--config.model.n_blocks=two", "--preset=tiny"):
         with pytest.raises(SystemExit) as exit_info:
             train.parse([bad])

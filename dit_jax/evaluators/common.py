@@ -139,8 +139,8 @@ def rescore_agreement(results: dict, max_disagreement: dict) -> dict:
     kept: nothing is registered again, and every other figure stays as measured. DIT's and DIT+ICP's verdict
     summaries (and, for scans, each row's ``verdict``) are replaced in place; returns ``results``.
 
-    Raises ValueError where an agreement verdict was reported without its per-pair evidence (outputs written
-    before 2026-11-28), which only a new evaluation can score."""
+    Raises ValueError where an agreement verdict was reported without its per-pair evidence (older outputs),
+    which only a new evaluation can score."""
     def threshold(method: str) -> float:
         return float(max_disagreement["icp" if method == METHOD_DIT_ICP else "none"])
 
