@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
                                             ".npy, text (.xyz .txt .csv .asc .pts),\n"
-                                            ".las (read; written only as SRC moved); "
+                                            ".las and .laz (read; written only as SRC moved); "
                                             "meshes (.obj .off .stl, .ply with faces) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())

@@ -1,29 +1,28 @@
 """Point-cloud files: read and write .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) and .npy, read .las and
-meshes (.obj, .off, .stl, .ply), refusing bad input with one-line errors.
+.laz and meshes (.obj, .off, .stl, .ply), refusing bad input with one-line errors.
 
 Every reader returns an (N, 3) float64 array of coordinates and raises :class:`CloudFileError` (a ValueError
 whose message names the file and the problem) for anything it cannot turn into one: a missing or unreadable
 file, an unknown extension, a malformed header, values that are NaN or Inf (``drop_nonfinite=True`` leaves
-those points out instead), or rows that are not three coordinates. Formats:
+those points out instead), or rows that are not three coordinates. The formats are parsed by well-kept
+libraries where one reads them:
 
-* PLY: ``ascii``, ``binary_little_endian`` and ``binary_big_endian``; the ``x``, ``y``, ``z`` properties of the
-  ``vertex`` element (other properties and elements are skipped). Binary files are memory-mapped. A PLY file
-  with faces (a ``face`` element with ``vertex_indices``) is a mesh, sampled as the others are.
-* PCD: ``DATA ascii``, ``binary`` and ``binary_compressed`` (LZF, unpacked in pure Python; timings in
-  docs/BENCHMARKS.md "Reading files") with fields ``x y z`` (any others skipped).
+* PLY (plyfile): ascii and binary, the ``x``, ``y``, ``z`` properties of the ``vertex`` element; binary
+  vertices are memory-mapped. A PLY file with faces (``vertex_indices``) is a mesh, sampled as the others are.
+* PCD (pypcd4): ``ascii``, ``binary`` and ``binary_compressed``, fields ``x y z`` (others skipped).
+* LAS and LAZ (laspy, with lazrs for LAZ): every version and point format, scaled and offset as the header says.
+* STL (trimesh), ASCII or binary; surface sampling (``trimesh.sample``).
+* OBJ and OFF: read here. trimesh drops the vertices of an OBJ without faces (a cloud) and refuses OFF
+  files whose counts share the keyword's line (``OFF490 518 0``, as ModelNet's are written).
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
-  columns after the third (normals, colours, intensity) are ignored, ``#`` starts a comment, and a first
-  line that is not three numbers is taken for a header and skipped (column names such as ``x,y,z`` or
-  ``//X,Y,Z``, or the point count that opens a .pts file).
+  columns after the third are ignored, ``#`` starts a comment, and a first line that is not three numbers is
+  taken for a header and skipped (``x,y,z``, ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
-* LAS (read, and written only as a file moved): ASPRS LAS 1.0-1.4, every point data format, memory-mapped;
-  X, Y, Z scaled and offset as the header says. Compressed LAZ is refused with the hint to decompress it.
-* Meshes (:data:`MESH_FORMATS`): .obj, .off, .stl and PLY with faces, sampled uniformly over their surface.
 
-:func:`move_file` writes a PLY, PCD, LAS or mesh file moved, every other field kept (``dit-register --out``
-with the source's own extension). Writers (:func:`write`) produce binary little-endian PLY (float or double
-as the input), binary float32 PCD (what PCL and Open3D read), text with enough digits to round-trip (17 for
-float64, 9 otherwise; .csv comma-separated under an ``x,y,z`` header, .pts after the point count) and
+:func:`move_file` writes a PLY, PCD, LAS, LAZ or mesh file moved, every other field kept (``dit-register
+--out`` with the source's own extension). Writers (:func:`write`) produce binary little-endian PLY (float or
+double as the input), binary float32 PCD (what PCL and Open3D read), text with enough digits to round-trip
+(17 for float64, 9 otherwise; .csv comma-separated under an ``x,y,z`` header, .pts after the point count) and
 float32/64 NPY. They write to a temporary file in the destination's folder and rename it into place, so a
 failure leaves nothing half-written.
 """
@@ -31,18 +30,19 @@ failure leaves nothing half-written.
 from __future__ import annotations
 
 import contextlib
+import io as io_lib
 import itertools
 import os
 import re
+import struct
 import tempfile
 import warnings
-from typing import NamedTuple
 
 import numpy as np
 
-FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".las")
-#: The formats :func:`write` writes: all but LAS, which is read (and moved: :func:`move_file`).
-WRITE_FORMATS = tuple(f for f in FORMATS if f != ".las")
+FORMATS = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".asc", ".pts", ".npy", ".las", ".laz")
+#: The formats :func:`write` writes: all but LAS and LAZ, which are read (and moved: :func:`move_file`).
+WRITE_FORMATS = tuple(f for f in FORMATS if f not in (".las", ".laz"))
 #: Meshes, read as points sampled uniformly over their surface (:func:`read`, :func:`read_mesh`) and written
 #: only as a mesh file moved (:func:`move_file`). A PLY or OBJ file without faces is a cloud.
 MESH_FORMATS = (".obj", ".off", ".stl", ".ply")
@@ -50,18 +50,9 @@ MESH_FORMATS = (".obj", ".off", ".stl", ".ply")
 MESH_POINTS = 100_000
 _READ_FORMATS = FORMATS + tuple(f for f in MESH_FORMATS if f not in FORMATS)
 #: The formats :func:`move_file` writes moved, every other property kept.
-MOVE_FORMATS = (".ply", ".pcd", ".las", ".obj", ".off", ".stl")
+MOVE_FORMATS = (".ply", ".pcd", ".las", ".laz", ".obj", ".off", ".stl")
 #: The formats read and written as text, one point per line.
 TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
-              ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
-
 
 class CloudFileError(ValueError):
     """A point-cloud file that cannot be read as (N, 3) finite coordinates; the message names the file."""
@@ -129,15 +120,15 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
     n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
     if ext == ".ply":
         def reader(path_, select_):
-            layout = _ply_layout(path_)
-            if layout.faces() is None:
-                return _read_ply(path_, select_, layout)
+            ply = _ply(path_, mmap=True)
+            if _ply_triangles(ply) is None:
+                return _read_ply(path_, select_, ply)
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     elif ext in MESH_FORMATS:
         def reader(path_, select_):
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     else:
-        reader = {".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las}.get(ext, _read_text)
+        reader = {".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las, ".laz": _read_las}.get(ext, _read_text)
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
@@ -202,9 +193,10 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
     * PLY (cloud or mesh): ``x, y, z`` moved, ``nx, ny, nz`` turned, other properties and elements kept.
     * PCD: ``x, y, z`` moved, ``normal_x, normal_y, normal_z`` turned, the ``VIEWPOINT`` (the sensor's pose)
       moved with the points, other fields kept; ``binary_compressed`` data is written as ``binary``.
-    * LAS: X, Y, Z moved and rounded to the file's scale (its stated precision), the header's bounds (and,
-      where the moved points would overflow its integers, its offset) updated; every other byte kept.
-    * OBJ, OFF, STL: vertices moved, OBJ's ``vn`` and STL's facet normals turned.
+    * LAS, LAZ: X, Y, Z moved and rounded to the file's scale (its stated precision), the header's bounds (and,
+      where the moved points would overflow its integers, its offset) updated; every other attribute kept.
+    * OBJ, OFF, STL: vertices moved, OBJ's ``vn`` and STL's facet normals turned, every other line kept (no
+      mesh library writes a file back with its comments, groups and materials as they were).
 
     Args:
       source, destination: paths of the same format, one of :data:`MOVE_FORMATS`.
@@ -221,14 +213,14 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
     rotation, translation = np.asarray(rotation, np.float64), np.asarray(translation, np.float64)
     if not os.path.isfile(source):
         raise CloudFileError(source, "no such file" if not os.path.exists(source) else "is not a file")
-    content = None  # the moved file (a LAS file is streamed instead), made before anything is written
+    content = None  # the moved file, made whole before anything is written
     try:
         if ext == ".ply":
             content = _moved_ply(source, rotation, translation)
         elif ext == ".pcd":
             content = _moved_pcd(source, rotation, translation)
-        elif ext == ".las":
-            _las_records(source)  # refuses what it cannot read (header and size; the records are read once, below)
+        elif ext in (".las", ".laz"):
+            content = _moved_las(source, rotation, translation)
         elif ext == ".stl" and not _stl_is_ascii(source):
             read_mesh(source)
             with open(source, "rb") as f:
@@ -244,10 +236,78 @@ def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotatio
     except (OSError, ValueError, IndexError, UnicodeDecodeError) as err:
         raise CloudFileError(source, f"unreadable {ext[1:].upper()} file ({_first_line(err)})") from None
     with _atomic_file(destination) as out:
-        if content is None:
-            _write_moved_las(out, source, rotation, translation)
-        else:
-            out.write(content)
+        out.write(content)
+
+
+def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of PLY file ``path`` (plyfile) with its vertices' x, y, z moved and nx, ny, nz turned; its other
+    properties, elements, comments and format kept."""
+    ply = _ply(path)
+    data = np.array(_ply_vertices(path, ply))
+    if any(data.dtype[axis].kind != "f" for axis in _XYZ):
+        raise CloudFileError(path, "PLY coordinates stored as integers would be rounded when moved; "
+                                   "write the moved points to another file instead")
+    _move_fields(data, _NORMALS[".ply"], rotation, translation)
+    ply["vertex"].data = data
+    buffer = io_lib.BytesIO()
+    ply.write(buffer)
+    content = buffer.getvalue()
+    with open(path, "rb") as f:
+        crlf = f.readline().endswith(b"\r\n")
+    if crlf:  # plyfile writes "\n"; a file whose lines end in "\r\n" keeps them (the header's, in a binary one)
+        end = content.index(b"end_header\n") + len(b"end_header\n")
+        header, body = content[:end], content[end:]
+        content = header.replace(b"\n", b"\r\n") + (body.replace(b"\n", b"\r\n") if ply.text else body)
+    return content
+
+
+def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of PCD file ``path`` (pypcd4) with x, y, z moved, normal_x, normal_y, normal_z turned and the
+    VIEWPOINT (the sensor's pose in the cloud's frame) moved with the points; other fields kept, ASCII written
+    as ASCII and binary (compressed or not) as binary."""
+    from pypcd4 import Encoding
+
+    cloud = _pcd(path)
+    _columns(path, list(cloud.fields))
+    meta = cloud.metadata
+    if any(meta.type[meta.fields.index(axis)] != "F" for axis in _XYZ):
+        raise CloudFileError(path, "PCD coordinates stored as integers would be rounded when moved; "
+                                   "write the moved points to another file instead")
+    data = np.array(cloud.pc_data)  # a writable copy
+    _move_fields(data, _NORMALS[".pcd"], rotation, translation)
+    view = np.asarray(meta.viewpoint, np.float64)  # tx ty tz qw qx qy qz
+    pose = (*(rotation @ view[:3] + translation), *_quaternion_product(_rotation_quaternion(rotation), view[3:]))
+    moved = type(cloud)(meta.model_copy(update={"viewpoint": tuple(float(v) for v in pose)}), data)
+    buffer = io_lib.BytesIO()
+    moved.save(buffer, encoding=Encoding.ASCII if meta.data == Encoding.ASCII else Encoding.BINARY)
+    return buffer.getvalue()
+
+
+def _moved_las(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of LAS or LAZ file ``path`` (laspy) with X, Y, Z moved at the file's scale (its stated
+    precision), the header's bounds (and, where the moved points would overflow its integers, its offset)
+    updated; every other attribute, record and VLR kept, LAZ compressed again."""
+    las = _las(path)
+    moved = np.asarray(las.xyz, np.float64) @ rotation.T + translation
+    scale, offset = np.asarray(las.header.scales, np.float64), np.asarray(las.header.offsets, np.float64)
+    limit = 2 ** 31 - 2 ** 20  # int32, with room for rounding
+    if len(moved) and (np.abs((moved - offset) / scale) > limit).any():
+        # re-centre the integers on the moved points
+        # (the header's offset alone: the points are all assigned anew below)
+        las.header.offsets = np.round((moved.min(axis=0) + moved.max(axis=0)) / 2 / scale) * scale
+    las.x, las.y, las.z = moved.T
+    las.update_header()
+    buffer = io_lib.BytesIO()
+    las.write(buffer, do_compress=path.lower().endswith(".laz"))
+    return buffer.getvalue()
+
+
+def _move_fields(table: np.ndarray, normals: tuple[str, str, str], rotation: np.ndarray,
+                 translation: np.ndarray) -> None:
+    """Moves x, y, z of a structured array of points in place, and turns its normals where it has them."""
+    names = table.dtype.names
+    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, normals) if all(a in names for a in axes)]
+    _move_columns([([table[a] for a in axes], is_normal) for axes, is_normal in groups], rotation, translation)
 
 
 def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
@@ -284,34 +344,6 @@ def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.
     return "".join(lines).encode("utf-8", errors="surrogateescape")
 
 
-def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
-    """The bytes of PLY file ``path`` with its vertices' x, y, z moved and nx, ny, nz turned (if it has them)."""
-    layout = _ply_layout(path)
-    index = layout.index("vertex")
-    props = dict(layout.elements[index].props)
-    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".ply"]) if all(a in props for a in axes)]
-    if any(np.dtype(props[a]).kind != "f" for a in _XYZ):
-        raise CloudFileError(path, "PLY coordinates stored as integers would be rounded when moved; "
-                                   "write the moved points to another file instead")
-    with open(path, "rb") as f:
-        data = f.read()
-    if layout.fmt != "ascii":
-        start = _ply_binary_start(path, layout, index, np.frombuffer(data, np.uint8))
-        record, count = _ply_vertex_record(layout), layout.elements[index].count
-        table = np.frombuffer(data, record, count, start).copy()
-        _move_columns([([table[a] for a in axes], is_normal) for axes, is_normal in groups], rotation, translation)
-        return data[:start] + table.tobytes() + data[start + count * record.itemsize:]
-    skip, count = _ply_text_span(layout, index)
-    lines = data[layout.offset:].split(b"\n")
-    if len(lines) < skip + count:
-        raise CloudFileError(path, f"PLY file ends before its {count} vertices")
-    names = [n for n, _ in layout.elements[index].props]
-    columns = [([names.index(a) for a in axes], is_normal, np.dtype(props[axes[0]]).itemsize == 4)
-               for axes, is_normal in groups]
-    block = _moved_text_rows(path, lines[skip:skip + count], len(names), columns, rotation, translation)
-    return data[:layout.offset] + b"\n".join(lines[:skip] + block + lines[skip + count:])
-
-
 def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndarray,
                   translation: np.ndarray) -> None:
     """Moves each group of three coordinate columns (views into a file's records, (N,) each) in place, or,
@@ -322,78 +354,8 @@ def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndar
             view[...] = column
 
 
-def _moved_text_rows(path: str, rows: list[bytes], width: int, columns: list[tuple[list[int], bool, bool]],
-                     rotation: np.ndarray, translation: np.ndarray) -> list[bytes]:
-    """Text rows of ``width`` whitespace-separated values each (an ASCII PLY or PCD file's points, line ends
-    not included) with three columns moved, or turned, at a time.
-
-    Args:
-      columns: per group (three column indices, whether they are a normal, which turns but does not move,
-        whether they are single precision, written with 9 digits instead of the 17 of a double's repr).
-
-    Every row is rebuilt from its values joined by single spaces (``\\r`` line ends kept).
-    """
-    tokens = b" ".join(rows).split()
-    if len(tokens) != len(rows) * width:
-        raise CloudFileError(path, f"expected {width} values on each of {len(rows)} point rows, "
-                                   f"found {len(tokens)} values")
-    for cols, is_normal, single in columns:
-        values = np.stack([np.array(tokens[c::width]).astype(np.float64) for c in cols], axis=1) @ rotation.T
-        values = values if is_normal else values + translation
-        text = list(map(b"%.9g".__mod__ if single else b"%r".__mod__, values.reshape(-1).tolist()))
-        for k, c in enumerate(cols):
-            tokens[c::width] = text[k::3]
-    end = b"\r" if rows and rows[0].endswith(b"\r") else b""
-    parts = [b" "] * (2 * len(tokens))
-    parts[0::2] = tokens
-    parts[2 * width - 1::2 * width] = [end + b"\n"] * len(rows)
-    return b"".join(parts)[:-1].split(b"\n") if rows else []
-
-
 _XYZ = ("x", "y", "z")
 _NORMALS = {".ply": ("nx", "ny", "nz"), ".pcd": ("normal_x", "normal_y", "normal_z")}
-
-
-def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
-    """The bytes of PCD file ``path`` with x, y, z moved, normal_x, normal_y, normal_z turned and the
-    VIEWPOINT moved; ``binary_compressed`` data comes back as ``binary`` (PCL and Open3D read both)."""
-    layout = _pcd_layout(path)
-    header, names = list(layout.header), layout.names
-    _columns(path, names)
-    if any(layout.types[names.index(a)] != "F" for a in _XYZ):
-        raise CloudFileError(path, "PCD coordinates stored as integers would be rounded when moved; "
-                                   "write the moved points to another file instead")
-    if any(layout.counts[names.index(a)] != 1 for a in _XYZ):
-        raise CloudFileError(path, "PCD x/y/z fields must have COUNT 1")
-    groups = [(axes, axes is not _XYZ) for axes in (_XYZ, _NORMALS[".pcd"]) if all(a in names for a in axes)]
-
-    if "VIEWPOINT" in layout.lines:  # the sensor's pose in the cloud's frame: tx ty tz qw qx qy qz
-        number = layout.lines["VIEWPOINT"]
-        view = np.asarray(header[number].split()[1:8], np.float64)
-        pose = (*(rotation @ view[:3] + translation), *_quaternion_product(_rotation_quaternion(rotation), view[3:]))
-        header[number] = "VIEWPOINT " + " ".join(f"{v:.17g}" for v in pose) + "\n"
-    with open(path, "rb") as f:
-        f.seek(layout.offset)
-        data = f.read()
-    if layout.data == "ascii":
-        starts = np.cumsum([0] + layout.counts)[:-1]
-        columns = [([int(starts[names.index(a)]) for a in axes], is_normal, layout.sizes[names.index(axes[0])] == 4)
-                   for axes, is_normal in groups]
-        rows = [row for row in data.split(b"\n") if row.strip()]
-        if len(rows) != layout.count:
-            raise CloudFileError(path, f"PCD header says {layout.count} points, the data has {len(rows)}")
-        body = b"\n".join(_moved_text_rows(path, rows, sum(layout.counts), columns, rotation, translation) + [b""])
-    else:
-        if layout.data == "binary":
-            record = _pcd_record(path, layout)
-            table, rest = np.frombuffer(data, record, layout.count).copy(), data[layout.count * record.itemsize:]
-        else:
-            table, rest = _pcd_compressed_table(path, layout), b""
-            header[layout.lines["DATA"]] = "DATA binary\n"
-        fields = [([table[f"{a}_{names.index(a)}"][:, 0] for a in axes], is_normal) for axes, is_normal in groups]
-        _move_columns(fields, rotation, translation)
-        body = table.tobytes() + rest
-    return "".join(header).encode("ascii", errors="surrogateescape") + body
 
 
 def _rotation_quaternion(rotation: np.ndarray) -> np.ndarray:
@@ -419,37 +381,6 @@ def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     (aw, ax, ay, az), (bw, bx, by, bz) = a, b
     return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
-
-
-def _write_moved_las(out, path: str, rotation: np.ndarray, translation: np.ndarray) -> None:
-    """Writes LAS file ``path`` to ``out`` with its points moved, a million records at a time."""
-    source, records, (data_offset, record_length, count, scale, offset) = _las_records(path)
-    chunks = range(0, count, 1_000_000)
-
-    def moved(chunk: np.ndarray, origin: np.ndarray) -> np.ndarray:  # chunk: (n, record_length) bytes
-        return (np.ascontiguousarray(chunk[:, :12]).view("<i4") * scale + origin) @ rotation.T + translation
-
-    low, high = np.full(3, np.inf), np.full(3, -np.inf)
-    for start in chunks:
-        points = moved(records[start:start + 1_000_000], offset)
-        low, high = np.minimum(low, points.min(axis=0)), np.maximum(high, points.max(axis=0))
-    new_offset = offset
-    limit = 2 ** 31 - 2 ** 20  # int32, with room for rounding
-    if count and ((np.abs((low - offset) / scale) > limit) | (np.abs((high - offset) / scale) > limit)).any():
-        new_offset = np.round((low + high) / 2 / scale) * scale  # re-centre the integers on the moved points
-    out.write(source[:data_offset].tobytes())
-    low, high = np.full(3, np.inf), np.full(3, -np.inf)
-    for start in chunks:
-        chunk = np.array(records[start:start + 1_000_000])  # every byte of each record, X, Y, Z replaced
-        xyz = np.round((moved(chunk, offset) - new_offset) / scale).astype("<i4")
-        chunk[:, :12] = xyz.view(np.uint8).reshape(len(chunk), 12)
-        out.write(chunk.tobytes())
-        low, high = np.minimum(low, xyz.min(axis=0)), np.maximum(high, xyz.max(axis=0))
-    out.write(source[data_offset + count * record_length:].tobytes())  # EVLRs, waveforms
-    if count:  # the header's offset, then its bounds (max x, min x, max y, ...) as the points now lie
-        bounds = np.stack([high, low], axis=1) * scale[:, None] + new_offset[:, None]
-        out.seek(155)
-        out.write(new_offset.astype("<f8").tobytes() + bounds.reshape(-1).astype("<f8").tobytes())
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
@@ -490,19 +421,6 @@ def _first_line(err: BaseException) -> str:
     return text[0] if text else type(err).__name__
 
 
-def _read_header(f, path: str, end: bytes, limit: int = 1000) -> list[str]:
-    lines = []
-    for _ in range(limit):
-        raw = f.readline()
-        if not raw:
-            raise CloudFileError(path, f"header ended without {end.decode()!r}")
-        line = raw.decode("ascii", errors="replace").strip()
-        lines.append(line)
-        if raw.strip().startswith(end):
-            return lines
-    raise CloudFileError(path, f"no {end.decode()!r} in the first {limit} header lines")
-
-
 def _columns(path: str, names: list[str]) -> list[int]:
     missing = [axis for axis in "xyz" if axis not in names]
     if missing:
@@ -511,414 +429,98 @@ def _columns(path: str, names: list[str]) -> list[int]:
     return [names.index(axis) for axis in "xyz"]
 
 
-def _binary_records(path: str, dtype: np.dtype, offset: int, count: int, select, too_short: str) -> np.ndarray:
-    """The ``count`` records at ``offset``, memory-mapped, then the rows ``select`` keeps (all if None)."""
-    if os.path.getsize(path) < offset + count * dtype.itemsize:
-        raise CloudFileError(path, too_short.format(count))
-    if count == 0:
-        return np.zeros(0, dtype)
-    table = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
-    rows_kept = select(count)
-    return table if rows_kept is None else table[rows_kept]
+def _ply(path: str, *, mmap: bool = False):
+    """The ``plyfile.PlyData`` of a PLY file (binary elements memory-mapped with ``mmap``)."""
+    from plyfile import PlyData, PlyParseError
 
-
-class _PlyElement(NamedTuple):
-    name: str
-    count: int
-    #: (name, dtype) per property: a NumPy type code for a scalar, (count type, item type) for a list
-    props: list[tuple[str, str | tuple[str, str]]]
-
-    @property
-    def has_lists(self) -> bool:
-        return any(isinstance(t, tuple) for _, t in self.props)
-
-
-class _PlyLayout(NamedTuple):
-    fmt: str  # ascii, binary_little_endian or binary_big_endian
-    elements: list[_PlyElement]
-    offset: int  # where the data starts
-
-    @property
-    def order(self) -> str:
-        return "<" if self.fmt == "binary_little_endian" else ">"
-
-    def index(self, name: str) -> int | None:
-        names = [e.name for e in self.elements]
-        return names.index(name) if name in names else None
-
-    def faces(self) -> tuple[int, str] | None:
-        """The face element's index and the name of its list of vertex indices, if it has faces at all."""
-        index = self.index("face")
-        if index is None or not self.elements[index].count:
-            return None
-        lists = [n for n, t in self.elements[index].props if isinstance(t, tuple)]
-        name = next((n for n in ("vertex_indices", "vertex_index") if n in lists), None)
-        return None if name is None else (index, name)
-
-
-def _ply_layout(path: str) -> _PlyLayout:
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise CloudFileError(path, "not a PLY file (first line is not 'ply')")
-        header = _read_header(f, path, b"end_header")
-        offset = f.tell()
-    fmt, elements = None, []
-    for line in header:
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info", "end_header"):
-            continue
-        if words[0] == "format" and len(words) >= 2:
-            fmt = words[1]
-        elif words[0] == "element" and len(words) == 3:
-            elements.append(_PlyElement(words[1], int(words[2]), []))
-        elif words[0] == "property" and elements:
-            if words[1] == "list" and len(words) == 5 and words[2] in _PLY_TYPES and words[3] in _PLY_TYPES:
-                elements[-1].props.append((words[4], (_PLY_TYPES[words[2]], _PLY_TYPES[words[3]])))
-            elif words[1] in _PLY_TYPES and len(words) == 3:
-                elements[-1].props.append((words[2], _PLY_TYPES[words[1]]))
-            else:
-                raise CloudFileError(path, f"unsupported PLY property line {line!r}")
-        else:
-            raise CloudFileError(path, f"malformed PLY header line {line!r}")
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise CloudFileError(path, f"unknown PLY format {fmt!r}")
-    layout = _PlyLayout(fmt, elements, offset)
-    index = layout.index("vertex")
-    if index is None:
-        raise CloudFileError(path, "PLY file has no vertex element")
-    _columns(path, [n for n, _ in elements[index].props])
-    if elements[index].has_lists:
-        raise CloudFileError(path, "PLY vertex element has list properties; only scalar properties are read")
-    return layout
-
-
-def _ply_vertex_record(layout: _PlyLayout) -> np.dtype:
-    props = layout.elements[layout.index("vertex")].props
-    return np.dtype([(n if n else f"_{i}", layout.order + t) for i, (n, t) in enumerate(props)])
-
-
-def _ply_text_span(layout: _PlyLayout, index: int) -> tuple[int, int]:
-    """Where element ``index`` of an ASCII PLY file lies: (lines after the header before its first item, its
-    item count). Every item takes one line, so the elements before it take one line per item."""
-    return sum(e.count for e in layout.elements[:index]), layout.elements[index].count
-
-
-def _ply_text_rows(path: str, layout: _PlyLayout, index: int) -> list[str]:
-    """The text lines of element ``index`` of an ASCII PLY file (one line per item)."""
-    skip, count = _ply_text_span(layout, index)
-    with open(path, "rb") as f:
-        f.seek(layout.offset)
-        for _ in range(skip):
-            f.readline()
-        rows = [f.readline().decode("ascii", errors="replace") for _ in range(count)]
-    if count and not rows[-1]:
-        raise CloudFileError(path, f"PLY file ends before its {count} {layout.elements[index].name} items")
-    return rows
-
-
-def _ply_binary_start(path: str, layout: _PlyLayout, index: int, data: np.ndarray) -> int:
-    """The byte at which element ``index`` of a binary PLY file starts: elements before it are walked."""
-    start = layout.offset
-    for element in layout.elements[:index]:
-        start = _ply_binary_lists(path, layout, element, start, data)[0]
-    return start
-
-
-def _ply_binary_lists(path: str, layout: _PlyLayout, element: _PlyElement, start: int,
-                      data: np.ndarray) -> tuple[int, dict[str, tuple[np.ndarray, np.ndarray]]]:
-    """Where ``element`` (starting at byte ``start`` of ``data``, the file's bytes) ends, and each list property
-    as (counts (count,), items (sum of counts,)).
-
-    Lists usually all have one length (a triangle mesh): the rows are then one fixed record, read at once.
-    Otherwise (triangles and quads mixed) they are walked row by row.
-    """
-    order, count = layout.order, element.count
-    scalar = [np.dtype(order + t).itemsize if not isinstance(t, tuple) else None for _, t in element.props]
-    lists = [(n, t) for n, t in element.props if isinstance(t, tuple)]
-    if not lists:
-        end = start + count * sum(scalar)
-        if end > len(data):
-            raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
-        return end, {}
-    if count == 0:
-        return start, {n: (np.zeros(0, np.int64), np.zeros(0, np.int64)) for n, _ in lists}
-    buffer = memoryview(data)
-    first, pos = [], start
-    for (name, t), size in zip(element.props, scalar):  # the first row's list lengths
-        if size is None:
-            if pos + np.dtype(t[0]).itemsize > len(data):
-                raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
-            first.append(int(np.frombuffer(buffer, order + t[0], 1, pos)[0]))
-            pos += np.dtype(t[0]).itemsize + first[-1] * np.dtype(t[1]).itemsize
-        else:
-            pos += size
-    fields, lengths = [], iter(first)
-    for i, (name, t) in enumerate(element.props):
-        if isinstance(t, tuple):
-            fields += [(f"{name}#n", order + t[0]), (f"{name}#items", order + t[1], (next(lengths),))]
-        else:
-            fields.append((f"_{i}", order + t))
-    record = np.dtype(fields)
-    end = start + count * record.itemsize
-    if count and end <= len(data):
-        table = np.frombuffer(buffer, record, count, start)
-        if all((table[f"{n}#n"] == k).all() for (n, _), k in zip(lists, first)):
-            return end, {n: (np.full(count, k, np.int64), table[f"{n}#items"].reshape(-1).astype(np.int64))
-                         for (n, _), k in zip(lists, first)}
-    # lists of several lengths: walk the rows
-    found = {n: ([], []) for n, _ in lists}
-    pos = start
     try:
-        for _ in range(count):
-            for (name, t), size in zip(element.props, scalar):
-                if size is not None:
-                    pos += size
-                    continue
-                n = int(np.frombuffer(buffer, order + t[0], 1, pos)[0])
-                pos += np.dtype(t[0]).itemsize
-                found[name][0].append(n)
-                found[name][1].append(np.frombuffer(buffer, order + t[1], n, pos))
-                pos += n * np.dtype(t[1]).itemsize
-    except ValueError:  # frombuffer past the end
-        raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items") from None
-    if pos > len(data):
-        raise CloudFileError(path, f"PLY file ends before its {count} {element.name} items")
-    return pos, {n: (np.asarray(c, np.int64), np.concatenate(items).astype(np.int64) if items else
-                     np.zeros(0, np.int64)) for n, (c, items) in found.items()}
+        return PlyData.read(path, mmap="r" if mmap else False)
+    except PlyParseError as err:
+        raise CloudFileError(path, f"malformed PLY file ({_first_line(err)})") from None
 
 
-def _read_ply(path: str, select, layout: _PlyLayout | None = None) -> tuple[np.ndarray, int]:
+def _ply_vertices(path: str, ply) -> np.ndarray:
+    """The vertex element's records of a ``PlyData`` (x, y and z among their fields)."""
+    if "vertex" not in ply:
+        raise CloudFileError(path, "PLY file has no vertex element")
+    data = ply["vertex"].data
+    _columns(path, list(data.dtype.names or ()))
+    return data
+
+
+def _ply_triangles(ply) -> np.ndarray | None:
+    """(F, 3) triangles of a ``PlyData``'s faces (polygons split into fans), or None where it has none."""
+    if "face" not in ply or not ply["face"].count:
+        return None
+    names = [prop.name for prop in ply["face"].properties]
+    name = next((n for n in ("vertex_indices", "vertex_index") if n in names), None)
+    if name is None:
+        return None
+    lists = ply["face"].data[name]
+    counts = np.fromiter(map(len, lists), np.int64, len(lists))
+    corners = np.concatenate(list(lists)).astype(np.int64) if counts.sum() else np.zeros(0, np.int64)
+    return _fans(corners, counts)
+
+
+def _read_ply(path: str, select, ply=None) -> tuple[np.ndarray, int]:
     """The vertices of a PLY file (``select`` picks the rows kept) and how many it holds."""
-    layout = layout or _ply_layout(path)
-    index = layout.index("vertex")
-    count, props = layout.elements[index].count, layout.elements[index].props
-    cols = _columns(path, [n for n, _ in props])
-    if layout.fmt == "ascii":
-        rows = _ply_text_rows(path, layout, index)
-        table = np.loadtxt(rows, dtype=np.float64, ndmin=2, usecols=range(len(props)))
-        table = table[:, cols] if count else np.zeros((0, 3))
-        rows_kept = select(count)
-        return (table if rows_kept is None else table[rows_kept]), count
-    start = _ply_binary_start(path, layout, index, np.memmap(path, np.uint8, mode="r"))
-    table = _binary_records(path, _ply_vertex_record(layout), start, count, select,
-                            "PLY file ends before its {} vertices")
-    return np.stack([table[axis].astype(np.float64) for axis in "xyz"], axis=1), count
+    data = _ply_vertices(path, ply if ply is not None else _ply(path, mmap=True))
+    rows_kept = select(len(data))
+    kept = data if rows_kept is None else data[rows_kept]
+    return np.stack([np.asarray(kept[axis], np.float64) for axis in _XYZ], axis=1), len(data)
 
 
 def _read_ply_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
-    layout = _ply_layout(path)
-    vertices, _ = _read_ply(path, lambda count: None, layout)
-    faces = layout.faces()
-    if faces is None:
-        return vertices, np.zeros((0, 3), np.int64)
-    index, name = faces
-    element = layout.elements[index]
-    if layout.fmt == "ascii":
-        counts, corners = [], []
-        for number, row in enumerate(_ply_text_rows(path, layout, index)):
-            words, at = row.split(), 0
-            for prop, t in element.props:
-                if not isinstance(t, tuple):
-                    at += 1
-                    continue
-                n = int(words[at])
-                if prop == name:
-                    counts.append(n)
-                    corners.extend(words[at + 1:at + 1 + n])
-                at += 1 + n
-            if at > len(words):
-                raise CloudFileError(path, f"PLY face {number} lists fewer values than its properties need")
-        counts, corners = np.asarray(counts, np.int64), np.asarray(corners, np.int64)
-    else:
-        data = np.memmap(path, np.uint8, mode="r")
-        start = _ply_binary_start(path, layout, index, data)
-        counts, corners = _ply_binary_lists(path, layout, element, start, data)[1][name]
-    return vertices, _fans(corners, counts)
+    ply = _ply(path, mmap=True)
+    vertices, _ = _read_ply(path, lambda count: None, ply)
+    triangles = _ply_triangles(ply)
+    return vertices, np.zeros((0, 3), np.int64) if triangles is None else triangles
 
 
-def _las_layout(path: str) -> tuple[int, int, int, np.ndarray, np.ndarray]:
-    """A LAS file's point data offset, record length, point count, scale (3,) and offset (3,)."""
-    with open(path, "rb") as f:
-        header = f.read(375)
-    if len(header) < 227 or header[:4] != b"LASF":
-        raise CloudFileError(path, "not a LAS file (no LASF signature)")
-    version = (header[24], header[25])
-    data_offset = int(np.frombuffer(header, "<u4", 1, 96)[0])
-    point_format, record_length = header[104], int(np.frombuffer(header, "<u2", 1, 105)[0])
-    if point_format & 0xC0:  # LAZ marks compressed records in the top bits of the format
-        raise CloudFileError(path, "compressed LAS (LAZ) is not supported; decompress it first (laszip)")
-    count = int(np.frombuffer(header, "<u4", 1, 107)[0])
-    if version >= (1, 4) and len(header) >= 255:  # 1.4 keeps a 64-bit count; the legacy one may be 0
-        count = max(count, int(np.frombuffer(header, "<u8", 1, 247)[0]))
-    if record_length < 12:
-        raise CloudFileError(path, f"LAS point records of {record_length} bytes cannot hold X, Y, Z")
-    scale, offset = np.frombuffer(header, "<f8", 3, 131), np.frombuffer(header, "<f8", 3, 155)
-    return data_offset, record_length, count, scale, offset
+def _pcd(path: str):
+    """The ``pypcd4.PointCloud`` of a PCD file (any of its three encodings)."""
+    from pypcd4 import PointCloud
 
-
-def _las_records(path: str) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """A LAS file memory-mapped, its point records as (count, record_length) bytes and :func:`_las_layout`;
-    :class:`CloudFileError` where the header is not one or the file ends before its records."""
-    layout = data_offset, record_length, count, _, _ = _las_layout(path)
-    source = np.memmap(path, np.uint8, mode="r")
-    if len(source) < data_offset + count * record_length:
-        raise CloudFileError(path, f"LAS file ends before its {count} points")
-    return source, source[data_offset:data_offset + count * record_length].reshape(count, record_length), layout
-
-
-def _read_las(path: str, select) -> tuple[np.ndarray, int]:
-    """LAS 1.0-1.4 (ASPRS), any point data format: each record opens with X, Y, Z as int32, in units of the
-    header's scale, from its offset. LAZ (compressed) is refused."""
-    data_offset, record_length, count, scale, offset = _las_layout(path)
-    record = np.dtype({"names": ["xyz"], "formats": [("<i4", 3)], "offsets": [0], "itemsize": record_length})
-    table = _binary_records(path, record, data_offset, count, select, "LAS file ends before its {} points")
-    return table["xyz"] * scale + offset, count
-
-
-class _PcdLayout(NamedTuple):
-    header: list[str]  # the header's lines, line ends kept
-    lines: dict[str, int]  # the line number of each keyword (FIELDS, VIEWPOINT, DATA, ...)
-    names: list[str]
-    sizes: list[int]
-    types: list[str]
-    counts: list[int]
-    count: int  # points
-    data: str  # ascii, binary or binary_compressed
-    offset: int  # where the data starts
-
-
-def _pcd_layout(path: str) -> _PcdLayout:
-    with open(path, "rb") as f:
-        _read_header(f, path, b"DATA")
-        offset = f.tell()
-        f.seek(0)
-        header = f.read(offset).decode("ascii", errors="surrogateescape").splitlines(keepends=True)
-    fields: dict[str, list[str]] = {}
-    lines = {}
-    for number, line in enumerate(header):
-        words = line.split()
-        if words and not words[0].startswith("#"):
-            fields[words[0].upper()], lines[words[0].upper()] = words[1:], number
-    names = fields.get("FIELDS", [])
-    n = len(names)
-    sizes = [int(s) for s in fields.get("SIZE", ["4"] * n)]
-    types = [t.upper() for t in fields.get("TYPE", ["F"] * n)]
-    counts = [int(c) for c in fields.get("COUNT", ["1"] * n)]
-    if not len(sizes) == len(types) == len(counts) == n:
-        raise CloudFileError(path, "PCD header's FIELDS, SIZE, TYPE and COUNT disagree in length")
-    width, height = int(fields.get("WIDTH", ["0"])[0]), int(fields.get("HEIGHT", ["1"])[0])
-    count = int(fields.get("POINTS", [str(width * height)])[0])
-    data = (fields.get("DATA") or ["?"])[0].lower()
-    return _PcdLayout(header, lines, names, sizes, types, counts, count, data, offset)
-
-
-def _pcd_record(path: str, layout: _PcdLayout) -> np.dtype:
-    """One point of a binary PCD file, its fields named ``{name}_{index}`` (names may repeat: ``_`` pads)."""
     try:
-        return np.dtype([(f"{name}_{i}", "<" + _PCD_TYPES[(t, s)], (k,)) for i, (name, t, s, k) in
-                         enumerate(zip(layout.names, layout.types, layout.sizes, layout.counts))])
-    except KeyError:
-        raise CloudFileError(path, f"unsupported PCD TYPE/SIZE {list(zip(layout.types, layout.sizes))}") from None
+        return PointCloud.from_path(path)
+    except (ValueError, KeyError, IndexError, TypeError, EOFError, RuntimeError, struct.error) as err:
+        raise CloudFileError(path, f"malformed PCD file ({_first_line(err)})") from None
 
 
 def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
-    layout = _pcd_layout(path)
-    names, sizes, types, counts, count, data, offset = layout[2:]
-    cols = _columns(path, names)
-    if any(counts[c] != 1 for c in cols):
-        raise CloudFileError(path, "PCD x/y/z fields must have COUNT 1")
-    if data == "ascii":
-        with open(path, "rb") as f:
-            f.seek(offset)
-            table = np.loadtxt(f, dtype=np.float64, ndmin=2)
-        if table.size == 0:
-            table = np.zeros((0, sum(counts)))
-        if table.shape[0] != count:
-            raise CloudFileError(path, f"PCD header says {count} points, the data has {table.shape[0]}")
-        starts = np.cumsum([0] + counts)[:-1]
-        rows_kept = select(count)
-        table = table if rows_kept is None else table[rows_kept]
-        return table[:, [starts[c] for c in cols]], count
-    if data == "binary":
-        table = _binary_records(path, _pcd_record(path, layout), offset, count, select,
-                                "PCD file ends before its {} points")
-    elif data == "binary_compressed":
-        table = _pcd_compressed_table(path, layout)
-        rows_kept = select(count)
-        table = table if rows_kept is None else table[rows_kept]
-    else:
-        raise CloudFileError(path, f"unknown PCD DATA type {data!r}")
-    return np.stack([table[f"{names[c]}_{c}"][:, 0].astype(np.float64) for c in cols], axis=1), count
+    cloud = _pcd(path)
+    _columns(path, list(cloud.fields))
+    data = cloud.pc_data
+    rows_kept = select(len(data))
+    kept = data if rows_kept is None else data[rows_kept]
+    return np.stack([np.asarray(kept[axis], np.float64) for axis in _XYZ], axis=1), len(data)
 
 
-def _pcd_compressed_table(path: str, layout: _PcdLayout) -> np.ndarray:
-    """The points (count,) of a ``DATA binary_compressed`` PCD file (what PCL and Open3D write compressed), as
-    :func:`_pcd_record` records.
+def _las(path: str):
+    """The ``laspy.LasData`` of a LAS or LAZ file."""
+    import laspy
 
-    After the header: the compressed and the decompressed size (uint32 each), then LZF-compressed data that
-    holds each field's values for all points in turn (field by field, not point by point).
-    """
-    record, count = _pcd_record(path, layout), layout.count
-    with open(path, "rb") as f:
-        f.seek(layout.offset)
-        sizes_raw = f.read(8)
-        if len(sizes_raw) < 8:
-            raise CloudFileError(path, "PCD file ends before its compressed data")
-        packed, unpacked = np.frombuffer(sizes_raw, "<u4")
-        data = f.read(int(packed))
-    if len(data) < packed:
-        raise CloudFileError(path, f"PCD file ends before its {packed} bytes of compressed data")
-    if unpacked != count * record.itemsize:
-        raise CloudFileError(path, f"PCD header says {count} points of {record.itemsize} bytes, the compressed "
-                                   f"data holds {unpacked} bytes")
-    raw = _lzf_decompress(data, int(unpacked), path)
-    table, start = np.zeros(count, record), 0
-    for name in record.names:
-        field = record.fields[name][0]
-        table[name] = np.frombuffer(raw, field.base, count * field.shape[0], start).reshape(count, -1)
-        start += count * field.itemsize
-    return table
-
-
-def _lzf_decompress(data: bytes, size: int, path: str) -> bytes:
-    """LZF-decompresses ``data`` into exactly ``size`` bytes (liblzf's format, in pure Python; its time
-    grows with how many short repeats the data hold).
-
-    The stream is a sequence of tokens, each opened by a control byte: below 32, a literal run of that many
-    bytes plus one; otherwise a back reference whose length (plus two) is the top three bits, extended by one
-    more byte where they are all set, and whose distance (minus one) is the low five bits followed by a byte.
-    """
-    out = bytearray()
-    pos, end = 0, len(data)
     try:
-        while pos < end:
-            ctrl = data[pos]
-            pos += 1
-            if ctrl < 32:
-                if pos + ctrl + 1 > end:
-                    raise IndexError
-                out += data[pos:pos + ctrl + 1]
-                pos += ctrl + 1
-                continue
-            length = ctrl >> 5
-            if length == 7:
-                length += data[pos]
-                pos += 1
-            start = len(out) - ((ctrl & 0x1F) << 8) - data[pos] - 1
-            pos += 1
-            length += 2
-            if start < 0:
-                raise IndexError
-            if len(out) - start >= length:
-                out += out[start:start + length]
-            else:  # the reference overlaps what it writes: its bytes repeat with the distance as period
-                period = out[start:]
-                out += (period * (length // len(period) + 1))[:length]
-    except IndexError:
-        raise CloudFileError(path, "PCD compressed data is corrupt") from None
-    if len(out) != size:
-        raise CloudFileError(path, f"PCD compressed data unpacks to {len(out)} bytes, not {size}")
-    return bytes(out)
+        with laspy.open(path) as reader:
+            header = reader.header
+        size = header.offset_to_point_data + header.point_count * header.point_format.size
+        if not header.are_points_compressed and os.path.getsize(path) < size:
+            raise CloudFileError(path, f"LAS file ends before its {header.point_count} points")
+        return laspy.read(path)
+    except (laspy.LaspyException, ValueError, EOFError) as err:
+        raise CloudFileError(path, f"malformed {os.path.splitext(path)[1][1:].upper()} file "
+                                   f"({_first_line(err)})") from None
+
+
+def _read_las(path: str, select) -> tuple[np.ndarray, int]:
+    """LAS 1.0-1.4 and LAZ (laspy, with lazrs), any point format: X, Y, Z scaled and offset as the header says."""
+    las = _las(path)
+    rows_kept = select(len(las.points))
+    xyz = np.asarray(las.xyz, np.float64)
+    return (xyz if rows_kept is None else xyz[rows_kept]), len(las.points)
 
 
 _SEPARATOR = re.compile(r"[,\s;]+")
@@ -1034,7 +636,7 @@ def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sample_surface(vertices: np.ndarray, triangles: np.ndarray, n: int, *, seed: int = 0) -> np.ndarray:
-    """``n`` points uniformly distributed over a triangle mesh's surface area.
+    """``n`` points uniformly distributed over a triangle mesh's surface area (``trimesh.sample``).
 
     Args:
       vertices: (V, 3).
@@ -1048,19 +650,17 @@ def sample_surface(vertices: np.ndarray, triangles: np.ndarray, n: int, *, seed:
     Raises:
       ValueError: the triangles have no area (every one degenerate) or a non-finite one.
     """
+    import trimesh
+
     vertices = np.asarray(vertices, np.float64)
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    mesh = trimesh.Trimesh(vertices, np.asarray(triangles, np.int64), process=False, validate=False)
+    area = mesh.area_faces
     if not np.isfinite(area).all():
         raise ValueError("the mesh has triangles with NaN or Inf vertices")
     if not area.sum() > 0:
         raise ValueError(f"the mesh's {len(triangles)} triangles have no area")
-    rng = np.random.default_rng(seed)
-    chosen = rng.choice(len(triangles), size=n, p=area / area.sum())
-    u, v = rng.random((2, n))
-    outside = u + v > 1  # reflect into the triangle rather than draw again, so each triangle is filled evenly
-    u, v = np.where(outside, 1 - u, u), np.where(outside, 1 - v, v)
-    return a[chosen] + u[:, None] * (b - a)[chosen] + v[:, None] * (c - a)[chosen]
+    points, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    return np.asarray(points, np.float64)
 
 
 def _read_mesh_as_points(path: str, select, n_samples: int, seed: int) -> tuple[np.ndarray, int]:
@@ -1216,6 +816,8 @@ def _stl_is_ascii(path: str) -> bool:
 
 
 def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """An STL file's corners and triangles. Read here: binary STL is one NumPy record per facet, and trimesh
+    refuses ASCII STL whose lines end in a lone carriage return (old Mac files), which this reads."""
     with open(path, "rb") as f:
         head = f.read(84)
     if not _stl_is_ascii(path):
@@ -1223,7 +825,7 @@ def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
         corners = np.fromfile(path, _STL_RECORD, count=count, offset=84)["corners"].reshape(-1, 3)
     elif head.lstrip().lower().startswith(b"solid"):
         with open(path, "r", encoding="ascii", errors="replace") as f:
-            rows = _STL_VERTEX_ROW.findall(f.read())
+            rows = _STL_VERTEX_ROW.findall(f.read().replace("\r", "\n"))
         if len(rows) % 3:
             raise CloudFileError(path, f"ASCII STL with {len(rows)} vertices, not three per facet")
         words, offsets = _row_words(rows)
@@ -1250,26 +852,21 @@ def _text_format(points: np.ndarray) -> str:
 
 
 def _write_ply(f, points: np.ndarray, binary: bool) -> None:
-    kind = "double" if points.dtype == np.float64 else "float"
-    fmt = "binary_little_endian" if binary else "ascii"
-    header = (f"ply\nformat {fmt} 1.0\ncomment written by dit-jax\nelement vertex {len(points)}\n"
-              f"property {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n")
-    f.write(header.encode("ascii"))
-    if binary:
-        f.write(np.ascontiguousarray(points, dtype="<f8" if kind == "double" else "<f4").tobytes())
-    else:
-        np.savetxt(f, points, fmt=_text_format(points))
+    """Binary little-endian (or ASCII) PLY through plyfile, double where the points are, else float."""
+    from plyfile import PlyData, PlyElement
+
+    kind = "<f8" if points.dtype == np.float64 else "<f4"
+    vertex = np.empty(len(points), [(axis, kind) for axis in _XYZ])
+    for k, axis in enumerate(_XYZ):
+        vertex[axis] = points[:, k]
+    PlyData([PlyElement.describe(vertex, "vertex")], text=not binary, byte_order="<",
+            comments=["written by dit-jax"]).write(f)
 
 
 def _write_pcd(f, points: np.ndarray, binary: bool) -> None:
-    # float32 whatever the input: PCL's convention, and Open3D 0.20 reads binary SIZE 8 fields as zeros.
-    points = np.asarray(points, np.float32)
-    size, dtype = 4, "<f4"
-    header = (f"# .PCD v0.7 - written by dit-jax\nVERSION 0.7\nFIELDS x y z\nSIZE {size} {size} {size}\n"
-              f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-              f"POINTS {len(points)}\nDATA {'binary' if binary else 'ascii'}\n")
-    f.write(header.encode("ascii"))
-    if binary:
-        f.write(np.ascontiguousarray(points, dtype=dtype).tobytes())
-    else:
-        np.savetxt(f, points, fmt=_text_format(points))
+    """Binary (or ASCII) PCD through pypcd4, in float32 whatever the input: PCL's convention, and Open3D reads
+    binary SIZE 8 fields as zeros."""
+    from pypcd4 import Encoding, PointCloud
+
+    cloud = PointCloud.from_xyz_points(np.asarray(points, np.float32))
+    cloud.save(f, encoding=Encoding.BINARY if binary else Encoding.ASCII)
