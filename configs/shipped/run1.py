@@ -1,5 +1,6 @@
-"""Run 1 of 6 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from a fresh initialisation: 600
-steps, the best validation checkpoint kept (step 600).
+"""Run 1 of 6 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from the weights shipped before it (a
+clean run's best, 200 steps; their record is not kept): 600 steps, the best validation checkpoint kept (step
+600).
 
 As run then (``dit_jax.release.ship_weights`` recorded it):
 

@@ -11,20 +11,21 @@ As run then (``dit_jax.release.ship_weights`` recorded it):
         --set lr=1e-3 --set 'lr_drops=(0.75,0.9)'
 """
 
+import dataclasses
+import os
+
 from dit_jax import configs
-from dit_jax.training import TrainConfig
+from dit_jax.training import load_config
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu('clean'),
-                       settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
-                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
-                       unseen=True,
-                       n_points=512,
-                       max_steps=1000,
-                       lr_drops=(0.75, 0.9),
-                       val_pairs=24,
-                       eval_every=125,
-                       ckpt_every=50,
-                       match_radius=0.07,
-                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()
+    before = load_config(os.path.join(os.path.dirname(__file__), "run1.py"))  # run 1's recipe, changed:
+    return dataclasses.replace(before, model=configs.cpu('clean'),
+                               setting='clean',
+                               settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
+                               max_steps=1000,
+                               lr_drops=(0.75, 0.9),
+                               val_pairs=24,
+                               eval_every=125,
+                               ckpt_every=50,
+                               match_radius=0.07).to_config_dict()

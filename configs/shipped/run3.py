@@ -11,22 +11,16 @@ As run then (``dit_jax.release.ship_weights`` recorded it):
         runs/x25/mix_corr
 """
 
-from dit_jax import configs
-from dit_jax.training import TrainConfig
+import dataclasses
+import os
+
+from dit_jax.training import load_config
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu('clean'),
-                       settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
-                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
-                       unseen=True,
-                       n_points=512,
-                       max_steps=1000,
-                       lr=0.0003,
-                       lr_drops=(0.8,),
-                       val_pairs=16,
-                       eval_every=100,
-                       ckpt_every=50,
-                       match_radius=0.07,
-                       correspondence_weight=1.0,
-                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()
+    before = load_config(os.path.join(os.path.dirname(__file__), "run2.py"))  # run 2's recipe, changed:
+    return dataclasses.replace(before, lr=0.0003,
+                               lr_drops=(0.8,),
+                               val_pairs=16,
+                               eval_every=100,
+                               correspondence_weight=1.0).to_config_dict()

@@ -11,22 +11,13 @@ As run then (``dit_jax.release.ship_weights`` recorded it):
         runs/x26/stage5
 """
 
-from dit_jax import configs
-from dit_jax.training import TrainConfig
+import dataclasses
+import os
+
+from dit_jax.training import load_config
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu('clean'),
-                       settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
-                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
-                       unseen=True,
-                       n_points=512,
-                       max_steps=1200,
-                       lr=0.0003,
-                       lr_drops=(0.85,),
-                       val_pairs=16,
-                       eval_every=100,
-                       ckpt_every=50,
-                       match_radius=0.07,
-                       correspondence_weight=1.0,
-                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()
+    before = load_config(os.path.join(os.path.dirname(__file__), "run3.py"))  # run 3's recipe, changed:
+    return dataclasses.replace(before, max_steps=1200,
+                               lr_drops=(0.85,)).to_config_dict()
