@@ -215,20 +215,25 @@ def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(
     assert not (tmp_path / "none.png").exists(), "nothing drawable: no picture at all"
 
 
-def test_evaluation_registers_each_pair_as_register_does(tmp_path):
+def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_path):
     """evaluate.py's DIT and DIT+ICP rows come from the same pipeline users call: on a test pair, the motion
     scored is the one ``register`` returns for that pair (the network's and the refined one)."""
+    import jax.numpy as jnp
+
+    from dit_jax import metrics
     from dit_jax.data import pairs as pairs_lib, shapes as shapes_lib
 
-    registrar = registration.load()
-    results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("independent_clean",),
+    registrar = registration.load(tiny_checkpoint)
+    results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean",),
                                   max_pairs=1, prepared_dir=str(tmp_path / "p"), progress=False, worst_pairs=False)
+    n_points = registrar.settings.n_points
     shapes = shapes_lib.load_shapes(None, "test", data_dir=str(tmp_path / "p"),
-                                    n_points=pairs_lib.shape_points(None, 1000, ["independent_clean"]))
-    pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=1000))[0]
+                                    n_points=pairs_lib.shape_points(None, n_points, ["independent_clean"]))
+    pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=n_points))[0]
     result = registrar.register(pair["src"], pair["tgt"])
     rows = results["settings"]["independent_clean"]
     for method, motion in (("DIT+ICP", result), ("DIT", result.network)):
-        expected = np.degrees(np.arccos(np.clip((np.trace(motion.rotation.T @ pair["R"]) - 1) / 2, -1, 1)))
-        assert rows[method]["per_pair"]["rot_err"][0] == pytest.approx(expected, abs=2e-3), method  # float32 error
+        # the metric evaluate.py scores with, on the motion register returned
+        expected = float(metrics.rotation_error_deg(jnp.asarray(motion.rotation[None]), jnp.asarray(pair["R"][None]))[0])
+        assert rows[method]["per_pair"]["rot_err"][0] == pytest.approx(expected, abs=1e-4), method
     assert rows["DIT+ICP"]["per_pair"]["agreement"][0] == pytest.approx(result.agreement, abs=1e-4)
