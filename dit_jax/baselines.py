@@ -13,7 +13,7 @@ in the unit sphere (as ModelNet40 and the embedded set are; evaluate.py scales r
   scores better on validation pairs of that setting; their time includes both stages.
 
 Every option is an :class:`Options` field. The defaults are tuned on validation pairs of training shapes
-(``scripts/tune_baselines.py``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
+(``dit-tune-baselines``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
 :func:`get` with ``setting=`` gives that setting's choice, without one the choice that scores best over all
 settings together (for clouds of unknown origin, such as real scans). Clouds far denser than the tuning data
 (more than :data:`DENSE_POINTS` points) are voxel-downsampled at :data:`DENSE_VOXEL` before features, as

@@ -24,7 +24,7 @@ from dit_jax.configs import DITConfig
 from dit_jax.pipeline import (CENTRINGS, REFINEMENTS, VERDICTS, InferenceSettings, InputError, Result,  # noqa: F401
                               SizeMismatchWarning, check_cloud, farthest_point_sample)
 
-#: Where the weights that ship with the package live (see docs/model_card.md).
+#: Where the weights that ship with the package live (their runs: MODEL_CARD.md).
 SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
 #: Where a checkpoint's ``extra`` record keeps its :class:`InferenceSettings`.
 SETTINGS_KEY = "inference_settings"
