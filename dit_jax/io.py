@@ -434,7 +434,8 @@ _TRIANGLE_LISTS = {"face": {"vertex_indices": 3, "vertex_index": 3}}
 
 
 def _ply(path: str, *, mmap: bool = False):
-    """The ``plyfile.PlyData`` of a PLY file (binary elements memory-mapped with ``mmap``)."""
+    """The ``plyfile.PlyData`` of a PLY file, binary elements memory-mapped: read-only with ``mmap``, else
+    copy-on-write (plyfile's unmapped read goes row by row, hundreds of times slower)."""
     from plyfile import PlyData, PlyParseError
 
     with open(path, "rb") as f:
@@ -442,10 +443,10 @@ def _ply(path: str, *, mmap: bool = False):
             raise CloudFileError(path, "not a PLY file (first line is not 'ply')")
     try:
         try:  # triangle meshes read as one array, not a Python list per face (a hundred times faster)
-            return PlyData.read(path, mmap="r" if mmap else False, known_list_len=_TRIANGLE_LISTS)
+            return PlyData.read(path, mmap="r" if mmap else "c", known_list_len=_TRIANGLE_LISTS)
         except PlyParseError:
             pass  # not all triangles (or malformed: the plain read says what is wrong)
-        return PlyData.read(path, mmap="r" if mmap else False)
+        return PlyData.read(path, mmap="r" if mmap else "c")
     except PlyParseError as err:
         raise CloudFileError(path, f"malformed PLY file ({_first_line(err)})") from None
 
