@@ -120,6 +120,12 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
     n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
     if ext == ".ply":
         def reader(path_, select_):
+            fast = _ascii_ply_vertices(path_)
+            if fast is not None:
+                rows, names = fast
+                kept = select_(len(rows))
+                rows = rows if kept is None else rows[kept]
+                return rows[:, _columns(path_, names)], len(fast[0])
             ply = _ply(path_, mmap=True)
             if _ply_triangles(ply) is None:
                 return _read_ply(path_, select_, ply)
@@ -449,6 +455,55 @@ def _ply(path: str, *, mmap: bool = False):
         return PlyData.read(path, mmap="r" if mmap else "c")
     except PlyParseError as err:
         raise CloudFileError(path, f"malformed PLY file ({_first_line(err)})") from None
+
+
+def _ascii_ply_vertices(path: str) -> tuple[np.ndarray, list[str]] | None:
+    """The vertex rows ``(N, P)`` and property names of an ASCII PLY file whose first element is its vertices,
+    all scalar, and which has no faces; None for any other file (``_ply`` reads those).
+
+    plyfile parses ASCII PLY row by row with a ``numpy.loadtxt`` call per row, and reads every element, so a
+    range scan's vertices took seconds behind their scan-grid lists; NumPy's loader reads the vertex block in
+    one call.
+    """
+    elements: list[tuple[str, int, list[str]]] = []
+    single: list[bool] = []  # the vertex properties declared float32, rounded as plyfile's read rounds them
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply" or f.readline().split() != [b"format", b"ascii", b"1.0"]:
+            return None
+        for line in f:
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "element" and len(words) == 3 and words[2].isdigit():
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and elements and len(words) == 3:
+                elements[-1][2].append(words[2])
+                single.append(words[1] in ("float", "float32"))
+            elif words[0] == "property" and elements and words[1:2] == ["list"]:
+                elements[-1][2].append("")  # a list: not for this path
+            else:
+                return None
+        else:
+            return None
+        if not elements or elements[0][0] != "vertex" or "" in elements[0][2]:
+            return None
+        if any(name == "face" and count for name, count, _ in elements):
+            return None
+        _, count, names = elements[0]
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # an empty vertex block
+                rows = np.loadtxt(f, dtype=np.float64, max_rows=count, ndmin=2, comments=None)
+        except ValueError:
+            return None
+    if rows.shape != (count, len(names)) and not (count == 0 and rows.size == 0):
+        return None
+    rows = rows.reshape(count, len(names))
+    single = np.asarray(single[:len(names)], bool)
+    rows[:, single] = rows[:, single].astype(np.float32)
+    return rows, names
 
 
 def _ply_vertices(path: str, ply) -> np.ndarray:

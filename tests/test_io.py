@@ -69,6 +69,34 @@ def test_ply_extra_properties_and_elements_are_skipped(tmp_path):
     np.testing.assert_array_equal(io.read(tmp_path / "b.ply"), np.eye(3))
 
 
+def test_an_ascii_range_scan_reads_its_vertices_as_plyfile_does(tmp_path):
+    """A range scan's ASCII PLY (float32 vertices, then a scan-grid element of lists, as the Stanford
+    scanner writes) reads through NumPy's loader into what plyfile reads; a file with its vertices after
+    another element, or a short row, still goes through plyfile and reads or fails as before."""
+    from plyfile import PlyData
+
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(50, 3)).astype(np.float32) * 0.1
+    rows = "".join(f"{x:.7g} {y:.7g} {z:.7g} \n" for x, y, z in points)
+    grid = "".join("1 %d\n" % i if i % 3 else "0\n" for i in range(60))
+    header = ("ply\nformat ascii 1.0\nobj_info num_cols 10\nelement vertex 50\nproperty float x\n"
+              "property float y\nproperty float z\nelement range_grid 60\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+    (tmp_path / "scan.ply").write_text(header + rows + grid)
+    data = PlyData.read(str(tmp_path / "scan.ply"))["vertex"].data
+    expected = np.stack([data[a] for a in "xyz"], axis=1).astype(np.float64)
+    np.testing.assert_array_equal(io.read(tmp_path / "scan.ply"), expected)
+    assert io.read(tmp_path / "scan.ply", max_points=20, return_count=True)[1] == 50
+    first_grid = header.replace("element vertex 50\nproperty float x\nproperty float y\nproperty float z\n", "")
+    first_grid = first_grid.replace("end_header", "element vertex 50\nproperty float x\nproperty float y\n"
+                                                  "property float z\nend_header")
+    (tmp_path / "grid_first.ply").write_text(first_grid + grid + rows)
+    np.testing.assert_array_equal(io.read(tmp_path / "grid_first.ply"), expected)
+    (tmp_path / "short.ply").write_text(header + rows.replace(" \n", "\n", 1).split("\n", 1)[1] + grid)
+    with pytest.raises(io.CloudFileError, match="malformed PLY"):
+        io.read(tmp_path / "short.ply")
+
+
 def test_big_endian_ply(tmp_path, cloud):
     header = "ply\nformat binary_big_endian 1.0\nelement vertex 257\nproperty double x\nproperty double y\n" \
              "property double z\nend_header\n"
