@@ -6,4 +6,4 @@ from dit_jax.training import TrainConfig
 
 def get_config():
     return TrainConfig(model=configs.tiny("clean"), n_points=64, batch_size=4, epochs=1, lr=1e-3, val_pairs=8,
-                       eval_every=10, ckpt_every=5, log_every=1).to_config_dict()
+                       eval_every=10, ckpt_every=5, log_every=1, train_iters=1).to_config_dict()

@@ -34,9 +34,18 @@ if os.environ.get("DIT_JAX_TEST_XLA_CACHE") == os.environ["DIT_JAX_COMPILE_CACHE
     compile_cache.enable(os.environ["DIT_JAX_COMPILE_CACHE"])
 
 
+# Likewise one TFDS preparation folder for the session and its xdist workers: the first worker to need a
+# split prepares it (under the preparation lock) and the other reads it, instead of each preparing its own.
+_TEST_TFDS = None
+if "DIT_JAX_TEST_TFDS" not in os.environ:
+    _TEST_TFDS = tempfile.mkdtemp(prefix="dit-jax-test-tfds-")
+    os.environ["DIT_JAX_TEST_TFDS"] = _TEST_TFDS
+
+
 def pytest_sessionfinish(session, exitstatus):
-    if _TEST_CACHE is not None:
-        shutil.rmtree(_TEST_CACHE, ignore_errors=True)
+    for folder in (_TEST_CACHE, _TEST_TFDS):
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
@@ -103,9 +112,10 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
-def prepared_dir(tmp_path_factory) -> str:
-    """Where the tests' TFDS preparations go (fresh per session, so preparation itself is tested)."""
-    return str(tmp_path_factory.mktemp("tfds"))
+def prepared_dir() -> str:
+    """Where the tests' TFDS preparations go: fresh per session (so preparation itself is tested), shared by
+    the session's workers."""
+    return os.environ["DIT_JAX_TEST_TFDS"]
 
 
 @pytest.fixture(scope="session")

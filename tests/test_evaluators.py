@@ -18,11 +18,11 @@ def tiny_checkpoint(tmp_path_factory):
     return str(path)
 
 
-def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_path):
+def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_path, prepared_dir):
     names = ["icp"] if __import__("dit_jax.baselines").baselines.available() else []
     out = tmp_path / "eval"
     results = evaluation.evaluate(tiny_checkpoint, str(out), settings=("clean", "high_noise_partial"),
-                                  max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
+                                  max_pairs=4, baselines=names, prepared_dir=prepared_dir, progress=False,
                                   gmcce_threshold="authors")
     assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png",
                                        "worst_clean.png", "worst_high_noise_partial.png"]
@@ -60,11 +60,11 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     assert "DIT's verdict (fitness" in (out / "results.md").read_text()
 
 
-def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path):
+def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path, prepared_dir):
     """By default one inference setting for every data setting (the checkpoint's own); settings whose clouds
     share no point read every point of the shapes. (Run here with DIT+ICP keeping its better direction.)"""
     results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean", "scan_high_noise"),
-                                  max_pairs=3, prepared_dir=str(tmp_path / "p"), progress=False,
+                                  max_pairs=3, prepared_dir=prepared_dir, progress=False,
                                   inference={"best_direction": True})
     for setting in ("independent_clean", "scan_high_noise"):
         assert results["setting_info"][setting]["gmcce_threshold"] == configs.tiny().gmcce_threshold
@@ -144,24 +144,24 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     assert saved["n_points"] == registration.load().settings.n_points
 
 
-def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch):
+def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch, prepared_dir):
     pytest.importorskip("open3d", reason="the baselines need Open3D")
     first = evaluation.evaluate(None, str(tmp_path / "a"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                                prepared_dir=str(tmp_path / "p"), progress=False)
+                                prepared_dir=prepared_dir, progress=False)
 
     def never(*args, **kwargs):
         raise AssertionError("a reused baseline was run again")
 
     monkeypatch.setattr(synthetic, "predict_baseline", never)
     again = evaluation.evaluate(None, str(tmp_path / "b"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                                prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"))
+                                prepared_dir=prepared_dir, progress=False, reuse=str(tmp_path / "a"))
     assert again["settings"]["clean"]["icp"] == json.loads(json.dumps(first["settings"]["clean"]["icp"]))
     with pytest.raises(ValueError, match="made on other pairs"):
         evaluation.evaluate(None, str(tmp_path / "c"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                            prepared_dir=str(tmp_path / "p"), progress=False, reuse=str(tmp_path / "a"), unseen=True)
+                            prepared_dir=prepared_dir, progress=False, reuse=str(tmp_path / "a"), unseen=True)
 
 
-def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_path):
+def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_path, prepared_dir):
     """The shipped weights on clean pairs (DIT alone exact to about 1e-3 degrees): ICP after them makes no
     pair worse on average, and every baseline row records the options it ran with (tuned for the setting)."""
     from dit_jax import registration
@@ -169,7 +169,7 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
     baselines = __import__("dit_jax.baselines").baselines
     names = ["fpfh_ransac_icp"] if baselines.available() else []
     results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("clean",),
-                                  max_pairs=4, baselines=names, prepared_dir=str(tmp_path / "p"), progress=False,
+                                  max_pairs=4, baselines=names, prepared_dir=prepared_dir, progress=False,
                                   worst_pairs=False, inference={"verdict_rule": "fitness"})
     rows = results["settings"]["clean"]
     assert rows["DIT"]["rot_iso"] < 0.01
@@ -215,7 +215,7 @@ def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(
     assert not (tmp_path / "none.png").exists(), "nothing drawable: no picture at all"
 
 
-def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_path):
+def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_path, prepared_dir):
     """evaluate.py's DIT and DIT+ICP rows come from the same pipeline users call: on a test pair, the motion
     scored is the one ``register`` returns for that pair (the network's and the refined one)."""
     import jax.numpy as jnp
@@ -225,9 +225,9 @@ def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_pa
 
     registrar = registration.load(tiny_checkpoint)
     results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean",),
-                                  max_pairs=1, prepared_dir=str(tmp_path / "p"), progress=False, worst_pairs=False)
+                                  max_pairs=1, prepared_dir=prepared_dir, progress=False, worst_pairs=False)
     n_points = registrar.settings.n_points
-    shapes = shapes_lib.load_shapes(None, "test", data_dir=str(tmp_path / "p"),
+    shapes = shapes_lib.load_shapes(None, "test", data_dir=prepared_dir,
                                     n_points=pairs_lib.shape_points(None, n_points, ["independent_clean"]))
     pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=n_points))[0]
     result = registrar.register(pair["src"], pair["tgt"])

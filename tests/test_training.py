@@ -25,8 +25,8 @@ TINY_ARGS = ["--config", str(ROOT / "configs" / "tiny.py"), "--config.max_steps=
 
 
 @pytest.fixture(scope="module")
-def prepared(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("prepared"))
+def prepared(prepared_dir):
+    return prepared_dir
 
 
 def _params(workdir):
@@ -364,7 +364,7 @@ def _step_record(workdir, step):
     raise AssertionError(f"no training line for step {step} in {workdir}")
 
 
-def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_path, tiny_run):
+def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_path, prepared, tiny_run):
     """Data parallelism changes no step: `train.py --distributed` in two local processes (localhost
     coordinator, gloo CPU collectives) with two CPU devices each, so the batch is split over devices within a
     process and across processes at once, trains the tiny preset for 12 steps into one workdir, and matches
@@ -374,11 +374,8 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
       devices, or a device's rows counted twice, shows here; Adam's update hides the gradient's scale);
     * its parameters after 12 steps at float tolerance.
 
-    The two processes prepare the data at once (under the lock). (Until 2026-12-03 a third process took the
-    first step on two devices apart and compared Adam's first moment leaf by leaf; folding the two layouts into
-    one run saves that process's compilation: 102 -> 70 s alone.)
+    The two processes read the data ``tiny_run`` prepared (preparing at once is tested in test_data_shapes).
     """
-    prepared = str(tmp_path / "prepared")
     args = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--no-progress", "--prepared-dir", prepared]
     # two CPU devices per process, whatever device count the environment asks for
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
@@ -421,10 +418,8 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     assert moved > 1e-4  # it trained
     # Float rounding only: one device reduces the batch in another order than four, and Adam's normalisation
     # magnifies rounding in near-zero gradients over 12 steps, up to a step of the learning rate in a single
-    # parameter (the largest difference: 2.7e-3 of the largest movement on 2026-11-27, 1.7e-2 on another
-    # machine on 2026-11-28, where the whole update differed by 1.8e-3 of its norm), so the whole update is
-    # compared; other pairs, another order or other dropout masks move the params by the order of the
-    # movement itself.
+    # parameter, so the whole update is compared; other pairs, another order or other dropout masks move the
+    # params by the order of the movement itself.
     assert differ_norm <= 1e-2 * moved_norm and differ <= 0.1 * moved, (differ_norm, moved_norm, differ, moved)
     # One log, written by process 0 alone: a line per step and per validation (steps 0, 6 and 12).
     records = (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()
