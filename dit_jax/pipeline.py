@@ -417,8 +417,9 @@ def network(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, *, 
         source's centroid c; an estimate (R', t') of a turned source Q x is one of the source itself,
         ``R = R' Q``, ``t = t' + R' c - R c``, and :func:`dit_jax.icp.best_start` picks the one to go on from.
       seed: the search's scoring subsets.
-      batch_size: pairs per call; a short last batch is padded with repeats, so every batch runs one compiled
-        program (default: B, one call). Where several batches run, the first compiles before the timings.
+      batch_size: pairs per call (at most B); a short last batch is padded with repeats, so every batch runs
+        one compiled program (default: B, one call). Where several batches run, the first compiles before the
+        timings.
 
     Returns:
       ``(R (B, 3, 3), t (B, 3), extras, start_turn (B,), seconds (B,))``, float64 but ``extras`` (the model's,
@@ -430,7 +431,7 @@ def network(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, *, 
         rotation, translation, extras, turns, seconds = zip(*found)
         return (np.stack(rotation), np.stack(translation), jax.tree.map(lambda *a: np.stack(a), *extras),
                 np.asarray(turns), np.asarray(seconds))
-    return _batched(params, config, src_n, tgt_n, batch_size or len(src_n))
+    return _batched(params, config, src_n, tgt_n, min(batch_size or len(src_n), len(src_n)))
 
 
 def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, batch_size: int):
