@@ -9,8 +9,9 @@
 
 Settings: the authors' three (clean, low_noise_partial, high_noise_partial; both clouds made of the same
 points) and those whose clouds share no point, as real data (independent_*, scan_*; dit_jax.data.pairs).
-"authors" picks the first three, "all" every one. With --scans, a directory of range scans and a Stanford
-.conf of their poses gives pairs of adjacent scans and of every second one (--skips).
+"authors" picks the first three, "all" every one. With --scans, a folder of real scans with their poses gives
+the pairs: a Stanford .conf (scan i with scan i + SKIP, --skips), 3DMatch fragments with gt.log lists, a
+KITTI poses.txt, or source.* and target.* with T_target_source.txt (dit_jax.data.scans).
 
 Methods: DIT as it ships, DIT refined by ICP (the DIT+ICP row; --refine none drops it) and the --baselines,
 each at the options tuned for the setting on validation pairs (docs/baselines_tuning.md).
@@ -53,12 +54,13 @@ def main(argv=None) -> int:
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--settings", nargs="+", default=["clean"], choices=tuple(SETTINGS) + ("authors", "all"))
     parser.add_argument("--scans", default=None, metavar="DIR",
-                        help="evaluate on real range scans with a Stanford .conf instead of shapes")
+                        help="evaluate on real scans with known poses instead of shapes: a Stanford .conf, "
+                             "3DMatch gt.log lists, a KITTI poses.txt or T_target_source.txt")
     parser.add_argument("--angle-sweep", action="store_true",
                         help="DIT's error against rotation angles 0-180 degrees on the first --settings setting "
                              "(default independent_clean) instead of the tables")
     parser.add_argument("--skips", nargs="+", type=int, default=[1, 2],
-                        help="with --scans: pair scan i with scan i + SKIP (default: 1 2)")
+                        help="with --scans of a series: pair scan i with scan i + SKIP (default: 1 2)")
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
     parser.add_argument("--n-points", type=int, default=None,

@@ -9,7 +9,7 @@ of the same surface), and the pairs are registered as users call it (`registrati
 tgt)`: the network, ICP, the verdict's second registration), warm (the first call compiles and is not
 timed). Then, on the thickest clouds and ``--refine-pairs`` pairs, `icp.refine` once from the network's own
 estimate with the target thinned to each of ``--target-points`` (default: `icp.TARGET_POINTS`, as shipped,
-and 0, the whole target, as before 2026-12-01).
+and 0, the whole target).
 Prints two markdown tables.
 """
 

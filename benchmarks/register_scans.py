@@ -19,7 +19,7 @@ import numpy as np
 
 
 def numpy_farthest_point_sample(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """The NumPy float64 loop dit-jax sampled with before 2026-11-26 (same start, same indices)."""
+    """The textbook farthest-point loop in NumPy float64 (same start, same indices as dit-jax's)."""
     rng = np.random.default_rng(seed)
     cloud = np.asarray(points, np.float64)
     chosen = np.empty(n, np.int64)

@@ -48,7 +48,8 @@ WRITE_FORMATS = tuple(f for f in FORMATS if f not in (".las", ".laz"))
 MESH_FORMATS = (".obj", ".off", ".stl", ".ply")
 #: How many surface points :func:`read` samples from a mesh: far more than registration samples from a cloud.
 MESH_POINTS = 100_000
-_READ_FORMATS = FORMATS + tuple(f for f in MESH_FORMATS if f not in FORMATS)
+#: Every extension :func:`read` reads.
+READ_FORMATS = FORMATS + tuple(f for f in MESH_FORMATS if f not in FORMATS)
 #: The formats :func:`move_file` writes moved, every other property kept.
 MOVE_FORMATS = (".ply", ".pcd", ".las", ".laz", ".obj", ".off", ".stl")
 #: The formats read and written as text, one point per line.
@@ -108,7 +109,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         finite).
     """
     path = os.fspath(path)
-    ext = file_format(path, formats=_READ_FORMATS)
+    ext = file_format(path, formats=READ_FORMATS)
     if not os.path.exists(path):
         raise CloudFileError(path, "no such file")
     if os.path.isdir(path):

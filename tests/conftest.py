@@ -12,8 +12,8 @@ import pytest
 
 # Compilation dominates this suite's time on two CPU cores, so the session and every process it starts compile
 # with XLA's CPU backend at LLVM optimisation level 0: the same XLA programs (XLA's own optimisation passes
-# are unchanged), generated with less LLVM work. The whole suite passes at both levels; at the default level it
-# took 10 min 32 s, at level 0 8 min 55 s (2026-11-27, `python -m pytest -n 2`). Users run the default.
+# are unchanged), generated with less LLVM work. The whole suite passes at both levels, faster at level 0
+# (docs/BENCHMARKS.md, "The test suite"). Users run the default.
 FAST_COMPILE_FLAG = "--xla_backend_optimization_level=0"
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE_FLAG}".strip()
@@ -164,7 +164,7 @@ def pytest_configure(config):
         config.option.maxschedchunk = 1
 
 
-#: Tests outside those modules that take 15 s or more on two loaded cores (`--durations`, 2026-12-02): started
+#: Tests outside those modules that take 15 s or more on two loaded cores (`--durations`): started
 #: next, longest first, so that neither worker is left with one of them while the other has nothing to do.
 _LONG_TESTS = (
     "test_other_widths_depths_and_point_counts_are_checked",

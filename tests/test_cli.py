@@ -317,11 +317,9 @@ def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, 
 
 def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_closely(capsys, dragon_dir):
     """The shipped network alone (--refine none) on two pairs of real Stanford Dragon scans 24 degrees apart:
-    48 -> 72 is wrong (16.8 degrees with the sixth stage's weights, the two directions 7.8 apart), and the
-    verdict says so with status 3 (the transform is still printed). 312 -> 336 is right (1.09 degrees with the
-    seventh stage's weights, 2026-12-02; 0.99 with the sixth's) and its two directions agree within 0.49 degrees
-    (0.73 with the sixth's), against the 0.5 the network alone is trusted up to since the 128-pair choice of
-    2026-12-02 (0.25 before): so close to the threshold that only the consistency of verdict, agreement and
+    48 -> 72 is wrong (more than 5 degrees off, the two directions far apart), and the verdict says so with
+    status 3 (the transform is still printed). 312 -> 336 is right (within 5 degrees), and its two directions
+    agree to about the network alone's threshold: so close that only the consistency of verdict, agreement and
     exit status is asserted for it (trusted and status 0, or suspect and status 3, "a right result left
     unconfirmed", as the README warns). With ICP, the default, 0 -> 24 is trusted: the test below."""
     from dit_jax.data import scans
@@ -345,12 +343,9 @@ def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_cl
 
 def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
-    examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone (measured with
-    the seventh stage's weights, shipped on 2026-12-02: 2.85 -> 1.10 degrees; the sixth's 2.9 -> 1.10), and
-    --plot writes a PNG. The verdict confirms neither (status 3): DIT+ICP's two directions agree within 0.67
-    degrees (0.54 with the sixth stage's weights), trusted up to 0.5 since 2026-11-28 (1.5 and 4.0 before, when
-    it was trusted); the network alone's are 9.2 apart (trusted up to 0.5). A right result left unconfirmed,
-    as the README says."""
+    examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone, within 1.5
+    degrees, and --plot writes a PNG. The verdict confirms neither (status 3): the two directions of each
+    agree less closely than the shipped thresholds. A right result left unconfirmed, as the README says."""
     from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
@@ -375,14 +370,10 @@ def test_bad_plot_path_exits_2_before_any_work(capsys, tmp_path, pair):
 
 
 def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir):
-    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): 0 -> 24 ends 0.05 degrees
-    off (the sixth stage's weights, shipped on 2026-11-28; the fifth's: the network alone 1.6, 0.05 after ICP);
-    where the network is 17 degrees off (48 -> 72; 24 with the fifth stage's weights, 36-63 with earlier ones),
-    the refinement's trimmed runs pull it in to about 2 degrees (1.8 both times; the single point-to-plane run
-    before 2026-11-27 could not). The first pair with the default verdict: trusted, status 0 (both directions
-    agree within 0.03 degrees); the other with the one-direction fitness verdict, which is all this accuracy
-    check needs. (A third pair, 216 -> 240, 0.19 after ICP with both weights, lies between the two and was
-    dropped to keep the suite short.)"""
+    """--refine icp on dragon pairs 24 degrees apart (docs/eval_stanford_dragon): 0 -> 24 ends within half a
+    degree; where the network is far off (48 -> 72), the refinement's trimmed runs pull it in to a few degrees.
+    The first pair with the default verdict: trusted, status 0 (both directions agree); the other with the
+    one-direction fitness verdict, which is all this accuracy check needs."""
     from dit_jax.data import scans
     from dit_jax.geometry import rotation_angle_deg
 

@@ -59,3 +59,97 @@ def test_dragon_truth_agrees_with_icp(dragon_dir):
     # A wrong pose is not as good: the check can fail.
     wrong = reg.evaluate_registration(cloud(pair.source), cloud(pair.target), 0.005, np.eye(4))
     assert wrong.fitness < icp.fitness - 0.2
+
+
+def _moved(points, rotation, translation):
+    return points @ rotation.T + translation
+
+
+def test_every_pose_layout_gives_pairs_whose_motion_maps_source_onto_target(tmp_path):
+    """3DMatch (fragments and gt.log lists in subfolders), KITTI (poses.txt) and a single pair
+    (T_target_source.txt): each pair's motion maps its source exactly onto its target, and each set carries
+    its benchmark's criterion."""
+    from dit_jax import io
+
+    rng = np.random.default_rng(1)
+    world = rng.normal(size=(60, 3))
+    # 3DMatch: fragment k holds the world seen from pose k (world = R_k p + t_k); T = inv(pose_i) @ pose_j.
+    rooms = tmp_path / "rooms"
+    (rooms / "3DMatch").mkdir(parents=True)
+    (rooms / "3DLoMatch").mkdir()
+    poses = {k: np.vstack([np.c_[random_rotation(rng), rng.normal(size=3)], [0, 0, 0, 1]]) for k in (0, 1, 7)}
+    for k, pose in poses.items():
+        io.write(rooms / f"cloud_bin_{k}.ply", _moved(world - pose[:3, 3], pose[:3, :3].T, np.zeros(3)))
+
+    def entry(i, j):
+        matrix = np.linalg.inv(poses[i]) @ poses[j]
+        return f"{i}\t {j}\t 60\t\n" + "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in matrix)
+
+    (rooms / "3DMatch" / "gt.log").write_text(entry(0, 1))
+    (rooms / "3DLoMatch" / "gt.log").write_text(entry(0, 7) + entry(1, 7))
+    sets = scans.load_pair_sets(rooms)
+    assert {k: len(v.pairs) for k, v in sets.items()} == {"3DMatch": 1, "3DLoMatch": 2}
+    assert sets["3DLoMatch"].criterion == (15.0, 0.3) and sets["3DLoMatch"].pairs[1].name == "cloud_bin_7->cloud_bin_1"
+    # KITTI: scan k in its own frame, poses.txt the frame's pose in the first's (3 x 4 rows).
+    drive = tmp_path / "drive"
+    drive.mkdir()
+    lines = []
+    for k in range(3):
+        rotation, translation = random_rotation(rng), rng.normal(size=3)
+        io.write(drive / f"{k:06d}.ply", _moved(world - translation, rotation.T, np.zeros(3)))
+        lines.append(" ".join(f"{v:.17g}" for v in np.c_[rotation, translation].ravel()))
+    (drive / "poses.txt").write_text("\n".join(lines) + "\n")
+    kitti = scans.load_pair_sets(drive, skips=(1, 2))
+    assert [len(kitti[k].pairs) for k in ("skip1", "skip2")] == [2, 1] and kitti["skip1"].criterion == (5.0, 2.0)
+    # One pair.
+    single = tmp_path / "pair"
+    single.mkdir()
+    rotation, translation = random_rotation(rng), rng.normal(size=3)
+    io.write(single / "source.ply", world)
+    io.write(single / "target.pcd", _moved(world, rotation, translation))
+    np.savetxt(single / "T_target_source.txt", np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]))
+    one = scans.load_pair_sets(single)["pair"]
+    for found in [*sets.values(), *kitti.values(), one]:
+        for p in found.pairs:
+            # Written as float32: the motion maps the points to within that rounding.
+            np.testing.assert_allclose(_moved(p.source, p.rotation, p.translation), p.target, atol=1e-5)
+
+
+def test_bad_pose_layouts_are_one_clear_error(tmp_path):
+    from dit_jax import io
+
+    with pytest.raises(DataError, match="no scan poses found"):
+        scans.load_pair_sets(tmp_path)
+    (tmp_path / "gt.log").write_text("0 1 2\n1 0 0 0\n")
+    with pytest.raises(DataError, match="entries of five lines"):
+        scans.load_pair_sets(tmp_path)
+    (tmp_path / "gt.log").write_text("0 1 2\n" + "1 0 0 0\n" * 4)
+    with pytest.raises(DataError, match="no cloud_bin_1"):
+        scans.load_pair_sets(tmp_path)
+    (tmp_path / "gt.log").unlink()
+    (tmp_path / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
+    io.write(tmp_path / "a.ply", np.eye(3))
+    with pytest.raises(DataError, match="2 poses for 1 scans"):
+        scans.load_pair_sets(tmp_path)
+
+
+def test_kitchen_fragments_truth_lays_the_overlap_on_itself():
+    """The shared 3DMatch fragments: three pairs in two lists, and after the benchmark's truth most source
+    points lie within a few centimetres of the target (the overlap), far fewer before it."""
+    import pathlib
+
+    from scipy.spatial import cKDTree
+
+    from conftest import SHARED
+
+    folder = pathlib.Path(SHARED) / "data" / "3dmatch_redkitchen"
+    if not (folder / "3DMatch" / "gt.log").exists():
+        pytest.skip(f"the 3DMatch kitchen fragments are not here ({folder}); they ship with ../shared")
+    sets = scans.load_pair_sets(folder)
+    assert {k: len(v.pairs) for k, v in sets.items()} == {"3DLoMatch": 2, "3DMatch": 1}
+    pair = sets["3DMatch"].pairs[0]
+    tree = cKDTree(pair.target)
+    sample = pair.source[:: max(1, len(pair.source) // 5000)]
+    after = tree.query(_moved(sample, pair.rotation, pair.translation))[0]
+    before = tree.query(sample)[0]
+    assert np.mean(after < 0.03) > 0.5 > np.mean(before < 0.03), (np.mean(after < 0.03), np.mean(before < 0.03))

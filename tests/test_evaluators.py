@@ -93,6 +93,29 @@ def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
     assert [r["rot_err"] for r in strict["DIT"]["rows"]] == [r["rot_err"] for r in rows]
 
 
+def test_evaluate_scans_reads_a_single_pair_with_its_benchmark_criterion(tiny_checkpoint, tmp_path):
+    """A folder of source, target and T_target_source.txt (the LiDAR layout): one pair set, and the table
+    counts the pairs registered by the benchmark's criterion (5 degrees, 2 m) beside the error columns."""
+    import numpy as np
+
+    from conftest import random_rotation
+    from dit_jax import io
+
+    rng = np.random.default_rng(2)
+    cloud = rng.normal(size=(300, 3)) * [4.0, 2.0, 0.5]
+    rotation, translation = random_rotation(rng), np.array([0.5, 0.1, 0.0])
+    io.write(tmp_path / "source.ply", cloud)
+    io.write(tmp_path / "target.ply", cloud @ rotation.T + translation)
+    np.savetxt(tmp_path / "T_target_source.txt", np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]))
+    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path), str(tmp_path / "out"), progress=False,
+                                        inference={"refine": "none"}, worst_pairs=False)
+    summary = results["pair_sets"]["pair"]["DIT"]["summary"]
+    row = results["pair_sets"]["pair"]["DIT"]["rows"][0]
+    assert summary["registered"] == int(row["rot_err"] <= 5.0 and row["trans_err"] <= 2.0)
+    assert "| method | registered (5 deg, 2) |" in results["table"]
+    assert results["pair_set_info"]["pair"]["criterion"] == [5.0, 2.0]
+
+
 def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, tmp_path, capsys):
     """--n-points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
     import evaluate

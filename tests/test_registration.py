@@ -115,7 +115,7 @@ def test_clouds_whose_sizes_differ_tenfold_warn(tiny_registrar):
 def test_clouds_far_apart_are_centred_each_on_its_own(dragon_dir):
     """A pair of dragon scans 24 degrees apart, the target moved a million scan sizes off: centred together
     (``centring="shared"``) the two shrink to specks in the unit sphere and the network turns the source
-    about 177 degrees the wrong way (measured 2026-12-01); the default ``"auto"`` centres each on its own
+    far the wrong way; the default ``"auto"`` centres each on its own
     there and lands where the unmoved pair does (network alone, 1-2 degrees), which it leaves centred
     together, as in training (the same result as ``"shared"``, bit for bit)."""
     from dit_jax.data import scans
@@ -183,13 +183,10 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
 
 
 def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict(modelnet_shapes):
-    """Two disjoint halves of a shape (no point shared), in metres with an offset: the shipped network lands
-    0.5-18 degrees off on these six shapes (the sixth stage's weights, shipped 2026-11-28; 2-22 with the fifth's,
-    15-50 with those before 2026-11-27); refine="icp" improves every one, to a median under 2 degrees
-    (measured 2026-11-28: 0.5-1.5), and reports the refined fitness. Fitness is a share of points within two
-    spacings, not what the refinement minimises, so it must rise only where the network started far off the
-    surface (with the fifth stage's weights the 2-degree starts ended more accurate at a fitness about 0.01
-    lower; with the sixth's it rose on all six)."""
+    """Two disjoint halves of a shape (no point shared), in metres with an offset: the shipped network lands a
+    few degrees off on these six shapes; refine="icp" improves every one, to a median under 2 degrees, and
+    reports the refined fitness. Fitness is a share of points within two spacings, not what the refinement
+    minimises, so it must rise only where the network started far off the surface."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     model_ = registration.load(n_points=512, verdict_rule="fitness")  # one direction: this checks the refinement
     plain_errors, refined_errors = [], []
@@ -220,10 +217,9 @@ def test_result_plot_writes_a_png(tiny_registrar, tmp_path):
 
 def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_shapes):
     """The default verdict registers the target onto the source as well: a shape and its moved copy come out
-    the same both ways (trusted), a shape registered onto a different one does not (suspect); measured
-    2026-11-28 on these four shapes (sixth stage's weights): agreement 0.00-0.01 against 12-45 degrees (10-27
-    with the fifth stage's, 20-55 with earlier weights); the shipped threshold for the network alone is 0.5
-    since 2026-12-02 (2.0, then 1.0, then 0.25 before)."""
+    the same both ways (trusted), a shape registered onto a different one does not (suspect): their two
+    directions are hundredths of a degree apart against tens of degrees, either side of the shipped
+    threshold."""
     model_ = registration.load(refine="none")  # the network's own evidence, as measured
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     for index in range(4):

@@ -8,13 +8,25 @@ rotation matrix of the unit quaternion (qx, qy, qz, qw), and the scans as PLY fi
     scans = load_scans("../shared/data/stanford_dragon_stand")     # in the .conf's order
     for pair in scan_pairs(scans, skip=1):                         # adjacent scans, cyclically
         pair.source, pair.target, pair.rotation, pair.translation  # tgt ~ src @ R.T + t
+
+:func:`load_pair_sets` reads any of the layouts real benchmarks ship, as named sets of :class:`ScanPair`:
+
+* a Stanford ``.conf`` (above): scan i with scan i + skip, for each skip;
+* 3DMatch / 3DLoMatch: fragments ``cloud_bin_<i>.ply`` and a ``gt.log`` (in the folder or in subfolders such
+  as ``3DMatch/`` and ``3DLoMatch/``, one set each) whose entries ``i j n`` and a 4 x 4 matrix ``T`` move
+  fragment j onto fragment i (``p_i = T p_j``): j is the source;
+* KITTI odometry: a ``poses.txt`` of 3 x 4 poses (one line of 12 numbers per scan, the scan's frame to the
+  first's) and the scans beside it in name order: scan i with scan i + skip;
+* one pair: ``source.*`` and ``target.*`` with ``T_target_source.txt`` (``target ~ T @ source``).
+
+Each set carries the success criterion its benchmark counts with (:data:`CRITERIA`).
 """
 
 from __future__ import annotations
 
 import os
 import pathlib
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -111,3 +123,119 @@ def scan_pairs(scans: list[Scan], skip: int = 1) -> list[ScanPair]:
         rotation, translation = relative_motion(source, target)
         out.append(ScanPair(f"{source.name}->{target.name}", source.points, target.points, rotation, translation))
     return out
+
+
+#: What each kind of data counts as registered: (degrees, units of the data) of rotation and translation
+#: error, as its benchmark counts (3DMatch / 3DLoMatch: 15 degrees and 0.3 m; KITTI and LiDAR pairs: 5 degrees
+#: and 2 m); None where the data says nothing of scale (a turntable series of an object).
+CRITERIA = {"conf": None, "gt.log": (15.0, 0.3), "kitti": (5.0, 2.0), "pair": (5.0, 2.0)}
+
+
+class PairSet(NamedTuple):
+    """Named pairs of one benchmark list, and what it counts as registered (``(degrees, distance)`` or None)."""
+
+    pairs: list[ScanPair]
+    criterion: tuple[float, float] | None
+    kind: str  # a key of CRITERIA
+
+
+def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
+    """The entries of a 3DMatch ``gt.log``: ``[(i, j, T (4, 4)), ...]``, ``T`` moving fragment j onto i."""
+    lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
+    if len(lines) % 5:
+        raise DataError(f"{path}: expected entries of five lines ('i j n', then four rows of T), "
+                        f"found {len(lines)} lines")
+    entries = []
+    for k in range(0, len(lines), 5):
+        try:
+            i, j = int(lines[k][0]), int(lines[k][1])
+            matrix = np.array(lines[k + 1:k + 5], np.float64)
+        except (ValueError, IndexError):
+            raise DataError(f"{path}: entry {k // 5 + 1} is not 'i j n' and a 4 x 4 matrix") from None
+        if matrix.shape != (4, 4):
+            raise DataError(f"{path}: entry {k // 5 + 1} is not 'i j n' and a 4 x 4 matrix")
+        entries.append((i, j, matrix))
+    return entries
+
+
+def _pair(name: str, source: np.ndarray, target: np.ndarray, motion: np.ndarray) -> ScanPair:
+    return ScanPair(name, source, target, motion[:3, :3], motion[:3, 3])
+
+
+def _read_scan(file: pathlib.Path, listed_in: pathlib.Path) -> np.ndarray:
+    if not file.exists():
+        raise DataError(f"{listed_in}: lists {file.name}, which is not in {file.parent}")
+    return io.read(file).astype(np.float64)
+
+
+def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path]) -> dict[str, PairSet]:
+    cache: dict[pathlib.Path, np.ndarray] = {}
+
+    def fragment(index: int, log: pathlib.Path) -> np.ndarray:
+        for folder in (log.parent, directory):
+            candidates = sorted(folder.glob(f"cloud_bin_{index}.*"))
+            if candidates:
+                if candidates[0] not in cache:
+                    cache[candidates[0]] = _read_scan(candidates[0], log)
+                return cache[candidates[0]]
+        raise DataError(f"{log}: lists fragment {index}, but no cloud_bin_{index}.* is in {directory}")
+
+    sets = {}
+    for log in logs:
+        name = log.parent.name if log.parent != directory else directory.name
+        pairs = [_pair(f"cloud_bin_{j}->cloud_bin_{i}", fragment(j, log), fragment(i, log), matrix)
+                 for i, j, matrix in read_gt_log(log)]
+        sets[name] = PairSet(pairs, CRITERIA["gt.log"], "gt.log")
+    return sets
+
+
+def _kitti_set(poses_file: pathlib.Path, skips: Sequence[int]) -> dict[str, PairSet]:
+    try:
+        poses = np.loadtxt(poses_file, ndmin=2)
+    except ValueError:
+        raise DataError(f"{poses_file}: expected one line of 12 numbers (a 3 x 4 pose) per scan") from None
+    if poses.shape[1] != 12:
+        raise DataError(f"{poses_file}: expected one line of 12 numbers (a 3 x 4 pose) per scan")
+    files = sorted(f for f in poses_file.parent.iterdir()
+                   if f.suffix.lower() in io.READ_FORMATS and f.name != poses_file.name)
+    if len(files) != len(poses):
+        raise DataError(f"{poses_file}: {len(poses)} poses for {len(files)} scans in {poses_file.parent}")
+    pose = [np.vstack([row.reshape(3, 4), [0, 0, 0, 1]]) for row in poses]
+    points = [_read_scan(f, poses_file) for f in files]
+    sets = {}
+    for skip in skips:
+        pairs = [_pair(f"{files[i].stem}->{files[i + skip].stem}", points[i], points[i + skip],
+                       np.linalg.inv(pose[i + skip]) @ pose[i]) for i in range(len(files) - skip)]
+        sets[f"skip{skip}"] = PairSet(pairs, CRITERIA["kitti"], "kitti")
+    return sets
+
+
+def load_pair_sets(directory: str | os.PathLike, skips: Sequence[int] = (1, 2)) -> dict[str, PairSet]:
+    """The named pair sets of a folder of real scans in any layout of the module docs (``skips`` for series:
+    a ``.conf`` or KITTI ``poses.txt``)."""
+    path = pathlib.Path(directory)
+    if not path.is_dir():
+        raise DataError(f"{path}: no such directory")
+    if sorted(path.glob("*.conf")):
+        series = load_scans(path)
+        return {f"skip{k}": PairSet(scan_pairs(series, k), CRITERIA["conf"], "conf") for k in skips}
+    logs = sorted(path.glob("gt.log")) + sorted(path.glob("*/gt.log"))
+    if logs:
+        return _gt_log_sets(path, logs)
+    if (path / "poses.txt").exists():
+        return _kitti_set(path / "poses.txt", skips)
+    if (path / "T_target_source.txt").exists():
+        try:
+            motion = np.loadtxt(path / "T_target_source.txt")
+        except ValueError:
+            motion = None
+        if motion is None or motion.shape != (4, 4):
+            raise DataError(f"{path / 'T_target_source.txt'}: expected a 4 x 4 matrix")
+        found = {role: sorted(f for f in path.glob(f"{role}.*") if f.suffix.lower() in io.READ_FORMATS)
+                 for role in ("source", "target")}
+        if not found["source"] or not found["target"]:
+            raise DataError(f"{path}: T_target_source.txt needs a source.* and a target.* cloud beside it")
+        pair = _pair(path.name, _read_scan(found["source"][0], path), _read_scan(found["target"][0], path), motion)
+        return {"pair": PairSet([pair], CRITERIA["pair"], "pair")}
+    raise DataError(f"{path}: no scan poses found (a Stanford .conf, a 3DMatch gt.log, a KITTI poses.txt, or "
+                    "T_target_source.txt)")

@@ -173,14 +173,18 @@ def scan_tables(results: dict) -> str:
              f"{dit['n_iters']} times.", ""] if dit else []
     for pair_set, methods in results["pair_sets"].items():
         info = results["pair_set_info"][pair_set]
+        criterion = info.get("criterion")
+        registered = ([f"registered ({criterion[0]:g} deg, {criterion[1]:g})"] if criterion else [])
         lines += [f"### {pair_set} ({info['pairs']} pairs, about {info['angle']:.0f} degrees apart)", "",
-                  "| method | median rotation error (deg) | " + " | ".join(f"within {t:g} deg" for t in SCAN_THRESHOLDS)
+                  "| method | " + " | ".join(registered + ["median rotation error (deg)"])
+                  + " | " + " | ".join(f"within {t:g} deg" for t in SCAN_THRESHOLDS)
                   + " | median translation error / extent | s / pair |",
-                  "|---|---|" + "---|" * len(SCAN_THRESHOLDS) + "---|---|"]
+                  "|---|" + "---|" * len(registered) + "---|" + "---|" * len(SCAN_THRESHOLDS) + "---|---|"]
         for name, r in methods.items():
             s = r["summary"]
             within = " | ".join(f"{s[f'within_{t:g}']} of {s['pairs']}" for t in SCAN_THRESHOLDS)
-            lines.append(f"| {name} | {s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
+            first = f"{s['registered']} of {s['pairs']} | " if criterion else ""
+            lines.append(f"| {name} | {first}{s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
                          f"{s['seconds_per_pair']:.2f} |")
         if METHOD_DIT_ICP in methods:
             lines += ["", refinement_line(methods[METHOD_DIT_ICP]["summary"]["refinement"])]

@@ -29,23 +29,29 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     return rotation, translation, time.perf_counter() - started
 
 
-def summarise_scans(rows: list[dict]) -> dict:
+def summarise_scans(rows: list[dict], criterion: tuple[float, float] | None = None) -> dict:
     """Median rotation error, shares within :data:`SCAN_THRESHOLDS`, median relative translation error and
-    mean seconds of one method's rows (each with ``rot_err``, ``trans_err_rel``, ``seconds``)."""
+    mean seconds of one method's rows (each with ``rot_err``, ``trans_err``, ``trans_err_rel``, ``seconds``);
+    with a ``criterion`` (degrees, distance), also ``registered``: the pairs within both, as the data's
+    benchmark counts them."""
     rot = np.array([r["rot_err"] for r in rows])
     out = {"pairs": len(rows), "rot_median": float(np.median(rot)), "rot_mean": float(np.mean(rot)),
            "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
            "seconds_per_pair": float(np.mean([r["seconds"] for r in rows]))}
     out.update({f"within_{t:g}": int(np.sum(rot <= t)) for t in SCAN_THRESHOLDS})
+    if criterion is not None:
+        degrees, distance = criterion
+        out["registered"] = int(sum(r["rot_err"] <= degrees and r["trans_err"] <= distance for r in rows))
     return out
 
 
 def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
                    baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
                    inference: dict | None = None, worst_pairs: bool = True) -> dict:
-    """DIT (and baselines) on pairs of real range scans with known poses (:mod:`dit_jax.data.scans`).
+    """DIT (and baselines) on pairs of real scans with known poses (:mod:`dit_jax.data.scans`).
 
-    Pairs: scan i with scan i + ``skip`` for each skip (1: adjacent, 2: every second one). Writes
+    Pairs: the pair sets of :func:`dit_jax.data.scans.load_pair_sets` (a series gives scan i with scan i +
+    ``skip`` for each skip: 1 adjacent, 2 every second one; a 3DMatch folder its gt.log lists). Writes
     ``results.md``, ``results.json`` (every pair's errors, the verdicts), ``success_ratio.png`` and
     ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT and DIT+ICP (one run of
     the pipeline; ``inference``: changes to the checkpoint's settings, ``{"refine": "none"}`` drops DIT+ICP)
@@ -57,9 +63,9 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
 
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
-    all_scans = scans_lib.load_scans(scans_dir)
+    loaded = scans_lib.load_pair_sets(scans_dir, skips)
     registrar = registration.load(checkpoint_dir, **(inference or {})) if checkpoint_dir is not None else None
-    pair_sets = {f"skip{k}": scans_lib.scan_pairs(all_scans, k)[:max_pairs] for k in skips}
+    pair_sets = {name: found.pairs[:max_pairs] for name, found in loaded.items()}
     bar = progress_bar(progress, sum(map(len, pair_sets.values())) * (len(baselines) + bool(registrar)),
                        "evaluate scans")
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
@@ -69,9 +75,11 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                           "n_iters": registrar.settings.model_config(registrar.config).n_iters,
                           "inference_settings": registrar.settings.to_dict()}
     for set_name, set_pairs in pair_sets.items():
+        criterion = loaded[set_name].criterion
         results["pair_set_info"][set_name] = {
             "pairs": len(set_pairs), "angle": float(np.mean([rotation_error_deg(p.rotation, np.eye(3))
-                                                             for p in set_pairs]))}
+                                                             for p in set_pairs])),
+            "kind": loaded[set_name].kind, "criterion": list(criterion) if criterion else None}
         estimates = {}
         if registrar is not None:
             if bar is not None:
@@ -93,8 +101,9 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
             for k, pair in enumerate(set_pairs):
                 rotation, translation = est.rotation[k], est.translation[k]
                 extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
+                trans_err = float(np.linalg.norm(translation - pair.translation))
                 row = {"pair": pair.name, "rot_err": rotation_error_deg(rotation, pair.rotation),
-                       "trans_err_rel": float(np.linalg.norm(translation - pair.translation)) / extent,
+                       "trans_err": trans_err, "trans_err_rel": trans_err / extent,
                        "seconds": float(est.seconds[k]),
                        "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist()}
                 if method == METHOD_DIT_ICP:
@@ -110,7 +119,7 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                     else:
                         row.update(verdict=bool(est.fitness[k] >= verdict_settings.min_fitness))
                 rows.append(row)
-            summary = summarise_scans(rows)
+            summary = summarise_scans(rows, criterion)
             if rows and "verdict" in rows[0]:
                 refine = "icp" if method == METHOD_DIT_ICP else "none"
                 rule = (agreement_rule(registrar.settings.max_disagreement(refine))
