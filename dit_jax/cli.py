@@ -74,9 +74,10 @@ def _parser() -> argparse.ArgumentParser:
                         help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
                              "files' pixels without a return) instead of refusing the file")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
-    parser.add_argument("--refine", choices=("none", "icp"), default="icp",
-                        help="icp (default): refine the network's estimate by ICP on the full clouds; "
-                             "none: the network alone (faster, less accurate)")
+    parser.add_argument("--refine", choices=("none", "icp", "gicp"), default="icp",
+                        help="icp (default): refine the network's estimate by ICP on the full clouds; gicp: by "
+                             "small_gicp's generalized ICP at the clouds' point spacing (far faster on large "
+                             "scans); none: the network alone (faster, less accurate)")
     parser.add_argument("--any-rotation", action="store_true",
                         help="for clouds at any relative rotation: start the network from 24 turns of SRC "
                              "and go on from the best fitting (about 24 times the network's time)")
@@ -244,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'trusted' if result.verdict else 'suspect'}: {result.evidence()}")
         print(f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
               f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
-              + (f" + {result.refine_seconds:.2f} s of ICP" if result.refinement else ""))
+              + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else ""))
         if args.any_rotation:
             print(f"rotation search: went on from a start turned {result.start_turn:.0f} deg")
         for written in (args.out, args.plot):
@@ -281,8 +282,9 @@ def _series_parser() -> argparse.ArgumentParser:
                         help="draw every scan in the first one's frame, from two sides, beside each link's "
                              "agreement and verdict")
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    parser.add_argument("--refine", choices=("none", "icp"), default="icp",
-                        help="icp (default) or none: the network alone for every link")
+    parser.add_argument("--refine", choices=("none", "icp", "gicp"), default="icp",
+                        help="icp (default), gicp (small_gicp's generalized ICP) or none: the network alone for "
+                             "every link")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
                         help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
     parser.add_argument("--no-downsample", action="store_true",

@@ -29,7 +29,7 @@ import functools
 import os
 import time
 import warnings
-from typing import Any, Callable, Mapping, Sequence
+from typing import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +40,7 @@ from dit_jax import model as model_lib
 from dit_jax.configs import PRECISIONS, DITConfig, Record
 
 #: What the pipeline can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
-REFINEMENTS = ("none", "icp")
+REFINEMENTS = ("none", "icp", "gicp")
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
 CENTRINGS = ("auto", "shared", "separate")
 #: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
@@ -86,7 +86,10 @@ class InferenceSettings(Record):
         more than :data:`FAR_APART` radii apart, else "shared".
       n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision: override the model config's
         (:class:`dit_jax.configs.DITConfig`) where set; None keeps the config's.
-      refine: "icp" refines the network's estimate on the full clouds (stage 3); "none" does not.
+      refine: "icp" refines the network's estimate on the full clouds (stage 3, :func:`dit_jax.icp.refine`);
+        "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
+        (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
+        bands); "none" does not.
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -142,11 +145,12 @@ class InferenceSettings(Record):
         return config.replace(**changes) if changes else config
 
     def max_disagreement(self, refine: str) -> float:
-        """The agreement verdict's threshold (degrees) for ``refine`` ("none" or "icp")."""
-        return self.max_disagreement_icp if refine == "icp" else self.max_disagreement_network
+        """The agreement verdict's threshold (degrees) for ``refine``: the network's for "none", ICP's for a
+        refinement."""
+        return self.max_disagreement_network if refine == "none" else self.max_disagreement_icp
 
     def agreement_bands(self, refine: str) -> tuple | None:
-        return self.agreement_bands_icp if refine == "icp" else self.agreement_bands_network
+        return self.agreement_bands_network if refine == "none" else self.agreement_bands_icp
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,7 +170,7 @@ class Result:
       seconds: wall time of the network (both directions under the agreement verdict; with
         ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
         included unless the call ran several batches (:func:`network`).
-      refinement: "icp" where ICP refined the network's estimate, else None.
+      refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       verdict: True ("trusted") where the model's own evidence confirms the result, False ("suspect") where it
         does not; a suspect result is unconfirmed, not necessarily wrong.
@@ -484,18 +488,22 @@ class Refined:
 
 
 def refine_pair(pair: Normalised, forward: tuple, backward: tuple | None, *, best_direction: bool,
-                seed: int) -> Refined:
+                seed: int, method: str = "icp") -> Refined:
     """Stage 3 for one pair: refines ``forward`` (R, t), source onto target, and ``backward``, target onto
-    source (None: one direction), by :func:`dit_jax.icp.refine` on the full clouds, side by side; with
+    source (None: one direction), on the full clouds by ``method``: "icp" (:func:`dit_jax.icp.refine`, the
+    two side by side) or "gicp" (:func:`dit_jax.icp.refine_gicp`, threaded itself); with
     ``best_direction``, keeps the inverse of the backward motion where it lays the source onto the target
     better (:func:`dit_jax.icp.fits_better`)."""
     started = time.perf_counter()
     jobs = [(pair.src, pair.tgt, *forward)]
     if backward is not None:
         jobs.append((pair.tgt, pair.src, *backward))
-    # Independent NumPy and scipy work, which releases the GIL: two threads take about half the serial time.
-    with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
-        refined = list(pool.map(lambda job: icp_lib.refine(*job, scale=pair.scale, seed=seed), jobs))
+    if method == "gicp":
+        refined = [icp_lib.refine_gicp(*job, seed=seed) for job in jobs]
+    else:
+        # Independent NumPy and scipy work, which releases the GIL: two threads take about half the serial time.
+        with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
+            refined = list(pool.map(lambda job: icp_lib.refine(*job, scale=pair.scale, seed=seed), jobs))
     rotation, translation, direction = refined[0].rotation, refined[0].translation, "forward"
     back_rotation = None
     if backward is not None:
@@ -603,16 +611,16 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
         return network_result
     backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
     refined = refine_pair(p, (e["rotation"], e["translation"]), backward, best_direction=settings.best_direction,
-                          seed=settings.seed)
+                          seed=settings.seed, method=settings.refine)
     # The fitness, as the model measures it, for the refined motion.
     moved = ((p.src[p.src_indices] @ refined.rotation.T + refined.translation) - p.tgt_centre) / p.scale
     tgt_j = jnp.asarray(p.tgt_n)
     fitness = float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
                                      config.fitness_radius * geometry.spacing(tgt_j)))
-    verdict, threshold, agreement, band = judge(settings, "icp", fitness, refined.forward_rotation,
+    verdict, threshold, agreement, band = judge(settings, settings.refine, fitness, refined.forward_rotation,
                                                 refined.backward_rotation)
     turn = e["turn"] if refined.direction == "forward" else e["back_turn"]
-    return _result(refined.rotation, refined.translation, fitness=fitness, refinement="icp",
+    return _result(refined.rotation, refined.translation, fitness=fitness, refinement=settings.refine,
                    refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
                    direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
                    **common)

@@ -280,3 +280,36 @@ def test_start_scores_rank_the_start_near_the_truth_first():
     scores = icp.start_scores(src, tgt, np.stack(starts), np.stack([t] * 3))
     assert scores.shape == (3,) and np.argmin(scores) == 1
     assert icp.best_start(scores) == 1
+
+
+def test_gicp_refinement_lands_on_an_independently_sampled_surface_in_any_units():
+    """refine_gicp from a start 6 degrees off, on two independent samplings of one surface: within half a
+    degree of the truth, and the same motion (scaled) in millimetres as in metres, since its resolutions
+    come from the clouds' spacing."""
+    pytest.importorskip("small_gicp")
+    src, other = _surface(20_000, seed=1), _surface(20_000, seed=2)
+    truth, t_truth = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([0.3, -0.1, 0.2])
+    tgt = other @ truth.T + t_truth
+    start = euler_zyx_to_matrix([4.0, 3.0, -3.0]) @ truth
+    metres = icp.refine_gicp(src, tgt, start, t_truth + 0.05, threads=2)
+    assert rotation_angle_deg(metres.rotation.T @ truth) < 0.5 and metres.iterations > 0
+    millimetres = icp.refine_gicp(src * 1000, tgt * 1000, start, (t_truth + 0.05) * 1000, threads=2)
+    assert rotation_angle_deg(millimetres.rotation.T @ metres.rotation) < 0.01
+    np.testing.assert_allclose(millimetres.translation / 1000, metres.translation, atol=1e-4)
+
+
+def test_gicp_refinement_never_fits_worse_than_its_start():
+    """From a start half a turn off, whatever GICP reaches is kept only where it lays the source onto the
+    target better (trimmed fit) than the start did."""
+    pytest.importorskip("small_gicp")
+    from scipy.spatial import cKDTree
+
+    src = _surface(3000, seed=3)
+    tgt = _surface(3000, seed=4)
+    start = euler_zyx_to_matrix([180.0, 0.0, 40.0])
+    result = icp.refine_gicp(src, tgt, start, np.zeros(3), threads=1)
+    tree = cKDTree(tgt)
+    assert icp.trimmed_fit(src, tree, result.rotation, result.translation) <= icp.trimmed_fit(
+        src, tree, start, np.zeros(3))
+    if result.iterations == 0:
+        np.testing.assert_array_equal(result.rotation, start)

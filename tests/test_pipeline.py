@@ -16,7 +16,7 @@ def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
     assert pipeline.InferenceSettings.from_dict(settings.to_dict()) == settings
     with pytest.raises(dataclasses.FrozenInstanceError):
         settings.n_points = 3
-    for bad, fragment in (({"refine": "gicp"}, "refine must be one of"), ({"centring": "middle"}, "centring"),
+    for bad, fragment in (({"refine": "ndt"}, "refine must be one of"), ({"centring": "middle"}, "centring"),
                           ({"verdict_rule": "vote"}, "verdict_rule"), ({"precision": "half"}, "precision"),
                           ({"n_iters": 0}, "n_iters"), ({"n_points": 0}, "positive")):
         with pytest.raises(ValueError, match=fragment):
