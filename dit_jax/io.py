@@ -125,8 +125,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
             if fast is not None:
                 rows, names = fast
                 kept = select_(len(rows))
-                rows = rows if kept is None else rows[kept]
-                return rows[:, _columns(path_, names)], len(fast[0])
+                return (rows if kept is None else rows[kept])[:, _columns(path_, names)], len(rows)
             ply = _ply(path_, mmap=True)
             if _ply_triangles(ply) is None:
                 return _read_ply(path_, select_, ply)
@@ -466,8 +465,8 @@ def _ascii_ply_vertices(path: str) -> tuple[np.ndarray, list[str]] | None:
     range scan's vertices took seconds behind their scan-grid lists; NumPy's loader reads the vertex block in
     one call.
     """
-    elements: list[tuple[str, int, list[str]]] = []
-    single: list[bool] = []  # the vertex properties declared float32, rounded as plyfile's read rounds them
+    # (name, count, [(property, declared float32), ...]); a list property is (None, False): not for this path
+    elements: list[tuple[str, int, list[tuple[str | None, bool]]]] = []
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply" or f.readline().split() != [b"format", b"ascii", b"1.0"]:
             return None
@@ -480,19 +479,19 @@ def _ascii_ply_vertices(path: str) -> tuple[np.ndarray, list[str]] | None:
             if words[0] == "element" and len(words) == 3 and words[2].isdigit():
                 elements.append((words[1], int(words[2]), []))
             elif words[0] == "property" and elements and len(words) == 3:
-                elements[-1][2].append(words[2])
-                single.append(words[1] in ("float", "float32"))
+                elements[-1][2].append((words[2], words[1] in ("float", "float32")))
             elif words[0] == "property" and elements and words[1:2] == ["list"]:
-                elements[-1][2].append("")  # a list: not for this path
+                elements[-1][2].append((None, False))
             else:
                 return None
         else:
             return None
-        if not elements or elements[0][0] != "vertex" or "" in elements[0][2]:
+        if not elements or elements[0][0] != "vertex" or any(name is None for name, _ in elements[0][2]):
             return None
         if any(name == "face" and count for name, count, _ in elements):
             return None
-        _, count, names = elements[0]
+        _, count, properties = elements[0]
+        names = [name for name, _ in properties]
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # an empty vertex block
@@ -502,8 +501,8 @@ def _ascii_ply_vertices(path: str) -> tuple[np.ndarray, list[str]] | None:
     if rows.shape != (count, len(names)) and not (count == 0 and rows.size == 0):
         return None
     rows = rows.reshape(count, len(names))
-    single = np.asarray(single[:len(names)], bool)
-    rows[:, single] = rows[:, single].astype(np.float32)
+    single = np.array([is_single for _, is_single in properties], bool)
+    rows[:, single] = rows[:, single].astype(np.float32)  # rounded as plyfile's read rounds them
     return rows, names
 
 

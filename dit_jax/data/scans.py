@@ -94,15 +94,18 @@ def find_conf(directory: str | os.PathLike) -> pathlib.Path:
     return confs[0]
 
 
+def _read_scan(file: pathlib.Path, listed_in: pathlib.Path) -> np.ndarray:
+    if not file.exists():
+        raise DataError(f"{listed_in}: lists {file.name}, which is not in {file.parent}")
+    return io.read(file).astype(np.float64)
+
+
 def load_scans(directory: str | os.PathLike) -> list[Scan]:
     """Every scan the directory's ``.conf`` lists, with its pose, in the ``.conf``'s order."""
     conf = find_conf(directory)
     scans = []
     for name, pose in read_conf(conf):
-        file = conf.parent / name
-        if not file.exists():
-            raise DataError(f"{conf}: lists {name}, which is not in {conf.parent}")
-        scans.append(Scan(pathlib.Path(name).stem, io.read(file).astype(np.float64), pose))
+        scans.append(Scan(pathlib.Path(name).stem, _read_scan(conf.parent / name, conf), pose))
     return scans
 
 
@@ -160,12 +163,6 @@ def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
 
 def _pair(name: str, source: np.ndarray, target: np.ndarray, motion: np.ndarray) -> ScanPair:
     return ScanPair(name, source, target, motion[:3, :3], motion[:3, 3])
-
-
-def _read_scan(file: pathlib.Path, listed_in: pathlib.Path) -> np.ndarray:
-    if not file.exists():
-        raise DataError(f"{listed_in}: lists {file.name}, which is not in {file.parent}")
-    return io.read(file).astype(np.float64)
 
 
 def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path]) -> dict[str, PairSet]:
