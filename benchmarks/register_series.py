@@ -94,7 +94,7 @@ def main() -> None:
     for k, scan in enumerate(scans):
         link = f"link from {scans[-1].name}: " if k == 0 else ""
         k_link = (k - 1) % len(scans)
-        verdict = "trusted" if result.links[k_link].verdict else "suspect"
+        verdict = result.links[k_link].level
         print(f"| {scan.name} | {link}{verdict} / {link_errors[k_link]:.2f} | {rot_chain[k]:.2f} / "
               f"{shift_chain[k]:.5f} | {rot_loop[k]:.2f} / {shift_loop[k]:.5f} |")
     for name, rot, shift in (("chained", rot_chain, shift_chain), ("loop closed", rot_loop, shift_loop)):

@@ -19,9 +19,10 @@ of scans into one frame (see its ``--help``).
 
 Every result carries a verdict from the model's own evidence: the target is registered onto the source as
 well, and the result is trusted where the two motions agree closely (``--verdict fitness``: where enough of
-the source lands on the target, one registration instead of two). A suspect result is unconfirmed, not
-necessarily wrong: it is still printed and written, a one-line warning goes to stderr, and the exit status
-is 3 (``--no-verdict-status`` keeps it 0). How often trusted and suspect results are right: the README.
+the source lands on the target, one registration instead of two). A result not trusted is "unconfirmed"
+where validation results that agreed as closely were mostly right (exit status 0, a one-line note on
+stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
+way it is printed and written. How often each level was right: docs/verdict.md.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time
@@ -42,7 +43,7 @@ from dit_jax import compile_cache, io
 
 PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
-#: Exit status when the verdict does not confirm the result (it may still be right).
+#: Exit status when the verdict finds the result probably wrong.
 EXIT_SUSPECT = 3
 
 
@@ -242,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         angle = rotation_angle_deg(result.rotation)
         print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} "
               f"(units of the input)")
-        print(f"{'trusted' if result.verdict else 'suspect'}: {result.evidence()}")
+        print(f"{result.level}: {result.evidence()}")
         print(f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
               f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
               + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else ""))
@@ -251,8 +252,10 @@ def main(argv: list[str] | None = None) -> int:
         for written in (args.out, args.plot):
             if written is not None:
                 print(f"wrote {written}")
-    if not result.verdict:
-        print(f"{PROG}: warning: the result is not confirmed and may be wrong: {result.evidence()}", file=sys.stderr)
+    if result.level == "unconfirmed":
+        print(f"{PROG}: note: the result is not confirmed: {result.evidence()}", file=sys.stderr)
+    elif result.level == "probably wrong":
+        print(f"{PROG}: warning: the result is probably wrong: {result.evidence()}", file=sys.stderr)
         return 0 if args.no_verdict_status else EXIT_SUSPECT
     return 0
 
@@ -267,7 +270,7 @@ def _series_parser() -> argparse.ArgumentParser:
                     "first one's frame (dit_jax.series).",
         epilog="Prints each scan's 4x4 pose (x_first = R x_scan + t) and each link's verdict. With --loop the "
                "last scan is registered onto the first too and the loop's gap (the motion left after going "
-               "once around it) is spread over the links. Exit status 3 where a link is suspect or the loop's "
+               "once around it) is spread over the links. Exit status 3 where a link is probably wrong or the loop's "
                f"gap exceeds {LOOP_GAP_WARNING_DEG:g} degrees (a link is then most likely wrong); 2 on bad input.")
     parser.add_argument("scans", nargs="+", help="the scans (or meshes) in the order they were taken, at least 2")
     parser.add_argument("--loop", action="store_true",
@@ -294,7 +297,7 @@ def _series_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-verdict-status", action="store_true",
-                        help=f"exit 0 even when a link is suspect or the loop's gap is large (else {EXIT_SUSPECT})")
+                        help=f"exit 0 even when a link is probably wrong or the loop's gap is large (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
     return parser
 
@@ -389,7 +392,7 @@ def series_main(argv: list[str] | None = None) -> int:
                       f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame")
                 print(pose)
         for (a, b), link in zip(pairs, result.links):
-            print(f"{names[a]} onto {names[b]}: {'trusted' if link.verdict else 'suspect'}: {link.evidence()}")
+            print(f"{names[a]} onto {names[b]}: {link.level}: {link.evidence()}")
         if args.loop:
             print(f"loop: gap {result.loop_gap_deg:.3f} deg and {result.loop_gap:.6g} (units of the input) "
                   f"before closing, spread over {len(pairs)} links")
@@ -399,8 +402,12 @@ def series_main(argv: list[str] | None = None) -> int:
             print(f"wrote {len(args.scans)} moved scans to {args.out_dir}")
         if args.plot is not None:
             print(f"wrote {args.plot}")
-    problems = [f"{names[a]} onto {names[b]} is not confirmed" for (a, b), link in zip(pairs, result.links)
-                if not link.verdict]
+    for (a, b), link in zip(pairs, result.links):
+        if link.level == "unconfirmed":
+            print(f"{SERIES_PROG}: note: {names[a]} onto {names[b]} is not confirmed: {link.evidence()}",
+                  file=sys.stderr)
+    problems = [f"{names[a]} onto {names[b]} is probably wrong" for (a, b), link in zip(pairs, result.links)
+                if link.level == "probably wrong"]
     if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:
         problems.append(f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
                         f"a link is most likely wrong")

@@ -57,6 +57,8 @@ FAR_APART = 10.0
 SIZE_RATIO_WARNING = 10.0
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
+#: The verdict's levels (:func:`verdict_level`), most confident first.
+VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
 
 
 #: The fields of :class:`InferenceSettings` that override the model config's inference options.
@@ -102,6 +104,8 @@ class InferenceSettings(Record):
       agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
         agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
         :attr:`Result.agreement_band`.
+      unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
+        the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
     """
 
     n_points: int = 1000
@@ -122,6 +126,7 @@ class InferenceSettings(Record):
     max_disagreement_icp: float = 6.0
     agreement_bands_network: tuple | None = None
     agreement_bands_icp: tuple | None = None
+    unconfirmed_min_right: float = 0.5
 
     def __post_init__(self):
         for name, allowed in (("centring", CENTRINGS), ("refine", REFINEMENTS), ("verdict_rule", VERDICTS)):
@@ -172,8 +177,9 @@ class Result:
         included unless the call ran several batches (:func:`network`).
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
-      verdict: True ("trusted") where the model's own evidence confirms the result, False ("suspect") where it
-        does not; a suspect result is unconfirmed, not necessarily wrong.
+      verdict: True ("trusted") where the model's own evidence confirms the result, else False.
+      level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
+        right) or "probably wrong" (:func:`verdict_level`).
       verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
       threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
       agreement: degrees between the rotation and the inverse of the one found registering the target onto
@@ -201,6 +207,7 @@ class Result:
     refinement: str | None
     refine_seconds: float
     verdict: bool
+    level: str
     verdict_rule: str
     threshold: float
     agreement: float
@@ -221,7 +228,7 @@ class Result:
     def to_json(self) -> dict:
         return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
                 "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
-                "fitness": self.fitness, "verdict": "trusted" if self.verdict else "suspect",
+                "fitness": self.fitness, "verdict": self.level,
                 "verdict_rule": self.verdict_rule, "threshold": self.threshold,
                 "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
@@ -240,6 +247,8 @@ class Result:
                 band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
                 line += (f"; of the {pairs} validation results that {band} deg, "
                          f"{100 * right / pairs:.0f} % were within 5 deg")
+            elif not self.verdict:
+                line += "; no validation results agreed as loosely"
             return line
         return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
                 f"(trusted from {100 * self.threshold:.0f} %)")
@@ -533,6 +542,18 @@ def judge(settings: InferenceSettings, refine: str, fitness: float, forward_rota
     return fitness >= settings.min_fitness, settings.min_fitness, float("nan"), None
 
 
+def verdict_level(trusted: bool, band: tuple | None, min_right: float) -> str:
+    """The level of :data:`VERDICT_LEVELS` of a result: "trusted" where the verdict trusts it; else
+    "unconfirmed" where its agreement ``band`` (low, high, pairs, right) holds at least ``min_right`` of right
+    validation results, and "probably wrong" where it holds fewer or was not measured (no band, too few
+    results in it, or the fitness rule, which records none)."""
+    if trusted:
+        return "trusted"
+    if band is not None and band[2] > 0 and band[3] / band[2] >= min_right:
+        return "unconfirmed"
+    return "probably wrong"
+
+
 def agreement_band(bands: Sequence | None, agreement: float) -> tuple | None:
     """The (low, high, pairs, right) of ``bands`` (((upper or None, pairs, right), ...), increasing) that
     ``agreement`` (degrees) falls in; None without bands or agreement, or for a band of too few pairs."""
@@ -600,7 +621,8 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
     extras = e["extras"]
     common = dict(source_indices=p.src_indices, correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
                   confidence=np.asarray(extras["weights"], np.float64), inlier_ratio=float(extras["inlier_ratio"]),
-                  seconds=e["seconds"], verdict_rule=settings.verdict_rule)
+                  seconds=e["seconds"], verdict_rule=settings.verdict_rule,
+                  min_right=settings.unconfirmed_min_right)
     back_rotation = e.get("back_rotation")
     verdict, threshold, agreement, band = judge(settings, "none", float(extras["fitness"]), e["rotation"],
                                                 back_rotation)
@@ -626,8 +648,10 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
                    **common)
 
 
-def _result(rotation, translation, **fields) -> Result:
+def _result(rotation, translation, *, min_right: float, **fields) -> Result:
     matrix = np.eye(4)
     matrix[:3, :3], matrix[:3, 3] = rotation, translation
+    verdict = bool(fields.pop("verdict"))
     return Result(rotation=np.asarray(rotation, np.float64), translation=np.asarray(translation, np.float64),
-                  matrix=matrix, verdict=bool(fields.pop("verdict")), **fields)
+                  matrix=matrix, verdict=verdict, level=verdict_level(verdict, fields["agreement_band"], min_right),
+                  **fields)

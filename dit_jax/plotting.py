@@ -101,7 +101,7 @@ def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: lis
     """Writes a PNG of scans already in one frame, each (N_k, 3) in its own colour, seen along the merged
     cloud's thinnest and middle principal axes (whatever axis is up), and a bar per
     link: ``links`` = (label, agreement in degrees, threshold, trusted), green where trusted, red where
-    suspect, the threshold dashed. Returns the path."""
+    not trusted, the threshold dashed. Returns the path."""
     plt = pyplot()
     names = names or [f"scan {k}" for k in range(len(clouds))]  # legend entries
     per_scan = max(300, 3 * MAX_DRAWN // max(1, len(clouds)))
@@ -130,7 +130,7 @@ def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: lis
             ax.plot([k - 0.4, k + 0.4], [threshold, threshold], "k--", lw=1)
         ax.set_xticks(range(len(links)), labels, rotation=90 if len(links) > 8 else 0, fontsize=7)
         ax.set_ylabel("agreement of the two directions (deg)", fontsize=8)
-        ax.set_title("links: green trusted, red suspect; dashed: threshold", fontsize=8)
+        ax.set_title("links: green trusted, red not trusted; dashed: threshold", fontsize=8)
     if len(clouds) <= 20:
         handles, labels = ax_row[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="lower center", ncol=min(5, len(clouds)), fontsize=7, markerscale=8,

@@ -51,8 +51,13 @@ class SeriesResult:
 
     @property
     def suspect_links(self) -> list[int]:
-        """Indices (into ``links``) of the links whose verdict is negative."""
+        """Indices (into ``links``) of the links the verdict does not trust (unconfirmed or probably wrong)."""
         return [k for k, link in enumerate(self.links) if not link.verdict]
+
+    @property
+    def wrong_links(self) -> list[int]:
+        """Indices (into ``links``) of the links the verdict finds probably wrong."""
+        return [k for k, link in enumerate(self.links) if link.level == "probably wrong"]
 
     def apply(self, clouds: Sequence[np.ndarray]) -> list[np.ndarray]:
         """Each (N_k, 3) cloud moved into scan 0's frame."""

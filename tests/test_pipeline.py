@@ -59,6 +59,16 @@ def test_the_verdict_stage_judges_by_agreement_or_fitness():
     assert np.isnan(pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
 
 
+def test_a_result_not_trusted_is_unconfirmed_only_where_its_band_was_mostly_right():
+    band = lambda pairs, right: (1.0, 2.0, pairs, right)
+    assert pipeline.verdict_level(True, None, 0.5) == "trusted"
+    assert pipeline.verdict_level(False, band(20, 10), 0.5) == "unconfirmed"  # half right: mostly enough
+    assert pipeline.verdict_level(False, band(20, 9), 0.5) == "probably wrong"
+    assert pipeline.verdict_level(False, None, 0.5) == "probably wrong"  # no evidence either way
+    assert pipeline.verdict_level(False, band(20, 19), 0.99) == "probably wrong"
+    assert pipeline.VERDICT_LEVELS == ("trusted", "unconfirmed", "probably wrong")
+
+
 def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(100, 3))

@@ -88,7 +88,8 @@ class _ExactRegistrar:
         motion = np.linalg.inv(self.poses[b]) @ self.poses[a]
         return registration.Result(motion[:3, :3], motion[:3, 3], motion, np.arange(3), np.arange(3),
                                    np.ones(3), 1.0, 1.0, 0.0, refinement=None, refine_seconds=0.0,
-                                   verdict=a != 3, verdict_rule="agreement", threshold=1.0, agreement=0.5,
+                                   verdict=a != 3, level="trusted" if a != 3 else "probably wrong",
+                                   verdict_rule="agreement", threshold=1.0, agreement=0.5,
                                    direction="forward", start_turn=0.0, agreement_band=None, network=None)
 
 
@@ -104,7 +105,7 @@ def test_register_series_links_neighbours_and_merges_into_the_first_frame():
     assert [c[:2] for c in registrar.calls] == [(1, 0), (2, 1), (3, 2), (4, 3), (0, 4)] == result.pairs
     assert {c[2] for c in registrar.calls} == {"none"} and done[-1] == (5, 5)
     np.testing.assert_allclose(result.poses, truth, atol=1e-9)
-    assert result.suspect_links == [2]  # the link from scan 3
+    assert result.suspect_links == result.wrong_links == [2]  # the link from scan 3
     np.testing.assert_allclose(result.merged(clouds), np.tile(shape, (5, 1)), atol=1e-9)
     open_series = series.register_series(registrar, clouds[:3])
     assert np.isnan(open_series.loop_gap_deg) and len(open_series.links) == 2
@@ -140,7 +141,7 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     assert (tmp_path / "series.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     np.testing.assert_allclose(report["poses"][0], np.eye(4), atol=1e-12)
     assert io.read(tmp_path / "merged.ply").shape == (1200, 3)
-    suspect = [link for link in report["links"] if link["verdict"] == "suspect"]
+    suspect = [link for link in report["links"] if link["verdict"] == "probably wrong"]
     assert code == (3 if suspect or report["loop_gap_deg"] > cli.LOOP_GAP_WARNING_DEG else 0), err
     code = cli.series_main(paths[:2] + ["--loop"])
     assert code == 2 and "--loop needs at least 3 scans" in capsys.readouterr().err

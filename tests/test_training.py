@@ -376,8 +376,9 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
 
     The two processes read the data ``tiny_run`` prepared (preparing at once is tested in test_data_shapes).
     """
-    # One checkpoint and validations at steps 0 and 12 only: the same steps, less to save and wait for.
+    # One checkpoint and one validation, both at step 12: the same steps, less to save and wait for.
     args = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--config.ckpt_every=12", "--config.eval_every=12",
+            "--config.validate_at_start=False",
             "--no-progress", "--prepared-dir", prepared]
     # two CPU devices per process, whatever device count the environment asks for
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)

@@ -1,0 +1,270 @@
+"""The result tables of the README and docs/, generated from what evaluate.py wrote (docs/eval_*/results.json).
+
+    python -m dit_jax.release.results_page            # rewrites every generated table in place
+    python -m dit_jax.release.results_page --check    # exit status 1 where a committed table differs
+
+Each table sits between ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->`` in its page, so the prose
+around it is written by hand and the figures never are. Nothing is registered: the figures are those of the
+results files, measured with the weights and settings each file records.
+
+Tables:
+
+* ``expect`` (README.md): one row per data set -- the real scans (objects, rooms, LiDAR) and ModelNet40's
+  unseen categories per setting -- with DIT alone, DIT+ICP (the default) and the best baseline, and seconds
+  per pair.
+* ``results`` (docs/results.md): the same per evaluation directory, with every setting and pair set.
+* ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
+* ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
+  was right, per setting and pair set, for DIT alone and DIT+ICP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import sys
+
+import numpy as np
+
+from dit_jax import pipeline
+from dit_jax.evaluators import common
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+DOCS = ROOT / "docs"
+NETWORK = (common.METHOD_DIT, common.METHOD_DIT_ICP)
+
+#: The evaluation directories in docs/ the tables read, in the order they are shown, with a reader's name.
+SOURCES = (
+    ("eval_stanford_dragon", "Stanford Dragon range scans (object)"),
+    ("eval_3dmatch_redkitchen", "3DMatch kitchen fragments (room)"),
+    ("eval_lidar_pair", "LiDAR pair (street)"),
+    ("eval_modelnet40_unseen", "ModelNet40, unseen categories"),
+    ("eval_modelnet40_seen", "ModelNet40, seen categories"),
+    ("eval_embedded", "embedded furniture set"),
+)
+#: Where each table lives.
+PAGES = {"expect": ROOT / "README.md", "results": DOCS / "results.md", "levels": DOCS / "verdict.md",
+         "bands": DOCS / "verdict.md"}
+#: The README's table: the real sets and one synthetic directory.
+EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch_redkitchen", "eval_lidar_pair", "eval_modelnet40_unseen")
+
+
+def _load(name: str) -> dict | None:
+    path = DOCS / name / "results.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _scan_sets(results: dict) -> dict:
+    return results.get("pair_sets", {})
+
+
+def _right_scans(row: dict, criterion) -> bool:
+    """A real pair is right within 5 degrees, or by its benchmark's criterion (degrees, metres) where it has one."""
+    if criterion:
+        return bool(row["rot_err"] <= criterion[0] and row.get("trans_err", np.inf) <= criterion[1])
+    return bool(row["rot_err"] <= 5.0)
+
+
+def _scan_score(summary: dict) -> tuple[int, int]:
+    """(right, pairs) of a pair set's summary: registered by its criterion where it has one, else within 5 deg."""
+    return int(summary.get("registered", summary["within_5"])), int(summary["pairs"])
+
+
+def _synthetic_within5(stats: dict) -> float:
+    curve = stats["success_curve"]
+    return curve["ratio"][curve["rotation_thresholds"].index(5.0)]
+
+
+def _rows(name: str, results: dict) -> list[dict]:
+    """One record per setting or pair set: ``label``, ``pairs``, and per method (score, seconds per pair),
+    the score a share of pairs right; plus the best baseline's name."""
+    rows = []
+    if "pair_sets" in results:
+        info = results.get("pair_set_info", {})
+        for set_name, methods in _scan_sets(results).items():
+            angle = info.get(set_name, {}).get("angle")
+            label = set_name if angle is None else f"{set_name}, about {angle:.0f} deg apart"
+            scores = {}
+            for method, r in methods.items():
+                right, pairs = _scan_score(r["summary"])
+                scores[method] = (right / pairs, float(r["summary"]["seconds_per_pair"]), right, pairs)
+            rows.append({"label": label, "pairs": next(iter(scores.values()))[3], "scores": scores,
+                         "criterion": "registered" if "registered" in next(iter(methods.values()))["summary"]
+                         else "within 5 deg"})
+    else:
+        for setting, methods in results.get("settings", {}).items():
+            scores = {method: (_synthetic_within5(s), float(s["seconds_per_pair"]), None, int(s["pairs"]))
+                      for method, s in methods.items()}
+            rows.append({"label": setting, "pairs": next(iter(scores.values()))[3], "scores": scores,
+                         "criterion": "within 5 deg"})
+    for row in rows:
+        baselines = [m for m in row["scores"] if m not in NETWORK]
+        row["best"] = max(baselines, key=lambda m: (row["scores"][m][0], -row["scores"][m][1])) if baselines else None
+    return rows
+
+
+def _cell(row: dict, method: str | None) -> str:
+    if method is None or method not in row["scores"]:
+        return "-"
+    share, _, right, pairs = row["scores"][method]
+    return f"{right} of {pairs}" if right is not None else f"{100 * share:.0f} %"
+
+
+def _seconds(row: dict, method: str | None) -> str:
+    if method is None or method not in row["scores"]:
+        return "-"
+    return f"{row['scores'][method][1]:.2g}"
+
+
+def expect_table() -> list[str]:
+    lines = ["| data | pairs | right by | DIT alone | DIT+ICP (default) | best baseline | s / pair: DIT+ICP, baseline |",
+             "|---|---|---|---|---|---|---|"]
+    for name, title in SOURCES:
+        if name not in EXPECT_SOURCES or (results := _load(name)) is None:
+            continue
+        for row in _rows(name, results):
+            best = row["best"]
+            lines.append(f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
+                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | "
+                         f"{_cell(row, best)} ({best}) | {_seconds(row, common.METHOD_DIT_ICP)}, {_seconds(row, best)} |"
+                         if best else
+                         f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
+                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | - | "
+                         f"{_seconds(row, common.METHOD_DIT_ICP)}, - |")
+    return lines
+
+
+def results_tables() -> list[str]:
+    lines = []
+    for name, title in SOURCES:
+        results = _load(name)
+        if results is None:
+            continue
+        lines += [f"### {title}", "",
+                  f"Every method and column: [{name}/results.md]({name}/results.md); weights "
+                  f"`{pathlib.Path(results.get('checkpoint', '?')).name}`.", "",
+                  "| setting or pair set | pairs | right by | DIT alone | DIT+ICP | best baseline | "
+                  "s / pair: DIT, DIT+ICP, baseline |", "|---|---|---|---|---|---|---|"]
+        for row in _rows(name, results):
+            best = row["best"]
+            lines.append(f"| {row['label']} | {row['pairs']} | {row['criterion']} | {_cell(row, common.METHOD_DIT)} | "
+                         f"{_cell(row, common.METHOD_DIT_ICP)} | {_cell(row, best)} ({best or 'none'}) | "
+                         f"{_seconds(row, common.METHOD_DIT)}, {_seconds(row, common.METHOD_DIT_ICP)}, "
+                         f"{_seconds(row, best)} |")
+        lines.append("")
+    return lines[:-1]
+
+
+def _settings_of(results: dict) -> pipeline.InferenceSettings:
+    recorded = results.get("inference_settings") or results.get("dit", {}).get("inference_settings")
+    if recorded is None:
+        from dit_jax import registration
+
+        return registration.load().settings
+    return pipeline.InferenceSettings(**recorded)
+
+
+def level_counts(errors, agreement, right, settings: pipeline.InferenceSettings, refine: str) -> dict:
+    """{level: (results, right)} of results with these agreements (degrees), right or not."""
+    counts = {level: [0, 0] for level in pipeline.VERDICT_LEVELS}
+    threshold, bands = settings.max_disagreement(refine), settings.agreement_bands(refine)
+    for a, ok in zip(agreement, right):
+        level = pipeline.verdict_level(a <= threshold, pipeline.agreement_band(bands, a),
+                                       settings.unconfirmed_min_right)
+        counts[level][0] += 1
+        counts[level][1] += int(ok)
+    return {level: tuple(c) for level, c in counts.items()}
+
+
+def levels_table() -> list[str]:
+    header = " | ".join(f"{level}: results, right" for level in pipeline.VERDICT_LEVELS)
+    lines = [f"| data | method | {header} |", "|---|---|" + "---|" * len(pipeline.VERDICT_LEVELS)]
+    for name, title in SOURCES:
+        results = _load(name)
+        if results is None:
+            continue
+        settings = _settings_of(results)
+        sets = []
+        if "pair_sets" in results:
+            info = results.get("pair_set_info", {})
+            for set_name, methods in _scan_sets(results).items():
+                criterion = info.get(set_name, {}).get("criterion")
+                for method in NETWORK:
+                    r = methods.get(method)
+                    if r and all(row.get("agreement") is not None for row in r["rows"]):
+                        sets.append((set_name, method, [row["agreement"] for row in r["rows"]],
+                                     [_right_scans(row, criterion) for row in r["rows"]]))
+        else:
+            for setting, methods in results.get("settings", {}).items():
+                for method in NETWORK:
+                    per_pair = (methods.get(method) or {}).get("per_pair", {})
+                    if "agreement" in per_pair:
+                        sets.append((setting, method, per_pair["agreement"],
+                                     [e <= 5.0 for e in per_pair["rot_err"]]))
+        for set_name, method, agreement, right in sets:
+            refine = "none" if method == common.METHOD_DIT else "icp"
+            counts = level_counts(None, np.asarray(agreement, float), right, settings, refine)
+            cells = " | ".join(f"{n}, {100 * ok / n:.0f} %" if n else "0" for n, ok in counts.values())
+            lines.append(f"| {title}: {set_name} | {method} | {cells} |")
+    return lines
+
+
+def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
+    """The agreement bands the weights carry (as recorded with ``source``'s results): per band of agreement,
+    how many validation results fell in it and the share of them within 5 degrees."""
+    settings = _settings_of(_load(source) or {})
+    lines = []
+    for method, refine in ((common.METHOD_DIT, "none"), (common.METHOD_DIT_ICP, "icp")):
+        bands = settings.agreement_bands(refine) or ()
+        edges, low = [], 0.0
+        for high, pairs, right in bands:
+            label = f"{low:g}-{high:g}" if high is not None else f"beyond {low:g}"
+            edges.append((label, int(pairs), int(right)))
+            low = high
+        if not lines:
+            lines = ["| agreement (deg) | " + " | ".join(label for label, _, _ in edges) + " |",
+                     "|---|" + "---|" * len(edges)]
+        lines.append(f"| {method}: validation results | " + " | ".join(str(p) for _, p, _ in edges) + " |")
+        lines.append(f"| {method}: within 5 deg | " + " | ".join(
+            f"{100 * r / p:.0f} %" if p >= pipeline.MIN_BAND_PAIRS else f"({r} of {p})" for _, p, r in edges) + " |")
+    return lines
+
+
+TABLES = {"expect": expect_table, "results": results_tables, "levels": levels_table, "bands": bands_table}
+
+
+def _replace(text: str, name: str, table: list[str]) -> str:
+    pattern = re.compile(rf"(<!-- results:{name} -->\n).*?(<!-- /results:{name} -->)", re.S)
+    if not pattern.search(text):
+        raise ValueError(f"no <!-- results:{name} --> ... <!-- /results:{name} --> in the page")
+    return pattern.sub(lambda m: m.group(1) + "\n".join(table) + "\n" + m.group(2), text)
+
+
+def render(name: str) -> tuple[str, str]:
+    """(the page's text now, the page's text with table ``name`` regenerated)."""
+    page = PAGES[name].read_text()
+    return page, _replace(page, name, TABLES[name]())
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="change nothing; exit 1 where a table differs")
+    args = parser.parse_args(argv)
+    stale = []
+    for name in TABLES:
+        now, generated = render(name)
+        if now != generated:
+            stale.append(f"{PAGES[name].relative_to(ROOT)} ({name})")
+            if not args.check:
+                PAGES[name].write_text(generated)
+    if args.check and stale:
+        print("stale tables: " + ", ".join(stale) + "; run python -m dit_jax.release.results_page", file=sys.stderr)
+        return 1
+    print(("updated: " if stale else "up to date: ") + (", ".join(stale) or ", ".join(TABLES)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
