@@ -26,7 +26,7 @@ way it is printed and written. How often each level was right: docs/verdict.md.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time
-(measured ranges and times: docs/eval_modelnet40_unseen/angle_sweep.md and docs/BENCHMARKS.md).
+(measured ranges and times: docs/eval_modelnet40_unseen/angle_sweep.md and docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -89,13 +89,13 @@ def _parser() -> argparse.ArgumentParser:
                              "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
     parser.add_argument("--max-disagreement", type=float, default=None, metavar="DEG",
                         help="agreement verdict: trust the result where the two registrations agree within DEG "
-                             "degrees (default: the checkpoint's; shipped: 0.5, with ICP and with --refine none, "
-                             "strict by design; larger trusts more right results and more wrong ones, README)")
+                             "degrees (default: the checkpoint's, strict by design; larger trusts more right results "
+                             "and more wrong ones: docs/verdict.md)")
     parser.add_argument("--best-direction", choices=("on", "off"), default=None,
                         help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
                              "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: the checkpoint's)")
     parser.add_argument("--no-verdict-status", action="store_true",
-                        help=f"exit 0 even when the verdict does not confirm the result (else {EXIT_SUSPECT})")
+                        help=f"exit 0 even when the verdict finds the result probably wrong (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
     return parser
 

@@ -2,7 +2,7 @@
 
 XLA compiles DIT's registration for each config and cloud size; on a CPU that takes longer than the
 registration itself. With the cache on, a second process with the same shapes loads the compiled program
-from disk instead (timings: docs/BENCHMARKS.md).
+from disk instead (timings: docs/benchmarks.md).
 
 The directory, in order: ``--compile-cache DIR``; the environment variable ``DIT_JAX_COMPILE_CACHE``;
 ``$XDG_CACHE_HOME/dit-jax/xla``, else ``~/.cache/dit-jax/xla``. ``--no-compile-cache`` (or the variable set

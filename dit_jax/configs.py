@@ -90,17 +90,17 @@ class DITConfig(Record):
       attention_chunk: attention over more query points than this runs in blocks of this many rows (same
         result, memory linear in N; see :func:`dit_jax.layers.attention`); 0 never splits.
       compute_dtype: "float32" (the default, the authors' numbers) or "bfloat16": PFT's matrix products in
-        bfloat16 with float32 parameters, logits, softmax, norms and residuals (accuracy: docs/BENCHMARKS.md).
+        bfloat16 with float32 parameters, logits, softmax, norms and residuals (accuracy: docs/benchmarks.md).
       precision: how every matrix product of the network (PSE, PFT, SE, temperature net, similarity) is
         computed, in inference and training alike, whatever JAX's global ``jax_default_matmul_precision``
         says: "highest" (the default: float32 products on every backend, the numbers reference_check
         verifies), or the explicit opt-ins "tf32" (``lax.Precision.HIGH``: TensorFloat-32 on NVIDIA GPUs,
         three bfloat16 passes on TPUs) and "bfloat16" (bfloat16 operands with float32 accumulation). JAX's
-        own default on NVIDIA GPUs is TF32, which moves the reference check's scores (docs/BENCHMARKS.md).
+        own default on NVIDIA GPUs is TF32, which moves the reference check's scores (docs/benchmarks.md).
         The geometry (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
       remat: rematerialise every PSE layer and PFT block in the backward pass (``jax.checkpoint``): training
         keeps only each block's input and recomputes the rest, with the same gradients. Inference is
-        unaffected. Off by default: on a CPU it saves no peak memory and costs time (docs/BENCHMARKS.md); it
+        unaffected. Off by default: on a CPU it saves no peak memory and costs time (docs/benchmarks.md); it
         is for accelerators short of memory.
     """
 

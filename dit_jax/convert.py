@@ -228,6 +228,7 @@ def _to_numpy(obj):
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``dit-convert PTH OUT``: the authors' checkpoint as an orbax checkpoint; returns the exit status."""
     parser = argparse.ArgumentParser(prog="python -m dit_jax.convert", description=__doc__.split("\n\n")[0])
     parser.add_argument("pth", help="the authors' checkpoint (.pth / .t7 state dict)")
     parser.add_argument("out", help="directory for the orbax checkpoint (must not exist)")

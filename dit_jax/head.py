@@ -35,7 +35,7 @@ class TemperatureNet(nn.Module):
     The clamp's value is the authors'; its gradient is not (:func:`dit_jax.layers.clip_inward`). With their
     clamp a temperature below 1 / factor gets no gradient at all, and a freshly initialised net starts there
     whenever its last LeakyReLU is negative, which happens for many seeds. The soft correspondences then stay uniform (weights 1 / M), and training
-    wrecked the matching until the temperature drifted out by chance, or for good (docs/BENCHMARKS.md,
+    wrecked the matching until the temperature drifted out by chance, or for good (docs/training.md,
     "Training that learns on every seed").
     """
 

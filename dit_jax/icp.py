@@ -54,12 +54,12 @@ TRANSLATION_SEARCH = (0.3, 0.1, 3)
 GRID_POINTS = 500
 #: :func:`refine` pairs its source points (at most ``max_points``, 2,000) with a seeded random subset of at
 #: most this many target points: denser targets only slow the k-d tree, for the same result
-#: (docs/BENCHMARKS.md, "Dense scans").
+#: (docs/benchmarks.md, "Dense scans").
 TARGET_POINTS = 50_000
 
 #: :func:`refine` runs its searched descents side by side (threads) only on targets of at least this many
 #: points: there the k-d tree queries, which release the GIL, dominate, while on small clouds the threads
-#: contend for NumPy's small steps and gain nothing (docs/BENCHMARKS.md, "The translation search side by side").
+#: contend for NumPy's small steps and gain nothing (docs/refinement.md, "The translation search side by side").
 PARALLEL_MIN_TARGET = 10_000
 
 
@@ -235,7 +235,7 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -
 #: itself nearly as well as the truth, and where the motion is small the unturned start is the right one.
 #: Chosen on validation pairs of training shapes, three settings that share no point, turned 0-180 degrees,
 #: as the value that keeps the unturned start's accuracy for small turns and gains most beyond
-#: (docs/BENCHMARKS.md, "Clouds at any rotation").
+#: (docs/refinement.md, "Clouds at any rotation").
 START_MARGIN = 0.7
 #: The short ICP of :func:`start_scores`, which ranks the starts: pairing distances in units of the clouds' radius.
 START_DISTANCES = (0.1, 0.05)

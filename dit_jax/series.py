@@ -116,7 +116,7 @@ def close_loop(motions: np.ndarray, centres: np.ndarray | None = None,
     measured where the scans are rather than at their frames' origins (a scanner's origin lies far from what
     it scans, so a small turn there is a large shift on the object): its rotation's angle times ``scale`` and
     how far it moves the centre of the scan it moves (:func:`link_misfit`). On real scan series that brings
-    the points closer to the truth (docs/BENCHMARKS.md).
+    the points closer to the truth (docs/benchmarks.md).
 
     Args:
       motions: (K, 4, 4).

@@ -51,14 +51,14 @@ class TrainConfig:
       train_iters: registration iterations unrolled in training (the authors use 2).
       differentiable: gradients through weighted Procrustes with soft correspondences (the default); False
         is the authors' detached Procrustes, where only the discrimination term trains the network. Both
-        learn the quick recipe alike (docs/BENCHMARKS.md); an earlier comparison in which the detached path
+        learn the quick recipe alike (docs/training.md); an earlier comparison in which the detached path
         failed was made with the temperature stuck at its clamp.
       val_fraction: share of the training shapes held out for validation (never the test split).
       val_pairs: validation pairs evaluated (the first ones, deterministic).
       eval_every, ckpt_every: steps between validations / checkpoints (also at the end).
       validate_at_start: validate the starting params before the first step (the first point of every
         curve). Off where compiling the validation costs more than the point is worth: on a short GPU lease
-        it compiles a registration per setting before any training (docs/BENCHMARKS.md); its value is
+        it compiles a registration per setting before any training (docs/training.md); its value is
         known from the checkpoint a run starts from.
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
@@ -199,6 +199,7 @@ def make_optimizer(config: TrainConfig, total_steps: int) -> optax.GradientTrans
 
 
 def init_state(config: TrainConfig, optimizer: optax.GradientTransformation) -> TrainState:
+    """A run's first state: fresh parameters from ``config.seed``, ``optimizer``'s state, step 0."""
     key = jax.random.PRNGKey(config.seed)
     params = model.init(jax.random.fold_in(key, 1), config.model_config())
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params),
@@ -296,6 +297,7 @@ def shard_batch(batch: Mapping[str, np.ndarray], mesh: Mesh) -> dict[str, jax.Ar
 
 
 def replicate(tree, mesh: Mesh):
+    """``tree`` on every device of ``mesh`` (parameters and optimizer state are replicated)."""
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
 
 

@@ -13,7 +13,7 @@ import pytest
 # Compilation dominates this suite's time on two CPU cores, so the session and every process it starts compile
 # with XLA's CPU backend at LLVM optimisation level 0: the same XLA programs (XLA's own optimisation passes
 # are unchanged), generated with less LLVM work. The whole suite passes at both levels, faster at level 0
-# (docs/BENCHMARKS.md, "The test suite"). Users run the default.
+# (docs/benchmarks.md, "The test suite"). Users run the default.
 FAST_COMPILE_FLAG = "--xla_backend_optimization_level=0"
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FAST_COMPILE_FLAG}".strip()
@@ -159,7 +159,7 @@ _SLOW_MODULES = ("test_training.py",)
 
 #: Module fixtures that train or compile for tens of seconds: the tests that use one run on one xdist worker
 #: (an ``xdist_group``), so the fixture is built once per session rather than once per worker.
-_SHARED_FIXTURES = ("tiny_run",)
+_SHARED_FIXTURES = ("tiny_run", "python_blocks")
 
 
 def pytest_configure(config):

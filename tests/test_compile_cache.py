@@ -37,7 +37,7 @@ def _register(cache_args):
 
 def test_a_second_dit_register_reuses_the_first_ones_programs(tmp_path):
     """The first call fills the cache; the second finds every program there (adds no entry) and prints the
-    same transform. Times: docs/BENCHMARKS.md."""
+    same transform. Times: docs/benchmarks.md."""
     cache = tmp_path / "xla"
     first = _register(["--compile-cache", str(cache)])
     entries = set(os.listdir(cache))

@@ -58,7 +58,7 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     is what is judged; half the compilation of two), 30 steps, seed 0. This seed starts with its temperature
     clamped at 1/100: before the clamp let gradients back into its range, the two-block network's held-out match
     accuracy fell from 0.72 to 0.44 here (rotation error of the network alone 17.6 -> 21.3 degrees). Now it
-    goes from 0.74 to 0.96 and from 15.7 to 0.8 degrees (docs/BENCHMARKS.md has every seed of the quick run).
+    goes from 0.74 to 0.96 and from 15.7 to 0.8 degrees (docs/training.md has every seed of the quick run).
     """
     from dit_jax.data import pipeline
 

@@ -92,7 +92,7 @@ def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1")
     if args.autotune is not None:
         # XLA's GPU autotuning: at its default level the `cpu` recipe's train step did not compile in 170 s
-        # on an H200; at level 0 it compiled in 65 s (docs/BENCHMARKS.md, "Training on a lent GPU")
+        # on an H200; at level 0 it compiled in 65 s (docs/training.md, "The same stage on a lent GPU")
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_gpu_autotune_level={args.autotune}".strip()
     print(f"[{time.strftime('%H:%M:%S')}] {name}: {shlex.join(cmd)}", flush=True)
     return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
