@@ -11,7 +11,7 @@ Not the authors': an optional correspondence term (``correspondence_weight``, de
 point's soft match ``(P Y)_i`` onto its true position, for the points whose true position has a target point
 nearby. The authors' terms supervise the matches only through the pose (and the weights through the
 discrimination labels); between clouds that share no point the network alone did not learn from them in the
-budget tried (README, "Training for data that shares no point"), nor, in 400 steps, with this term
+budget tried (docs/training.md, "Training on clouds that share no point"), nor, in 400 steps, with this term
 (docs/training.md).
 
 All functions act on one pair; ``jax.vmap`` them over a batch.

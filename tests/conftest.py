@@ -157,20 +157,11 @@ def write_scan_series(directory, poses, rng, n_points: int = 50):
 _SLOW_MODULES = ("test_training.py",)
 
 
-#: Module fixtures that train or compile for tens of seconds: the tests that use one run on one xdist worker
-#: (an ``xdist_group``), so the fixture is built once per session rather than once per worker.
-_SHARED_FIXTURES = ("tiny_run", "python_blocks")
-
-
 def pytest_configure(config):
     # pytest-xdist's load scheduling otherwise hands each worker a run of consecutive tests at the start, which
     # put every slow test on the first worker; one at a time, the two workers take the slow ones in turn.
     if hasattr(config.option, "maxschedchunk") and config.option.maxschedchunk is None:
         config.option.maxschedchunk = 1
-    # "loadgroup" is "load" but for the tests grouped below, which go to one worker together (first: xdist
-    # queues the largest group before the single tests).
-    if getattr(config.option, "dist", None) == "load":
-        config.option.dist = "loadgroup"
 
 
 #: Tests outside those modules that take 15 s or more on two loaded cores (`--durations`): started
@@ -202,7 +193,3 @@ def pytest_collection_modifyitems(session, config, items):
         return 1 + _LONG_TESTS.index(name) if name in _LONG_TESTS else 1 + len(_LONG_TESTS)
 
     items.sort(key=order)  # stable: order kept otherwise
-    for item in items:
-        for fixture in _SHARED_FIXTURES:
-            if fixture in getattr(item, "fixturenames", ()):
-                item.add_marker(pytest.mark.xdist_group(fixture))

@@ -144,7 +144,7 @@ def _commands(block: Block) -> list[str]:
 
 
 #: Runs every Python block of the pages in one process, each in a fresh namespace and its own folder, so the
-#: shipped weights load and compile once: {block id: (printed, error or None)}.
+#: shipped weights load and compile once; prints {block id: [printed, error or None]} as JSON.
 _DRIVER = """
 import contextlib, io, json, os, sys, traceback
 results = {}
@@ -161,30 +161,28 @@ print(json.dumps(results))
 """
 
 
-@pytest.fixture(scope="module")
-def python_blocks(tmp_path_factory):
+def test_every_python_block_runs_and_prints_what_the_page_shows(tmp_path):
+    """One test for every Python block of the pages, run in one process (see ``_DRIVER``)."""
     import json
 
     blocks = [b for b in BLOCKS if b.language == "python"]
     payload = []
-    for block in blocks:
-        folder = tmp_path_factory.mktemp("block")
+    for k, block in enumerate(blocks):
+        folder = tmp_path / f"block{k}"
+        folder.mkdir()
         cwd = shutil.copytree(ROOT / "examples", folder / "examples") if block.directives.get("cwd") == "examples" \
             else folder
         payload.append({"id": block.id, "code": block.code, "cwd": str(cwd)})
     proc = subprocess.run([sys.executable, "-c", _DRIVER], input=json.dumps(payload), capture_output=True, text=True,
                           timeout=900, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout.strip().split("\n")[-1])
-
-
-@pytest.mark.parametrize("block", [b for b in BLOCKS if b.language == "python"], ids=lambda b: b.id)
-def test_every_python_block_runs_and_prints_what_the_page_shows(block, python_blocks):
-    printed, error = python_blocks[block.id]
-    assert error is None, error
-    if block.output is not None:
-        ok, why = same_output(block.output, printed)
-        assert ok, f"{block.id}: {why}\n{printed}"
+    results = json.loads(proc.stdout.strip().split("\n")[-1])
+    for block in blocks:
+        printed, error = results[block.id]
+        assert error is None, f"{block.id}: {error}"
+        if block.output is not None:
+            ok, why = same_output(block.output, printed)
+            assert ok, f"{block.id}: {why}\n{printed}"
 
 
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.language == "bash"], ids=lambda b: b.id)

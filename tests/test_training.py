@@ -427,4 +427,4 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     # One log, written by process 0 alone: a line per step and per validation.
     records = [json.loads(line) for line in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
     assert sorted(r["step"] for r in records if r["split"] == "train") == list(range(1, 13))
-    assert sorted(r["step"] for r in records if r["split"] == "val") == [0, 12]
+    assert sorted(r["step"] for r in records if r["split"] == "val") == [12]
