@@ -25,7 +25,7 @@ import ast
 import json
 import re
 import sys
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 

@@ -18,9 +18,7 @@ the comparison can be run again) and the table into ``docs/baselines_refinement.
 import argparse
 import datetime
 import json
-import os
 import pathlib
-import sys
 
 import numpy as np
 
