@@ -4,6 +4,7 @@
     dit-register a.xyz b.npy --checkpoint runs/x/model --out a_aligned.ply
     dit-register a.ply b.ply --json > result.json
     dit-register scan_a.ply scan_b.ply --refine none --plot check.png   # the network alone; a picture
+    dit-register --pairs pairs.txt --results results.jsonl --shard 0/4   # a list, a quarter of it, resumable
 
 Bad input (a missing, unreadable or malformed file, an unknown format, NaN or Inf values, too few points, not
 three coordinates per point, all points identical or on one line) ends with one line on stderr naming the file
@@ -34,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import warnings
 
@@ -56,8 +58,18 @@ def _parser() -> argparse.ArgumentParser:
                                             "meshes (.obj .off .stl, .ply with faces) "
                                             f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
                                             + __doc__.split("\n\n")[-1].strip())
-    parser.add_argument("src", help="the cloud (or mesh) to move")
-    parser.add_argument("tgt", help="the cloud (or mesh) to align it to")
+    parser.add_argument("src", nargs="?", help="the cloud (or mesh) to move")
+    parser.add_argument("tgt", nargs="?", help="the cloud (or mesh) to align it to")
+    parser.add_argument("--pairs", default=None, metavar="LIST",
+                        help="instead of SRC TGT: a text file of pairs, 'SRC TGT' a line (paths relative to the "
+                             "list's folder, # comments), registered in this process, one JSON line per pair")
+    parser.add_argument("--results", default=None, metavar="FILE.jsonl",
+                        help="with --pairs: append each pair's JSON line here instead of printing it; pairs "
+                             "already in it are skipped, so a stopped run resumes")
+    parser.add_argument("--shard", default=None, metavar="I/N",
+                        help="with --pairs: register only pairs I, I+N, I+2N, ... of the list (0 <= I < N), so N "
+                             "processes or array jobs share it")
+    parser.add_argument("--no-progress", action="store_true", help="with --pairs: no progress bar")
     parser.add_argument("--checkpoint", default=None,
                         help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
     parser.add_argument("--out", default=None,
@@ -180,8 +192,130 @@ def _write_moved(src: str, out: str, rotation: np.ndarray, translation: np.ndarr
         io.write(out, points @ np.asarray(rotation).T + np.asarray(translation))
 
 
+def read_pair_list(path: str) -> list[tuple[str, str]]:
+    """The (source, target) paths of a pair list: 'SRC TGT' a line, blank lines and '#' comments skipped,
+    relative paths taken from the list's folder. Raises ValueError naming the line that is not a pair."""
+    folder = os.path.dirname(os.path.abspath(path))
+    pairs = []
+    with open(path) as f:
+        for number, line in enumerate(f, 1):
+            fields = line.split("#", 1)[0].split()
+            if not fields:
+                continue
+            if len(fields) != 2:
+                raise ValueError(f"{path}, line {number}: expected 'SRC TGT', got {line.strip()!r}")
+            pairs.append(tuple(os.path.join(folder, field) for field in fields))
+    if not pairs:
+        raise ValueError(f"{path}: no pairs in the list")
+    return pairs
+
+
+def _shard(text: str | None) -> tuple[int, int]:
+    if text is None:
+        return 0, 1
+    match = re.fullmatch(r"(\d+)/(\d+)", text.strip())
+    if not match or not int(match.group(1)) < int(match.group(2)):
+        raise ValueError(f"--shard {text}: expected I/N with 0 <= I < N, such as 0/4")
+    return int(match.group(1)), int(match.group(2))
+
+
+def _done_indices(path: str | None) -> set[int]:
+    """The pair indices already recorded in a --results file. A last line cut short (a run killed while
+    writing it) is removed, so the pair is registered again."""
+    if path is None or not os.path.exists(path):
+        return set()
+    done, good_bytes = set(), 0
+    with open(path, "rb") as f:
+        for line in f:
+            try:
+                done.add(int(json.loads(line)["index"]))
+            except (ValueError, KeyError, TypeError):
+                break
+            good_bytes += len(line)
+    if good_bytes < os.path.getsize(path):
+        with open(path, "r+b") as f:
+            f.truncate(good_bytes)
+    return done
+
+
+def _register_list(args, model_kwargs: dict) -> int:
+    """``--pairs``: every pair of the list (of this shard) through one loaded model; returns the exit status."""
+    from tqdm.auto import tqdm
+
+    from dit_jax import registration
+
+    pairs = read_pair_list(args.pairs)
+    index, count = _shard(args.shard)
+    chosen = [(k, pair) for k, pair in enumerate(pairs) if k % count == index]
+    done = _done_indices(args.results)
+    todo = [(k, pair) for k, pair in chosen if k not in done]
+    model = registration.load(args.checkpoint, **model_kwargs)
+    out = open(args.results, "a") if args.results else sys.stdout
+    errors = wrong = 0
+    bar = tqdm(total=len(chosen), initial=len(chosen) - len(todo), desc="pairs", unit="pair", file=sys.stderr,
+               disable=args.no_progress, dynamic_ncols=True)
+    try:
+        for k, (src_path, tgt_path) in todo:
+            record = {"index": k, "src": src_path, "tgt": tgt_path}
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", registration.SizeMismatchWarning)
+                    result = model.register(_read(src_path, args), _read(tgt_path, args), refine=args.refine)
+                record |= result.to_json()
+                wrong += result.level == "probably wrong"
+            except (io.CloudFileError, registration.InputError, ValueError, OSError) as err:
+                record["error"] = " ".join(str(err).split())
+                errors += 1
+            out.write(json.dumps(record) + "\n")
+            out.flush()
+            bar.update(1)
+    finally:
+        bar.close()
+        if out is not sys.stdout:
+            out.close()
+    if errors:
+        print(f"{PROG}: error: {errors} of {len(todo)} pairs could not be registered (their lines say why)",
+              file=sys.stderr)
+        return 2
+    if wrong:
+        print(f"{PROG}: warning: {wrong} of {len(todo)} results are probably wrong", file=sys.stderr)
+        return 0 if args.no_verdict_status else EXIT_SUSPECT
+    return 0
+
+
+def _model_kwargs(args) -> dict:
+    """The inference settings the flags change."""
+    kwargs = {"seed": args.seed, "verdict_rule": args.verdict}
+    if args.points is not None:
+        kwargs["n_points"] = args.points
+    if args.iters is not None:
+        kwargs["n_iters"] = args.iters
+    if args.any_rotation:
+        kwargs["rotation_search"] = True
+    if args.best_direction is not None:
+        kwargs["best_direction"] = args.best_direction == "on"
+    if args.max_disagreement is not None:
+        kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
+    return kwargs
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+
+    if args.pairs is not None:
+        extra = [name for name, value in (("SRC TGT", args.src), ("--out", args.out), ("--plot", args.plot))
+                 if value is not None]
+        if extra:
+            return _fail(f"--pairs registers a list; it cannot go with {', '.join(extra)}")
+        try:
+            read_pair_list(args.pairs)
+            _shard(args.shard)
+        except (ValueError, OSError) as err:
+            return _fail(str(err))
+    elif args.src is None or args.tgt is None:
+        return _fail("give SRC and TGT, or --pairs LIST")
+    elif args.results is not None or args.shard is not None:
+        return _fail("--results and --shard go with --pairs")
 
     problem = _output_problem(args.out, args.src)  # checked before any work, so a bad --out costs nothing
     if problem:
@@ -203,21 +337,15 @@ def main(argv: list[str] | None = None) -> int:
     from dit_jax.convert import ConversionError
     from dit_jax.geometry import rotation_angle_deg
 
+    if args.pairs is not None:
+        try:
+            return _register_list(args, _model_kwargs(args))
+        except (CheckpointError, ConversionError, ValueError, OSError) as err:
+            return _fail(str(err))
     try:
         src = _read(args.src, args)
         tgt = _read(args.tgt, args)
-        kwargs = {"seed": args.seed, "verdict_rule": args.verdict}
-        if args.points is not None:
-            kwargs["n_points"] = args.points
-        if args.iters is not None:
-            kwargs["n_iters"] = args.iters
-        if args.any_rotation:
-            kwargs["rotation_search"] = True
-        if args.best_direction is not None:
-            kwargs["best_direction"] = args.best_direction == "on"
-        if args.max_disagreement is not None:
-            kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
-        model = registration.load(args.checkpoint, **kwargs)
+        model = registration.load(args.checkpoint, **_model_kwargs(args))
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", registration.SizeMismatchWarning)

@@ -415,3 +415,45 @@ def test_real_scans_refined_by_icp_land_within_a_few_degrees(capsys, dragon_dir)
         assert error < bound, (source, error)
         if first:
             assert code == 0 and err == "" and json.loads(out)["verdict"] == "trusted", err
+
+
+def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_path, tiny_checkpoint, pair):
+    """--pairs LIST registers each 'SRC TGT' line through one loaded model, one JSON line per pair (an unreadable
+    file gets a line with its error and status 2, the others still run); --shard I/N takes every N-th pair, so
+    the shards together cover the list once; --results appends and a second run skips what is recorded, and
+    a last line cut short by a kill is registered again."""
+    folder, _, _ = pair
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"# source target\n{folder / 'src.ply'} {folder / 'tgt.pcd'}\n\n"
+                       f"{folder / 'tgt.pcd'} {folder / 'src.ply'}  # the other way\n"
+                       f"{folder / 'src.ply'} missing.ply\n")
+    results = tmp_path / "results.jsonl"
+    common = ["--pairs", listing, "--results", results, "--checkpoint", tiny_checkpoint, "--refine", "none",
+              "--no-progress", "--no-verdict-status"]
+    code, out, err = run(capsys, *common, "--shard", "1/2")
+    assert code == 0 and out == "", err
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    assert [r["index"] for r in records] == [1] and len(np.asarray(records[0]["matrix"])) == 4
+    code, out, err = run(capsys, *common, "--shard", "0/2")
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    assert code == 2 and "1 of 2 pairs could not be registered" in err
+    assert sorted(r["index"] for r in records) == [0, 1, 2]
+    assert "missing.ply" in next(r for r in records if r["index"] == 2)["error"]
+    # Resume: nothing left to do; then a torn last line is dropped and its pair registered again.
+    code, _, _ = run(capsys, *common)
+    assert code == 0 and len(results.read_text().splitlines()) == 3
+    text = results.read_text()
+    results.write_text(text[: text.rindex("{") + 10])
+    code, _, _ = run(capsys, *common)
+    lines = results.read_text().splitlines()
+    assert len(lines) == 3 and all(json.loads(line) for line in lines)
+    # Without --results the lines go to stdout; bad combinations are refused before any work.
+    code, out, _ = run(capsys, "--pairs", listing, "--checkpoint", tiny_checkpoint, "--refine", "none",
+                       "--no-progress", "--shard", "0/3")
+    assert code == 0 and [json.loads(line)["index"] for line in out.splitlines()] == [0]
+    for argv, fragment in (((folder / "src.ply", "--pairs", listing), "cannot go with SRC TGT"),
+                           (("--pairs", listing, "--shard", "2/2"), "expected I/N"),
+                           (("--pairs", tmp_path / "none.txt"), "none.txt"),
+                           ((folder / "src.ply", folder / "tgt.pcd", "--shard", "0/2"), "go with --pairs")):
+        code, out, err = run(capsys, *argv)
+        assert code == 2 and fragment in err and out == "", err
