@@ -6,11 +6,36 @@ Quick use::
     config = dit_jax.configs.tiny()
     params = dit_jax.init(jax.random.key(0), config)
     R, t, extras = dit_jax.register(params, src, tgt, config)   # src (B, N, 3), tgt (B, M, 3)
+
+The names below are imported on first use (PEP 562), so that ``import dit_jax.io`` or ``dit-register --help``
+does not pay for importing JAX.
 """
 
-from dit_jax import configs
-from dit_jax.configs import DITConfig
-from dit_jax.model import features, forward, init, register
+import importlib
 
-__all__ = ["DITConfig", "configs", "features", "forward", "init", "register"]
+#: Public name -> (module, attribute or None for the module itself).
+_EXPORTS = {
+    "configs": ("dit_jax.configs", None),
+    "DITConfig": ("dit_jax.configs", "DITConfig"),
+    "features": ("dit_jax.model", "features"),
+    "forward": ("dit_jax.model", "forward"),
+    "init": ("dit_jax.model", "init"),
+    "register": ("dit_jax.model", "register"),
+}
+
+__all__ = list(_EXPORTS)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'dit_jax' has no attribute {name!r}")
+    module_name, attribute = _EXPORTS[name]
+    module = importlib.import_module(module_name)
+    value = module if attribute is None else getattr(module, attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

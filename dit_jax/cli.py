@@ -331,6 +331,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.verdict != "agreement":
             return _fail("--max-disagreement sets the agreement verdict's threshold; it cannot go with --verdict fitness")
 
+    if args.pairs is None:
+        # The files first: bad input is reported before JAX is imported or a model loaded.
+        try:
+            src = _read(args.src, args)
+            tgt = _read(args.tgt, args)
+        except (io.CloudFileError, ValueError, OSError) as err:
+            return _fail(str(err))
+
     compile_cache.from_args(args)
     from dit_jax import registration
     from dit_jax.checkpoint import CheckpointError
@@ -343,8 +351,6 @@ def main(argv: list[str] | None = None) -> int:
         except (CheckpointError, ConversionError, ValueError, OSError) as err:
             return _fail(str(err))
     try:
-        src = _read(args.src, args)
-        tgt = _read(args.tgt, args)
         model = registration.load(args.checkpoint, **_model_kwargs(args))
         try:
             with warnings.catch_warnings(record=True) as caught:
