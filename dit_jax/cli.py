@@ -238,14 +238,13 @@ def _done_indices(path: str | None) -> set[int]:
     return done
 
 
-def _register_list(args, model_kwargs: dict) -> int:
-    """``--pairs``: every pair of the list (of this shard) through one loaded model; returns the exit status."""
+def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], model_kwargs: dict) -> int:
+    """``--pairs``: the ``pairs`` of shard (index, count) through one loaded model; returns the exit status."""
     from tqdm.auto import tqdm
 
     from dit_jax import registration
 
-    pairs = read_pair_list(args.pairs)
-    index, count = _shard(args.shard)
+    index, count = shard
     chosen = [(k, pair) for k, pair in enumerate(pairs) if k % count == index]
     done = _done_indices(args.results)
     todo = [(k, pair) for k, pair in chosen if k not in done]
@@ -258,10 +257,12 @@ def _register_list(args, model_kwargs: dict) -> int:
         for k, (src_path, tgt_path) in todo:
             record = {"index": k, "src": src_path, "tgt": tgt_path}
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", registration.SizeMismatchWarning)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", registration.SizeMismatchWarning)
                     result = model.register(_read(src_path, args), _read(tgt_path, args), refine=args.refine)
                 record |= result.to_json()
+                if problems := _warning_lines(caught, src_path, tgt_path):  # kept with the pair, not on stderr
+                    record["warnings"] = problems
                 wrong += result.level == "probably wrong"
             except (io.CloudFileError, registration.InputError, ValueError, OSError) as err:
                 record["error"] = " ".join(str(err).split())
@@ -307,9 +308,8 @@ def main(argv: list[str] | None = None) -> int:
                  if value is not None]
         if extra:
             return _fail(f"--pairs registers a list; it cannot go with {', '.join(extra)}")
-        try:
-            read_pair_list(args.pairs)
-            _shard(args.shard)
+        try:  # the list and the shard are checked before any work
+            pairs, shard = read_pair_list(args.pairs), _shard(args.shard)
         except (ValueError, OSError) as err:
             return _fail(str(err))
     elif args.src is None or args.tgt is None:
@@ -347,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.pairs is not None:
         try:
-            return _register_list(args, _model_kwargs(args))
+            return _register_list(args, pairs, shard, _model_kwargs(args))
         except (CheckpointError, ConversionError, ValueError, OSError) as err:
             return _fail(str(err))
     try:

@@ -126,13 +126,10 @@ def expect_table() -> list[str]:
             continue
         for row in _rows(name, results):
             best = row["best"]
+            baseline = f"{_cell(row, best)} ({best})" if best else "-"
             lines.append(f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
-                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | "
-                         f"{_cell(row, best)} ({best}) | {_seconds(row, common.METHOD_DIT_ICP)}, {_seconds(row, best)} |"
-                         if best else
-                         f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
-                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | - | "
-                         f"{_seconds(row, common.METHOD_DIT_ICP)}, - |")
+                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | {baseline} | "
+                         f"{_seconds(row, common.METHOD_DIT_ICP)}, {_seconds(row, best)} |")
     return lines
 
 
@@ -166,7 +163,7 @@ def _settings_of(results: dict) -> pipeline.InferenceSettings:
     return pipeline.InferenceSettings(**recorded)
 
 
-def level_counts(errors, agreement, right, settings: pipeline.InferenceSettings, refine: str) -> dict:
+def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str) -> dict:
     """{level: (results, right)} of results with these agreements (degrees), right or not."""
     counts = {level: [0, 0] for level in pipeline.VERDICT_LEVELS}
     threshold, bands = settings.max_disagreement(refine), settings.agreement_bands(refine)
@@ -205,7 +202,7 @@ def levels_table() -> list[str]:
                                      [e <= 5.0 for e in per_pair["rot_err"]]))
         for set_name, method, agreement, right in sets:
             refine = "none" if method == common.METHOD_DIT else "icp"
-            counts = level_counts(None, np.asarray(agreement, float), right, settings, refine)
+            counts = level_counts(np.asarray(agreement, float), right, settings, refine)
             cells = " | ".join(f"{n}, {100 * ok / n:.0f} %" if n else "0" for n, ok in counts.values())
             lines.append(f"| {title}: {set_name} | {method} | {cells} |")
     return lines
