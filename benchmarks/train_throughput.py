@@ -1,42 +1,90 @@
-"""Training throughput (pairs per second) and peak memory of a preset's train step on this machine.
+"""Training throughput of a recipe's train step on this machine: pairs per second, the work per step, and the
+share of the machine's matmul peak it reaches; with ``--compare REV``, the same step of another commit
+measured in the same run.
 
-    python benchmarks/train_throughput.py --config configs/cpu.py
-    python benchmarks/train_throughput.py --config configs/paper.py              # the authors' 1000 points, batch 2
-    python benchmarks/train_throughput.py --config configs/paper.py --remat on   # blocks rematerialised
+    python benchmarks/train_throughput.py                                   # configs/cpu.py and configs/paper.py
+    python benchmarks/train_throughput.py --config configs/cpu.py --compare HEAD~1
+    python benchmarks/train_throughput.py --config configs/paper.py --remat on
 
-Random clouds of the preset's point count; the step is compiled first, then timed (median of --steps). Peak
-memory: the process's peak resident set (VmHWM, compilation included) and, on an accelerator, the device's
-peak bytes in use. Prints one JSON record.
+Random clouds of the recipe's point count; each step is compiled first, then timed (median of --steps).
+The work per step is counted on the step's jaxpr, loops times their trip counts: GFLOP (matrix products at
+2 FLOP per multiply-add, plus one per element of every other arithmetic operation) and the bytes its
+operations read and write if none were fused (an upper bound of the memory traffic: XLA fuses, and its own
+cost analysis counts a loop's body once). The probe is the best GFLOP/s of a float32 2048 x 2048 matmul;
+``probe_share`` is the step's GFLOP/s over it. ``--compare REV`` checks REV out in a temporary git worktree
+and times its step in a child process with the same arguments, alternating with this tree's, and prints
+the ratio of pairs per second. Peak memory: the process's peak resident set (VmHWM, compilation included)
+and, on an accelerator, the device's peak bytes in use. Prints one JSON record per recipe.
 """
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import json
+import os
+import pathlib
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEFAULT_CONFIGS = ("configs/cpu.py", "configs/paper.py")
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--config", default="configs/cpu.py", help="a recipe file")
-    parser.add_argument("--steps", type=int, default=3)
-    parser.add_argument("--n-points", type=int, default=None)
-    parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
-                        help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off")
-    args = parser.parse_args()
+#: Primitives that move or relabel data without arithmetic: no FLOPs (their bytes still count).
+_NO_ARITHMETIC = {"reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "convert_element_type",
+                  "slice", "dynamic_slice", "dynamic_update_slice", "concatenate", "pad", "gather", "scatter",
+                  "scatter-add", "scatter_add", "select_n", "iota", "copy", "copy_p", "rev", "sort",
+                  "stop_gradient", "device_put", "sharding_constraint", "argmax", "argmin", "top_k"}
 
+
+def count_work(jaxpr) -> tuple[float, float]:
+    """(FLOPs, bytes read and written unfused) of a closed jaxpr, loops times their trip counts."""
+    from jax.extend import core
+
+    flops = nbytes = 0.0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        subs = [v for v in eqn.params.values() if isinstance(v, (core.ClosedJaxpr, core.Jaxpr))]
+        if name == "scan":
+            f, b = count_work(eqn.params["jaxpr"].jaxpr)
+            flops, nbytes = flops + eqn.params["length"] * f, nbytes + eqn.params["length"] * b
+            continue
+        if name == "cond":
+            costs = [count_work(branch.jaxpr) for branch in eqn.params["branches"]]
+            flops, nbytes = flops + max(c[0] for c in costs), nbytes + max(c[1] for c in costs)
+            continue
+        if subs:  # pjit, remat, custom_jvp/vjp calls, while (its body once: no trip count is known)
+            for sub in subs:
+                f, b = count_work(sub.jaxpr if isinstance(sub, core.ClosedJaxpr) else sub)
+                flops, nbytes = flops + f, nbytes + b
+            continue
+        sizes = [float(np.prod(v.aval.shape)) for v in (*eqn.invars, *eqn.outvars) if hasattr(v.aval, "shape")]
+        nbytes += sum(float(np.prod(v.aval.shape)) * v.aval.dtype.itemsize
+                      for v in (*eqn.invars, *eqn.outvars) if hasattr(v.aval, "dtype"))
+        if name == "dot_general":
+            (contract, _), _ = eqn.params["dimension_numbers"]
+            lhs = eqn.invars[0].aval.shape
+            flops += 2.0 * float(np.prod(eqn.outvars[0].aval.shape)) * float(np.prod([lhs[d] for d in contract]))
+        elif name not in _NO_ARITHMETIC and sizes:
+            flops += float(np.prod(eqn.outvars[0].aval.shape)) if eqn.outvars else 0.0
+    return flops, nbytes
+
+
+def measure(config_path: str, steps: int, n_points: int | None, remat: str, count: bool) -> dict:
+    """Compiles and times the recipe's train step; counts its work where ``count``."""
     import jax
 
     from dit_jax import training
-    from inference import peak_memory  # benchmarks/inference.py, beside this script
 
-    config = training.load_config(args.config)
-    if args.n_points:
-        config = dataclasses.replace(config, n_points=args.n_points)
-    if args.remat != "preset":
-        config = dataclasses.replace(config, model=config.model.replace(remat=args.remat == "on"))
+    config = training.load_config(config_path)
+    if n_points:
+        config = dataclasses.replace(config, n_points=n_points)
+    if remat != "preset":
+        config = dataclasses.replace(config, model=config.model.replace(remat=remat == "on"))
     optimizer = training.make_optimizer(config, 1000)
     mesh = training.make_mesh()
     state = training.replicate(training.init_state(config, optimizer), mesh)
@@ -47,23 +95,87 @@ def main():
     batch = training.shard_batch({"src": src, "tgt": src[:, ::-1] + 0.1,
                                   "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
                                   "t": np.full((b, 3), 0.1, np.float32)}, mesh)
+    record = {"config": config_path, "n_points": n, "batch_size": b, "train_iters": config.train_iters,
+              "remat": config.model_config().remat, "precision": config.model_config().precision}
+    if count:
+        flops, nbytes = count_work(jax.make_jaxpr(step)(state, batch).jaxpr)
+        record.update(gflop_per_step=flops / 1e9, unfused_gbytes_per_step=nbytes / 1e9,
+                      flop_per_byte=flops / nbytes)
     t0 = time.perf_counter()
     state, out = step(state, batch)
     out["loss"].block_until_ready()
-    compile_s = time.perf_counter() - t0
+    record["compile_and_first_step_s"] = time.perf_counter() - t0
     times = []
-    for _ in range(args.steps):
+    for _ in range(steps):
         t0 = time.perf_counter()
         state, out = step(state, batch)
         out["loss"].block_until_ready()
         times.append(time.perf_counter() - t0)
-    step_s = float(np.median(times))
-    model_config = config.model_config()
-    print(json.dumps({"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
-                      "config": args.config, "n_points": n, "batch_size": b,
-                      "train_iters": config.train_iters, "remat": model_config.remat,
-                      "precision": model_config.precision, "compile_and_first_step_s": compile_s,
-                      "step_s": step_s, "pairs_per_s": b / step_s, **peak_memory()}, indent=2))
+    record["step_s"] = float(np.median(times))
+    record["pairs_per_s"] = b / record["step_s"]
+    return record
+
+
+@contextlib.contextmanager
+def worktree(rev: str):
+    """A temporary checkout of ``rev`` (a git worktree, removed afterwards)."""
+    directory = tempfile.mkdtemp(prefix="dit-jax-compare-")
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", directory, rev], check=True,
+                   capture_output=True)
+    try:
+        yield pathlib.Path(directory)
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", directory], capture_output=True)
+
+
+def child_measure(tree: pathlib.Path, config_path: str, args) -> dict:
+    """``measure`` in a fresh process importing ``dit_jax`` from ``tree``, the recipe read from there too."""
+    command = [sys.executable, str(pathlib.Path(__file__).resolve()), "--child", "--config", config_path,
+               "--steps", str(args.steps), "--remat", args.remat]
+    if args.n_points:
+        command += ["--n-points", str(args.n_points)]
+    env = dict(os.environ, PYTHONPATH=str(tree), DIT_JAX_COMPILE_CACHE="off")
+    done = subprocess.run(command, cwd=str(tree), env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"error: the step of {tree} failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", action="append", help="a recipe file (repeatable; default: cpu and paper)")
+    parser.add_argument("--steps", type=int, default=3, help="timed steps after the first (median)")
+    parser.add_argument("--n-points", type=int, default=None)
+    parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
+                        help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off")
+    parser.add_argument("--compare", metavar="REV", help="also time the step of this git revision")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    configs = args.config or list(DEFAULT_CONFIGS)
+
+    if args.child:  # one recipe, timed only: the other tree's library may not count work the same way
+        print(json.dumps(measure(configs[0], args.steps, args.n_points, args.remat, count=False)))
+        return
+
+    import jax
+
+    from inference import matmul_peak, peak_memory  # benchmarks/inference.py, beside this script
+
+    probe = matmul_peak()
+    with worktree(args.compare) if args.compare else contextlib.nullcontext() as other:
+        for config_path in configs:
+            record = {"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
+                      **measure(config_path, args.steps, args.n_points, args.remat, count=True),
+                      "probe_gflop_s": probe}
+            record["probe_share"] = record["gflop_per_step"] / record["step_s"] / probe
+            if other is not None:
+                # This tree's step again in a fresh process beside the other's, so both ran alike.
+                ours, theirs = child_measure(ROOT, config_path, args), child_measure(other, config_path, args)
+                record["compare"] = {"rev": args.compare, "step_s": theirs["step_s"],
+                                     "compile_and_first_step_s": theirs["compile_and_first_step_s"],
+                                     "this_tree_step_s": ours["step_s"],
+                                     "ratio": theirs["step_s"] / ours["step_s"]}
+            print(json.dumps({**record, **peak_memory()}, indent=2), flush=True)
 
 
 if __name__ == "__main__":

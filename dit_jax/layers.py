@@ -56,37 +56,114 @@ def einsum(subscripts: str, a: jax.Array, b: jax.Array, *, precision: str,
                       preferred_element_type=wanted or preferred_element_type)
 
 
+def _row_blocks(x: jax.Array, rows: int) -> jax.Array:
+    """(h, N, d) -> (ceil(N / rows), h, rows, d), the last block padded with zero rows."""
+    heads, n, width = x.shape
+    x = jnp.pad(x, ((0, 0), (0, -n % rows), (0, 0)))
+    return jnp.moveaxis(x.reshape(heads, -1, rows, width), 1, 0)
+
+
+def _from_row_blocks(x: jax.Array, n: int) -> jax.Array:
+    """The inverse of :func:`_row_blocks`: (B, h, rows, d) -> (h, N, d)."""
+    blocks, heads, rows, width = x.shape
+    return jnp.moveaxis(x, 0, 1).reshape(heads, blocks * rows, width)[:, :n]
+
+
+def _attention_forward(q, k, v, rows: int, divisor: float | None, precision: str):
+    """Heads-first attention q (h, N, d), k (h, M, d), v (h, M, e) -> out (h, N, e) and the logits'
+    log-sum-exp (h, N), ``rows`` query rows at a time."""
+    low = q.dtype != jnp.float32
+
+    def block(_, q_rows):
+        logits = einsum("hnd,hmd->hnm", q_rows, k, precision=precision,
+                        preferred_element_type=jnp.float32 if low else None)
+        if divisor is not None:
+            logits = logits / divisor
+        peak = jnp.max(logits, axis=-1, keepdims=True)
+        weights = jnp.exp(logits - peak)
+        total = jnp.sum(weights, axis=-1, keepdims=True)
+        out = einsum("hnm,hmd->hnd", weights.astype(v.dtype), v, precision=precision,
+                     preferred_element_type=jnp.float32 if low else None) / total
+        return None, (out.astype(v.dtype), (peak + jnp.log(total))[..., 0])
+
+    n = q.shape[1]
+    if rows >= n:
+        _, (out, lse) = block(None, q)
+        return out, lse
+    _, (out, lse) = jax.lax.scan(block, None, _row_blocks(q, rows))
+    return _from_row_blocks(out, n), _from_row_blocks(lse[..., None], n)[..., 0]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5))
+def _attention(q, k, v, rows: int, divisor: float | None, precision: str):
+    return _attention_forward(q, k, v, rows, divisor, precision)[0]
+
+
+def _attention_fwd(q, k, v, rows, divisor, precision):
+    out, lse = _attention_forward(q, k, v, rows, divisor, precision)
+    return out, (q, k, v, out, lse)
+
+
+def _attention_bwd(rows, divisor, precision, residuals, d_out):
+    # The softmax is recomputed from the saved log-sum-exp instead of stored: the (h, N, M) weights, the
+    # largest arrays of the network, are never kept between the passes.
+    q, k, v, out, lse = residuals
+    f32 = lambda a: a.astype(jnp.float32)
+    d_out = f32(d_out)
+    row_dot = jnp.sum(d_out * f32(out), axis=-1)  # (h, N): sum_e dO * O, the softmax's own term
+
+    def block(carry, xs):
+        # Key-major, (h, M, n): the products for d_k and d_v then contract the arrays' last axis, which
+        # XLA's CPU backend runs several times faster than a contraction over their first.
+        d_k, d_v = carry
+        q_rows, d_out_rows, lse_rows, row_dot_rows = xs
+        logits = einsum("hmd,hnd->hmn", k, q_rows, precision=precision, preferred_element_type=jnp.float32)
+        if divisor is not None:
+            logits = logits / divisor
+        weights = jnp.exp(logits - lse_rows[:, None, :])
+        d_v = d_v + einsum("hmn,hne->hme", weights, d_out_rows, precision=precision)
+        d_weights = einsum("hme,hne->hmn", f32(v), d_out_rows, precision=precision)
+        d_logits = weights * (d_weights - row_dot_rows[:, None, :])
+        if divisor is not None:
+            d_logits = d_logits / divisor
+        d_k = d_k + einsum("hmn,hnd->hmd", d_logits, f32(q_rows), precision=precision)
+        d_q = einsum("hnm,hmd->hnd", jnp.swapaxes(d_logits, 1, 2), f32(k), precision=precision)
+        return (d_k, d_v), d_q
+
+    start = (jnp.zeros(k.shape, jnp.float32), jnp.zeros(v.shape, jnp.float32))
+    n = q.shape[1]
+    if rows >= n:
+        (d_k, d_v), d_q = block(start, (q, d_out, lse, row_dot))
+    else:
+        # Padded rows have zero cotangents, so they add nothing to d_k and d_v.
+        xs = (_row_blocks(q, rows), _row_blocks(d_out, rows), _row_blocks(lse[..., None], rows)[..., 0],
+              _row_blocks(row_dot[..., None], rows)[..., 0])
+        (d_k, d_v), d_q = jax.lax.scan(block, start, xs)
+        d_q = _from_row_blocks(d_q, n)
+    return d_q.astype(q.dtype), d_k.astype(k.dtype), d_v.astype(v.dtype)
+
+
+_attention.defvjp(_attention_fwd, _attention_bwd)
+
+
 def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = None,
               chunk: int = 0, *, precision: str) -> jax.Array:
     """softmax(q k^T / divisor) v for each head: q (N, h, d), k (M, h, d), v (M, h, d_v) -> (N, h, d_v).
 
-    The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend runs faster than
-    the points-first layout (no transposes around the batched matmuls). With ``0 < chunk < N`` the query
-    rows go ``chunk`` at a time (rows are independent, so the result is the same): the (h, N, M) logits
-    never exist at once, and memory grows linearly in N instead of N M. Each block is rematerialised in the
-    backward pass, so training keeps that memory bound too. Low-precision (bfloat16) inputs multiply in
-    their precision, while the logits and the softmax stay float32. ``precision``: see :func:`dot_precision`.
+    ``divisor`` is a Python number (a constant of the program).
+
+    The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend runs faster than the
+    points-first layout. The backward pass is written out (as in FlashAttention): it keeps q, k, v, the
+    output and each row's log-sum-exp, and recomputes the (h, N, M) softmax weights instead of storing them,
+    which cuts the memory traffic of PSE's narrow heads. With ``0 < chunk < N`` the query rows go ``chunk``
+    at a time in both passes (rows are independent, so the result is the same): the (h, N, M) logits never
+    exist at once, and memory grows linearly in N instead of N M. Low-precision (bfloat16) inputs multiply
+    in their precision, while the logits and the softmax stay float32. ``precision``: see
+    :func:`dot_precision`.
     """
-    k_h, v_h = jnp.swapaxes(k, 0, 1), jnp.swapaxes(v, 0, 1)  # (h, M, d)
-
-    low = q.dtype != jnp.float32  # bfloat16 products, float32 logits and softmax
-
-    def block(q_rows: jax.Array) -> jax.Array:  # (h, n, d) -> (h, n, d_v)
-        logits = einsum("hnd,hmd->hnm", q_rows, k_h, precision=precision,
-                        preferred_element_type=jnp.float32 if low else None)
-        if divisor is not None:
-            logits = logits / divisor
-        probs = jax.nn.softmax(logits, axis=-1)
-        return einsum("hnm,hmd->hnd", probs.astype(v_h.dtype), v_h, precision=precision)
-
-    n_rows = q.shape[0]
-    q_h = jnp.swapaxes(q, 0, 1)  # (h, N, d)
-    if chunk <= 0 or n_rows <= chunk:
-        return jnp.swapaxes(block(q_h), 0, 1)
-    padded = jnp.pad(q_h, ((0, 0), (0, -n_rows % chunk), (0, 0)))
-    blocks = jnp.moveaxis(padded.reshape(q_h.shape[0], -1, chunk, q_h.shape[2]), 1, 0)  # (B, h, chunk, d)
-    out = jax.lax.map(jax.checkpoint(block), blocks)  # (B, h, chunk, d_v)
-    return jnp.moveaxis(out, 0, 1).reshape(q_h.shape[0], -1, out.shape[-1])[:, :n_rows].swapaxes(0, 1)
+    rows = q.shape[0] if chunk <= 0 else min(chunk, q.shape[0])
+    heads_first = lambda a: jnp.swapaxes(a, 0, 1)
+    return heads_first(_attention(heads_first(q), heads_first(k), heads_first(v), rows, divisor, precision))
 
 
 def layer_norm(name: str, eps: float = 1e-5) -> nn.LayerNorm:

@@ -305,12 +305,12 @@ def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_
     """
     tgt_embedding = embed(params, tgt, config)  # no memory: dropout draws a fresh encoder mask per iteration
     src_knn = geometry.knn(src, config.k)
-    rotation = jnp.eye(3, dtype=src.dtype)
-    translation = jnp.zeros(3, dtype=src.dtype)
-    moved = src
-    records = []
-    for i in range(n_iters):
-        key = None if dropout_key is None else jax.random.fold_in(dropout_key, i)
+
+    # A scan, not a Python loop: the same arithmetic, and the train step's program holds one copy of the
+    # network whatever the number of iterations, so it compiles sooner.
+    def iteration(carry, index):
+        rotation, translation, moved = carry
+        key = None if dropout_key is None else jax.random.fold_in(dropout_key, index)
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn,
                             deterministic=key is None, dropout_key=key)
         r_ab, t_ab, weights, matches, soft_targets = _soft_pose(moved, tgt, feats.scores, feats.temperature,
@@ -318,6 +318,10 @@ def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_
         r_ba, t_ba, *_ = _soft_pose(tgt, moved, feats.scores.T, feats.temperature, differentiable)
         rotation, translation = geometry.compose(r_ab, t_ab, rotation, translation)
         moved = geometry.apply_transform(jax.lax.stop_gradient(r_ab), jax.lax.stop_gradient(t_ab), moved)
-        records.append(Iterations(rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches,
-                                  feats.temperature, soft_targets))
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *records)
+        record = Iterations(rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches, feats.temperature,
+                            soft_targets)
+        return (rotation, translation, moved), record
+
+    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src)
+    _, records = jax.lax.scan(iteration, start, jnp.arange(n_iters))
+    return records

@@ -44,7 +44,7 @@ class MultiHeadAttention(nn.Module):
         split = lambda a: a.reshape(a.shape[0], self.n_heads, head_dims)
         dense = lambda name: torch_dense(self.emb_dims, name, dtype=self.dtype, precision=self.precision)
         q, k, v = split(dense("q")(query)), split(dense("k")(key)), split(dense("v")(value))
-        mixed = attention(q, k, v, jnp.sqrt(jnp.asarray(head_dims, jnp.float32)), chunk=self.attention_chunk,
+        mixed = attention(q, k, v, float(head_dims) ** 0.5, chunk=self.attention_chunk,
                           precision=self.precision)
         mixed = mixed.reshape(query.shape[0], self.emb_dims)
         return dense("o")(mixed).astype(jnp.float32)

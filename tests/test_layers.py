@@ -23,6 +23,46 @@ def test_blocked_attention_is_attention(chunk):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5)
 
 
+def _plain_attention(q, k, v, divisor):
+    """softmax(q k^T / divisor) v written as the formula, differentiated by JAX itself."""
+    logits = jnp.einsum("nhd,mhd->hnm", q, k, precision="highest") / divisor
+    return jnp.einsum("hnm,mhd->nhd", jax.nn.softmax(logits, axis=-1), v, precision="highest")
+
+
+@pytest.mark.parametrize("head_dims", [4, 32])  # PSE's narrow heads and PFT's
+@pytest.mark.parametrize("chunk", [0, 7])
+def test_attention_gradients_are_those_of_the_formula(head_dims, chunk):
+    """The written-out backward pass (softmax recomputed from the log-sum-exp, key-major products) gives
+    JAX's own gradients of softmax(q k^T / divisor) v at float32 rounding, in blocks or not."""
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    q = 2.0 * jax.random.normal(keys[0], (40, 4, head_dims))
+    k = 2.0 * jax.random.normal(keys[1], (33, 4, head_dims))
+    v = jax.random.normal(keys[2], (33, 4, 5))
+    weights = jax.random.normal(keys[3], (40, 4, 5))  # a loss whose cotangent differs per output
+    divisor = float(head_dims) ** 0.5
+    ours = lambda q, k, v: jnp.sum(weights * jnp.tanh(layers.attention(q, k, v, divisor, chunk=chunk,
+                                                                        precision="highest")))
+    plain = lambda q, k, v: jnp.sum(weights * jnp.tanh(_plain_attention(q, k, v, divisor)))
+    out = layers.attention(q, k, v, divisor, chunk=chunk, precision="highest")
+    np.testing.assert_allclose(np.asarray(out), np.asarray(_plain_attention(q, k, v, divisor)), atol=1e-5)
+    grads = jax.grad(ours, argnums=(0, 1, 2))(q, k, v)
+    expected = jax.grad(plain, argnums=(0, 1, 2))(q, k, v)
+    for name, got, want in zip("qkv", grads, expected):
+        scale = float(jnp.max(jnp.abs(want)))
+        assert scale > 1e-3, name  # a gradient that could be wrong
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=2e-5 * scale, err_msg=name)
+
+
+def test_bfloat16_attention_gradients_are_bfloat16_and_close():
+    q = jax.random.normal(jax.random.PRNGKey(4), (24, 2, 8))
+    low = q.astype(jnp.bfloat16)
+    grad = lambda x: jax.grad(lambda a: jnp.sum(jnp.sin(layers.attention(a, a, a, 8.0 ** 0.5, precision="highest")
+                                                      .astype(jnp.float32))))(x)
+    got, exact = grad(low), grad(q)
+    assert got.dtype == jnp.bfloat16
+    np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(exact), atol=5e-2)
+
+
 def test_bfloat16_inputs_keep_float32_softmax():
     q = jax.random.normal(jax.random.PRNGKey(1), (20, 2, 8))
     exact = layers.attention(q, q, q, 8.0 ** 0.5, precision="highest")

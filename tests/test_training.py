@@ -428,3 +428,36 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     records = [json.loads(line) for line in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
     assert sorted(r["step"] for r in records if r["split"] == "train") == list(range(1, 13))
     assert sorted(r["step"] for r in records if r["split"] == "val") == [12]
+
+
+def test_the_batch_loss_is_the_mean_of_each_pairs_loss():
+    """The batch runs as one part per device, each part's pairs one after another (on a CPU); its loss and
+    gradients are the mean of each pair's on its own, with each pair's own dropout key."""
+    config = dataclasses.replace(TINY_RECIPE, batch_size=4)
+    model_config = config.model_config()
+    params = training.init_state(config, training.make_optimizer(config, 1)).params
+    rng = np.random.default_rng(5)
+    src = rng.uniform(-1, 1, (4, config.n_points, 3)).astype(np.float32)
+    rotation = np.stack([random_rotation(rng) for _ in range(4)]).astype(np.float32)
+    batch = {"src": src, "tgt": np.einsum("bij,bnj->bni", rotation, src) + 0.1, "R": rotation,
+             "t": np.full((4, 3), 0.1, np.float32)}
+    key = jax.random.PRNGKey(9)
+
+    def pair_loss(p, pair, pair_key):  # as a train step computes one pair's loss
+        its = model.unroll(p, pair["src"], pair["tgt"], model_config, config.train_iters,
+                           differentiable=config.differentiable, dropout_key=pair_key)
+        return losses.dit_loss(its, pair["src"], pair["tgt"], pair["R"], pair["t"], match_radius=config.match_radius,
+                               correspondence_weight=config.correspondence_weight)[0]
+
+    single = jax.jit(jax.value_and_grad(pair_loss))
+    singles = [single(params, {name: array[i] for name, array in batch.items()}, pair_key)
+               for i, pair_key in enumerate(jax.random.split(key, 4))]
+    expected = float(np.mean([float(v) for v, _ in singles]))
+    mean_grads = jax.tree.map(lambda *g: sum(g) / 4, *[g for _, g in singles])
+    scale = max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(mean_grads))
+    # Two parts of two pairs (one device runs one part of four in every other test of this file).
+    batched = jax.jit(jax.value_and_grad(lambda p, b: training._batch_loss(p, b, model_config, config, key, 2)[0]))
+    value, grads = batched(params, batch)
+    np.testing.assert_allclose(float(value), expected, rtol=1e-5)
+    for got, want in zip(jax.tree.leaves(grads), jax.tree.leaves(mean_grads)):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-4 * scale)
