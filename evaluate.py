@@ -13,8 +13,11 @@ points) and those whose clouds share no point, as real data (independent_*, scan
 the pairs: a Stanford .conf (scan i with scan i + SKIP, --skips), 3DMatch fragments with gt.log lists, a
 KITTI poses.txt, or source.* and target.* with T_target_source.txt (dit_jax.data.scans).
 
-Methods: DIT as it ships, DIT refined by ICP (the DIT+ICP row; --refine none drops it) and the --baselines,
-each at the options tuned for the setting on validation pairs (docs/baselines_tuning.md).
+Methods, from one run of the registration pipeline: the network alone (DIT), the network refined (DIT+ICP:
+ICP on sparse clouds, GICP on scans; --refine sets it, none drops the row) and the default pipeline
+(pipeline: DIT+ICP, then a registration by local features where its result is not trusted; --features off
+drops it); beside them the --baselines, each at the options tuned for the setting on validation pairs
+(docs/baselines_tuning.md).
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
 worst pair) to --out.
@@ -37,6 +40,7 @@ def _inference_changes(args) -> dict:
     """The changes to the checkpoint's inference settings (:class:`dit_jax.pipeline.InferenceSettings`) that
     evaluate.py's flags ask for."""
     changes = {"n_points": args.n_points, "n_iters": args.iters, "refine": args.refine,
+               "feature_candidate": None if args.features is None else args.features == "on",
                "best_direction": None if args.best_direction is None else args.best_direction == "on",
                "verdict_rule": "fitness" if args.no_verdict else None}
     return {name: value for name, value in changes.items() if value is not None}
@@ -71,8 +75,11 @@ def main(argv=None) -> int:
                         help="default: the model's own inference settings, the same for every input; 'authors': "
                              "the authors' threshold per setting; or a number")
     parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
-    parser.add_argument("--refine", choices=["icp", "none"], default="icp",
-                        help="icp (default): add DIT refined by ICP as the DIT+ICP row")
+    parser.add_argument("--refine", choices=["auto", "icp", "gicp", "none"], default=None,
+                        help="the DIT+ICP row's refinement (default: the checkpoint's); none drops the row")
+    parser.add_argument("--features", choices=["on", "off"], default=None,
+                        help="the pipeline row: the second candidate by local features where DIT+ICP is not "
+                             "trusted (default: the checkpoint's)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
@@ -114,7 +121,7 @@ def main(argv=None) -> int:
             results = evaluators.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
                                              unseen=args.unseen, pairs_per_angle=args.max_pairs or 24,
                                              n_points=args.n_points, progress=not args.no_progress,
-                                             refine=args.refine == "icp")
+                                             refine=args.refine != "none")
             print(results["table"])
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
             return 0

@@ -1,6 +1,6 @@
 """``dit-register SRC TGT``: register two point-cloud files and print the 4x4 transform moving SRC onto TGT.
 
-    dit-register scan_a.ply scan_b.pcd                    # the shipped weights, refined by ICP
+    dit-register scan_a.ply scan_b.pcd                    # the shipped weights, refined (GICP on scans)
     dit-register a.xyz b.npy --checkpoint runs/x/model --out a_aligned.ply
     dit-register a.ply b.ply --json > result.json
     dit-register scan_a.ply scan_b.ply --refine none --plot check.png   # the network alone; a picture
@@ -23,7 +23,9 @@ well, and the result is trusted where the two motions agree closely (``--verdict
 the source lands on the target, one registration instead of two). A result not trusted is "unconfirmed"
 where validation results that agreed as closely were mostly right (exit status 0, a one-line note on
 stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
-way it is printed and written. How often each level was right: docs/verdict.md.
+way it is printed and written. How often each level was right: docs/verdict.md. Where the refined result is
+not trusted, the pair is registered once more by local features (KISS-Matcher; ``--features off`` skips it):
+the better fitting of the two is printed, and trusted where the two agree.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time
@@ -47,6 +49,8 @@ PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
 #: Exit status when the verdict finds the result probably wrong.
 EXIT_SUSPECT = 3
+#: --refine's choices: :data:`dit_jax.pipeline.REFINEMENTS`, spelt out so that parsing imports no JAX.
+REFINE_CHOICES = ("auto", "icp", "gicp", "none")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -87,10 +91,15 @@ def _parser() -> argparse.ArgumentParser:
                         help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
                              "files' pixels without a return) instead of refusing the file")
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
-    parser.add_argument("--refine", choices=("none", "icp", "gicp"), default="icp",
-                        help="icp (default): refine the network's estimate by ICP on the full clouds; gicp: by "
-                             "small_gicp's generalized ICP at the clouds' point spacing (far faster on large "
-                             "scans); none: the network alone (faster, less accurate)")
+    parser.add_argument("--refine", choices=REFINE_CHOICES, default=None,
+                        help="how the network's estimate is refined on the full clouds: icp; gicp (small_gicp's "
+                             "generalized ICP at the clouds' point spacing, far faster on large scans); auto "
+                             "(gicp on scans, icp on sparse clouds); none: the network alone (faster, less "
+                             "accurate). Default: the checkpoint's")
+    parser.add_argument("--features", choices=("on", "off"), default=None,
+                        help="where the verdict does not trust the refined result, also register by local "
+                             "features (KISS-Matcher) and keep the better fitting of the two (default: the "
+                             "checkpoint's)")
     parser.add_argument("--any-rotation", action="store_true",
                         help="for clouds at any relative rotation: start the network from 24 turns of SRC "
                              "and go on from the best fitting (about 24 times the network's time)")
@@ -295,6 +304,8 @@ def _model_kwargs(args) -> dict:
         kwargs["rotation_search"] = True
     if args.best_direction is not None:
         kwargs["best_direction"] = args.best_direction == "on"
+    if args.features is not None:
+        kwargs["feature_candidate"] = args.features == "on"
     if args.max_disagreement is not None:
         kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
     return kwargs
@@ -380,7 +391,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{result.level}: {result.evidence()}")
         print(f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
               f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
-              + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else ""))
+              + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else "")
+              + (f" + {result.candidate_seconds:.2f} s of feature matching" if result.candidate_seconds else ""))
+        print(f"found by: {result.label}")
         if args.any_rotation:
             print(f"rotation search: went on from a start turned {result.start_turn:.0f} deg")
         for written in (args.out, args.plot):
@@ -419,9 +432,9 @@ def _series_parser() -> argparse.ArgumentParser:
                         help="draw every scan in the first one's frame, from two sides, beside each link's "
                              "agreement and verdict")
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    parser.add_argument("--refine", choices=("none", "icp", "gicp"), default="icp",
-                        help="icp (default), gicp (small_gicp's generalized ICP) or none: the network alone for "
-                             "every link")
+    parser.add_argument("--refine", choices=REFINE_CHOICES, default=None,
+                        help="icp, gicp (small_gicp's generalized ICP), auto (gicp on scans, icp on sparse "
+                             "clouds) or none: the network alone for every link (default: the checkpoint's)")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
                         help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
     parser.add_argument("--no-downsample", action="store_true",

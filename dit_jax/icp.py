@@ -217,15 +217,46 @@ def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.nda
     return scores if translation.ndim == 2 else float(scores[0])
 
 
+def overlap(src: np.ndarray, tgt: np.ndarray, motions: Sequence[tuple], radius: float, *, seed: int = 0,
+            max_points: int = 5_000) -> np.ndarray:
+    """How much of src (N, 3) each motion lays onto tgt (M, 3): the share of the source points (a seeded
+    random ``max_points`` of them) within ``radius`` of a target point, for each (R (3, 3), t (3,)) of
+    ``motions``. Returns (len(motions),) in [0, 1]; higher is better.
+
+    Unlike :func:`trimmed_fit`, which averages the closest share of the gaps whatever they are, it counts
+    only points that land on the surface: between poses of views that overlap by less than that share, a
+    wrong pose that piles the source into the target's middle can have the smaller trimmed gaps, but it
+    lays far fewer points exactly onto it (measured on the dragon's scans 48 degrees apart).
+    """
+    from scipy.spatial import cKDTree
+
+    src = _thinned(np.asarray(src, np.float64), max_points, seed)
+    tree = cKDTree(np.asarray(tgt, np.float64))
+    shares = []
+    for rotation, translation in motions:
+        moved = src @ np.asarray(rotation, np.float64).T + np.asarray(translation, np.float64)
+        gaps = tree.query(moved, distance_upper_bound=radius)[0]
+        shares.append(float(np.mean(gaps <= radius)))
+    return np.asarray(shares)
+
+
+def _thinned(points: np.ndarray, most: int, seed: int = 0) -> np.ndarray:
+    """``points`` (N, 3), or a seeded random ``most`` of them (in their order) where N is larger."""
+    if len(points) <= most:
+        return points
+    return points[np.sort(np.random.default_rng(seed).choice(len(points), most, replace=False))]
+
+
 def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -> bool:
     """Whether ``motion`` (R (3, 3), t (3,)) lays src (N, 3) onto tgt (M, 3) better than ``other`` does, by
-    :func:`trimmed_fit`. Against the true motion: where it does, the points themselves prefer that pose, and
+    :func:`trimmed_fit` (against a seeded random :data:`TARGET_POINTS` of a larger target: both motions
+    against the same points). Against the true motion: where it does, the points themselves prefer that pose, and
     no refinement that fits them can be expected to end at the truth. Between two estimates: the one to keep
     (:class:`dit_jax.registration.Registrar`'s ``best_direction``)."""
     from scipy.spatial import cKDTree
 
     src = np.asarray(src, np.float64)
-    tree = cKDTree(np.asarray(tgt, np.float64))
+    tree = cKDTree(_thinned(np.asarray(tgt, np.float64), TARGET_POINTS))
     as_float = lambda m: (np.asarray(m[0], np.float64), np.asarray(m[1], np.float64))
     return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(other))
 
@@ -315,8 +346,8 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     start = (np.asarray(rotation, np.float64), np.asarray(translation, np.float64))
-    if max_target_points and len(tgt) > max_target_points:
-        tgt = tgt[np.sort(np.random.default_rng(seed).choice(len(tgt), max_target_points, replace=False))]
+    if max_target_points:
+        tgt = _thinned(tgt, max_target_points, seed)
     tree = cKDTree(tgt)
     finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
     score = lambda r, t: trimmed_fit(src, tree, r, t, seed=seed, max_points=max_points)
@@ -376,6 +407,10 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
 #: clouds at each in turn, coarse to fine, pairing points within :data:`GICP_PAIRING` resolutions.
 GICP_RESOLUTIONS = (8.0, 2.0)
 GICP_PAIRING = 3.0
+#: On large scans no resolution of :func:`refine_gicp` is finer than the one that leaves about this many
+#: voxels of a surface sampled by the larger cloud's points (their count falls with the square of the
+#: resolution): on a room fragment of 250,000 points the fine stage at 2 spacings kept nearly every point.
+GICP_POINTS = 10_000
 
 
 def point_spacing(points: np.ndarray, *, seed: int = 0, samples: int = 2_000, tree=None) -> float:
@@ -390,7 +425,8 @@ def point_spacing(points: np.ndarray, *, seed: int = 0, samples: int = 2_000, tr
 
 
 def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
-                seed: int = 0, threads: int | None = None, max_iterations: int = 30) -> ICPResult:
+                seed: int = 0, threads: int | None = None, max_iterations: int = 30,
+                spacing: float | None = None) -> ICPResult:
     """A fast refinement of a global estimate on the full clouds: small_gicp's generalized ICP, coarse to
     fine, at resolutions set by the clouds' point spacing (:data:`GICP_RESOLUTIONS`), so any units give the
     same motion.
@@ -400,7 +436,9 @@ def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translat
     from), the estimate comes back unchanged (``iterations`` 0).
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), ``tgt ~ src @ R.T + t``; ``seed``: the spacing's
-    and the fit's subsets; ``threads``: small_gicp's (default: the machine's cores).
+    and the fit's subsets; ``threads``: small_gicp's (default: the machine's cores); ``spacing``: the clouds'
+    point spacing where the caller knows it (default: the larger of the two, :func:`point_spacing`). The fit
+    and the returned fitness are measured against a seeded random :data:`TARGET_POINTS` of a larger target.
     Returns :class:`ICPResult` (fitness and rmse at the finest pairing distance).
     """
     import small_gicp
@@ -408,21 +446,24 @@ def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translat
 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
-    tree = cKDTree(tgt)
-    spacing = max(point_spacing(src, seed=seed), point_spacing(tgt, seed=seed, tree=tree))
+    target = _thinned(tgt, TARGET_POINTS, seed)
+    tree = cKDTree(target)
+    if spacing is None:
+        spacing = max(point_spacing(src, seed=seed), point_spacing(tgt, seed=seed))
+    finest_factor = max(float(np.sqrt(max(len(src), len(tgt)) / GICP_POINTS)), 1.0)
     start = np.eye(4)
     start[:3, :3], start[:3, 3] = rotation, translation
     motion, iterations = start, 0
     if spacing > 0:
         for factor in GICP_RESOLUTIONS:
-            resolution = factor * spacing
+            resolution = max(factor, finest_factor) * spacing
             found = small_gicp.align(tgt, src, motion, registration_type="GICP", downsampling_resolution=resolution,
                                      max_correspondence_distance=GICP_PAIRING * resolution,
                                      num_threads=threads or os.cpu_count() or 1, max_iterations=max_iterations)
             motion, iterations = np.asarray(found.T_target_source, np.float64), iterations + int(found.iterations)
-    finest = GICP_PAIRING * GICP_RESOLUTIONS[-1] * spacing
+    finest = GICP_PAIRING * max(GICP_RESOLUTIONS[-1], finest_factor) * spacing
     fit = lambda m: trimmed_fit(src, tree, m[:3, :3], m[:3, 3], seed=seed)  # noqa: E731
     if not np.all(np.isfinite(motion)) or fit(motion) >= fit(start):
         motion, iterations = start, 0
-    final = icp(src, tgt, motion[:3, :3], motion[:3, 3], distances=finest, max_iterations=0, tree=tree)
+    final = icp(src, target, motion[:3, :3], motion[:3, 3], distances=finest, max_iterations=0, tree=tree)
     return dataclasses.replace(final, iterations=iterations)

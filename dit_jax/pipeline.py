@@ -9,9 +9,15 @@ A batch of pairs goes through four stages, each a function of its own:
    one compiled program serves every batch of a shape; with ``rotation_search``, from the 24 turns of
    :data:`SEARCH_TURNS` of each source, going on from the best fitting (:func:`dit_jax.icp.best_start`).
    Under the agreement verdict the batch runs the other way too (target onto source);
-3. :func:`refine_pair`: ICP on the full clouds (:func:`dit_jax.icp.refine`), both directions side by side,
-   keeping the better fitting direction where :attr:`InferenceSettings.best_direction` says so;
+3. :func:`refine_pair`: ICP on the full clouds (:func:`dit_jax.icp.refine`, or small_gicp's GICP on dense
+   scans, :func:`refinement_for`), both directions side by side, keeping the better fitting direction where
+   :attr:`InferenceSettings.best_direction` says so;
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
+
+Where the verdict does not trust the network's result and :attr:`InferenceSettings.feature_candidate` is on,
+:func:`second_candidate` registers the pair once more by local features (:mod:`dit_jax.feature_match`), refines
+that estimate the same way and keeps whichever of the two lays more of the source onto the target; the result is trusted where
+the two independent estimates agree.
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
@@ -39,8 +45,11 @@ from dit_jax import geometry, icp as icp_lib
 from dit_jax import model as model_lib
 from dit_jax.configs import PRECISIONS, DITConfig, Record
 
-#: What the pipeline can do after the network: nothing, or ICP (:mod:`dit_jax.icp`).
-REFINEMENTS = ("none", "icp", "gicp")
+#: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto" (:func:`refinement_for`).
+REFINEMENTS = ("none", "icp", "gicp", "auto")
+#: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
+#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's).
+DENSE_POINTS = 5_000
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
 CENTRINGS = ("auto", "shared", "separate")
 #: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
@@ -57,6 +66,10 @@ FAR_APART = 10.0
 SIZE_RATIO_WARNING = 10.0
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
+#: :func:`second_candidate` keeps the estimate that lays more source points within this many point spacings
+#: of the target. On the dragon's scan pairs it picked the right one of two every time, where the trimmed fit
+#: preferred two wrong poses of views 48 degrees apart (docs/refinement.md, "A second candidate").
+CANDIDATE_OVERLAP = 2.0
 #: The verdict's levels (:func:`verdict_level`), most confident first.
 VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
 
@@ -91,7 +104,9 @@ class InferenceSettings(Record):
       refine: "icp" refines the network's estimate on the full clouds (stage 3, :func:`dit_jax.icp.refine`);
         "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
-        bands); "none" does not.
+        bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
+      feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
+        local features too and keep the better fitting of the two (:func:`second_candidate`).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -117,7 +132,8 @@ class InferenceSettings(Record):
     gmcce_min_keep: float | None = None
     guard_iterations: bool | None = None
     precision: str | None = None
-    refine: str = "icp"
+    refine: str = "auto"
+    feature_candidate: bool = True
     rotation_search: bool = False
     verdict_rule: str = "agreement"
     best_direction: bool = True
@@ -149,6 +165,11 @@ class InferenceSettings(Record):
         changes = {name: getattr(self, name) for name in MODEL_OVERRIDES if getattr(self, name) is not None}
         return config.replace(**changes) if changes else config
 
+    def refinement_for(self, src_points: int, tgt_points: int) -> str:
+        """The refinement stage 3 runs on clouds of these sizes: :attr:`refine`, with "auto" resolved
+        (:func:`refinement_for`)."""
+        return refinement_for(self.refine, src_points, tgt_points)
+
     def max_disagreement(self, refine: str) -> float:
         """The agreement verdict's threshold (degrees) for ``refine``: the network's for "none", ICP's for a
         refinement."""
@@ -177,6 +198,11 @@ class Result:
         included unless the call ran several batches (:func:`network`).
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
+      candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
+        the second candidate's (:func:`second_candidate`), kept because it lays more of the source onto the target.
+      candidate_agreement: degrees between the second candidate's refined rotation and the nearer of the
+        network's two refined ones; NaN where no second candidate ran.
+      candidate_seconds: wall time of the second candidate, its refinement included (0 where none ran).
       verdict: True ("trusted") where the model's own evidence confirms the result, else False.
       level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
         right) or "probably wrong" (:func:`verdict_level`).
@@ -193,6 +219,8 @@ class Result:
         truth; None where the settings record no bands, no agreement was measured or the band is small.
       network: where ICP refined the result, the network's own result before it (its verdict judged by the
         network's threshold); None otherwise.
+      first: where a second candidate ran, the refined network's result as it stood before (its own verdict);
+        None otherwise.
     """
 
     rotation: np.ndarray
@@ -215,11 +243,15 @@ class Result:
     start_turn: float
     agreement_band: tuple | None
     network: "Result | None"
+    candidate: str = "network"
+    candidate_agreement: float = float("nan")
+    candidate_seconds: float = 0.0
+    first: "Result | None" = None
 
     @property
     def total_seconds(self) -> float:
-        """Network and refinement together."""
-        return self.seconds + self.refine_seconds
+        """Network, refinement and any second candidate together."""
+        return self.seconds + self.refine_seconds + self.candidate_seconds
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Moves (N, 3) points by the estimated transform."""
@@ -233,12 +265,21 @@ class Result:
                 "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
                 "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
                 "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
-                "direction": self.direction, "start_turn_deg": self.start_turn,
+                "direction": self.direction, "start_turn_deg": self.start_turn, "candidate": self.candidate,
+                "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement)
+                                            else self.candidate_agreement),
+                "candidate_seconds": self.candidate_seconds,
                 "agreement_band": None if self.agreement_band is None else dict(zip(
                     ("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band))}
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
+        if not np.isnan(self.candidate_agreement):
+            first = self.first.evidence() if self.first is not None else ""
+            kept = "the feature match's" if self.candidate == "features" else "the network's"
+            return (f"{first}; a registration by local features then lands {self.candidate_agreement:.2f} deg from "
+                    f"the network's (trusted up to {self.threshold:g} deg), and {kept} lays more of the source onto the "
+                    "target")
         if self.verdict_rule == "agreement":
             line = (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
                     f"this one's inverse (trusted up to {self.threshold:g} deg)")
@@ -261,7 +302,13 @@ class Result:
 
         return plotting.plot_registration(path, np.asarray(src), np.asarray(tgt), self.rotation, self.translation,
                                           title=title, inlier_ratio=self.inlier_ratio, fitness=self.fitness,
-                                          truth=truth, label="DIT + ICP" if self.refinement else "DIT")
+                                          truth=truth, label=self.label)
+
+    @property
+    def label(self) -> str:
+        """What found the result, e.g. "DIT + GICP" or "features + ICP"."""
+        found = "DIT" if self.candidate == "network" else "features"
+        return f"{found} + {self.refinement.upper()}" if self.refinement else found
 
 
 # ------------------------------------------------------------------------------ stage 1: sample and normalise
@@ -483,6 +530,13 @@ def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray,
 # ------------------------------------------------------------------------------------------ stage 3: refine
 
 
+def refinement_for(refine: str, src_points: int, tgt_points: int) -> str:
+    """The refinement of ``refine`` (:data:`REFINEMENTS`) for clouds of these sizes: "auto" is "gicp" where
+    both have at least :data:`DENSE_POINTS` points, else "icp"; any other value is itself."""
+    if refine != "auto":
+        return refine
+    return "gicp" if min(src_points, tgt_points) >= DENSE_POINTS else "icp"
+
 @dataclasses.dataclass(frozen=True)
 class Refined:
     """Stage 3's output for one pair, in the caller's units: the kept motion, the forward and backward
@@ -497,18 +551,19 @@ class Refined:
 
 
 def refine_pair(pair: Normalised, forward: tuple, backward: tuple | None, *, best_direction: bool,
-                seed: int, method: str = "icp") -> Refined:
+                seed: int, method: str = "icp", spacing: float | None = None) -> Refined:
     """Stage 3 for one pair: refines ``forward`` (R, t), source onto target, and ``backward``, target onto
     source (None: one direction), on the full clouds by ``method``: "icp" (:func:`dit_jax.icp.refine`, the
     two side by side) or "gicp" (:func:`dit_jax.icp.refine_gicp`, threaded itself); with
     ``best_direction``, keeps the inverse of the backward motion where it lays the source onto the target
-    better (:func:`dit_jax.icp.fits_better`)."""
+    better (:func:`dit_jax.icp.fits_better`). ``spacing``: the clouds' point spacing for "gicp" (computed
+    there otherwise)."""
     started = time.perf_counter()
     jobs = [(pair.src, pair.tgt, *forward)]
     if backward is not None:
         jobs.append((pair.tgt, pair.src, *backward))
     if method == "gicp":
-        refined = [icp_lib.refine_gicp(*job, seed=seed) for job in jobs]
+        refined = [icp_lib.refine_gicp(*job, seed=seed, spacing=spacing) for job in jobs]
     else:
         # Independent NumPy and scipy work, which releases the GIL: two threads take about half the serial time.
         with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
@@ -629,23 +684,79 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
     network_result = _result(e["rotation"], e["translation"], fitness=float(extras["fitness"]), refinement=None,
                              refine_seconds=0.0, verdict=verdict, threshold=threshold, agreement=agreement,
                              direction="forward", start_turn=e["turn"], agreement_band=band, network=None, **common)
-    if settings.refine == "none":
+    method = settings.refinement_for(len(p.src), len(p.tgt))
+    if method == "none":
         return network_result
     backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
+    # GICP and the feature match work at the clouds' point spacing: measured once for the pair.
+    spacing = (max(icp_lib.point_spacing(p.src, seed=settings.seed), icp_lib.point_spacing(p.tgt, seed=settings.seed))
+               if method == "gicp" or settings.feature_candidate else None)
     refined = refine_pair(p, (e["rotation"], e["translation"]), backward, best_direction=settings.best_direction,
-                          seed=settings.seed, method=settings.refine)
-    # The fitness, as the model measures it, for the refined motion.
-    moved = ((p.src[p.src_indices] @ refined.rotation.T + refined.translation) - p.tgt_centre) / p.scale
-    tgt_j = jnp.asarray(p.tgt_n)
-    fitness = float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
-                                     config.fitness_radius * geometry.spacing(tgt_j)))
-    verdict, threshold, agreement, band = judge(settings, settings.refine, fitness, refined.forward_rotation,
+                          seed=settings.seed, method=method, spacing=spacing)
+    fitness = _fitness(p, refined.rotation, refined.translation, config)
+    verdict, threshold, agreement, band = judge(settings, method, fitness, refined.forward_rotation,
                                                 refined.backward_rotation)
     turn = e["turn"] if refined.direction == "forward" else e["back_turn"]
-    return _result(refined.rotation, refined.translation, fitness=fitness, refinement=settings.refine,
-                   refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
-                   direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
-                   **common)
+    result = _result(refined.rotation, refined.translation, fitness=fitness, refinement=method,
+                     refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
+                     direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
+                     **common)
+    if settings.feature_candidate and not result.verdict:
+        result = second_candidate(p, result, refined, settings, config, spacing=spacing)
+    return result
+
+
+def _fitness(p: Normalised, rotation: np.ndarray, translation: np.ndarray, config: DITConfig) -> float:
+    """The fitness of a motion in the caller's units, as the model measures it (:func:`dit_jax.geometry.fitness`
+    on the sampled clouds)."""
+    moved = ((p.src[p.src_indices] @ rotation.T + translation) - p.tgt_centre) / p.scale
+    tgt_j = jnp.asarray(p.tgt_n)
+    return float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
+                                  config.fitness_radius * geometry.spacing(tgt_j)))
+
+
+def second_candidate(p: Normalised, result: Result, refined: Refined, settings: InferenceSettings,
+                     config: DITConfig, *, spacing: float | None = None) -> Result:
+    """The pipeline's second candidate for a pair whose refined network ``result`` the verdict did not trust.
+
+    Registers the caller's clouds by local features (:func:`dit_jax.feature_match.register`), refines that estimate
+    by ``result.refinement`` (source onto target), and keeps it where it lays more of the source onto the
+    target than ``result`` does: the share of source points within :data:`CANDIDATE_OVERLAP` point spacings of
+    a target point (:func:`dit_jax.icp.overlap`; ties keep the network's). The two estimates are independent (one learned on sampled
+    points, one from local geometry), so where the candidate's rotation lies within the refinement's
+    agreement threshold (:meth:`InferenceSettings.max_disagreement`) of either of the network's refined
+    directions, the result is trusted; otherwise it keeps ``result``'s level. ``spacing``: the clouds' point
+    spacing (:func:`dit_jax.icp.point_spacing`; measured here otherwise).
+    """
+    from dit_jax import feature_match
+
+    started = time.perf_counter()
+    match = feature_match.register(p.src, p.tgt, seed=settings.seed, spacing=spacing)
+    if match.inliers == 0:  # no estimate: the network's result stands, its level unchanged
+        return dataclasses.replace(result, candidate_seconds=time.perf_counter() - started, first=result)
+    own = refine_pair(p, (match.rotation, match.translation), None, best_direction=False, seed=settings.seed,
+                      method=result.refinement, spacing=spacing)
+    network_rotations = [refined.forward_rotation]
+    if refined.backward_rotation is not None:
+        network_rotations.append(refined.backward_rotation.T)  # target onto source, inverted
+    agreement = min(geometry.rotation_angle_deg(own.rotation.T @ r) for r in network_rotations)
+    threshold = settings.max_disagreement(result.refinement)
+    if spacing is None:
+        spacing = max(icp_lib.point_spacing(p.src, seed=settings.seed), icp_lib.point_spacing(p.tgt, seed=settings.seed))
+    shares = icp_lib.overlap(p.src, p.tgt, [(result.rotation, result.translation), (own.rotation, own.translation)],
+                             CANDIDATE_OVERLAP * spacing, seed=settings.seed)
+    better = shares[1] > shares[0]
+    trusted = agreement <= threshold
+    kept = dict(candidate="network")
+    if better:
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = own.rotation, own.translation
+        kept = dict(candidate="features", rotation=own.rotation, translation=own.translation, matrix=matrix,
+                    fitness=_fitness(p, own.rotation, own.translation, config), direction="forward",
+                    start_turn=0.0)
+    return dataclasses.replace(result, **kept, verdict=trusted or result.verdict,
+                               level="trusted" if trusted else result.level, candidate_agreement=agreement,
+                               candidate_seconds=time.perf_counter() - started, first=result)
 
 
 def _result(rotation, translation, *, min_right: float, **fields) -> Result:

@@ -33,7 +33,11 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         assert dit["pairs"] == 4 and dit["seconds_per_pair"] > 0 and dit["chamfer"] >= 0
         assert saved["setting_info"][setting]["gmcce_threshold"] == configs.GMCCE_THRESHOLDS[setting]
         assert sum(c["pairs"] for c in dit["by_category"].values()) == 4
-        assert list(saved["settings"][setting]) == ["DIT", "DIT+ICP", *names]
+        assert list(saved["settings"][setting]) == ["DIT", "DIT+ICP", "pipeline", *names]
+        pipeline_row = saved["settings"][setting]["pipeline"]
+        assert pipeline_row["verdict"]["rule"] == "the pipeline's own verdict"
+        assert 0 <= pipeline_row["feature_candidate_kept"] <= 4
+        assert pipeline_row["seconds_per_pair"] >= saved["settings"][setting]["DIT+ICP"]["seconds_per_pair"]
         assert saved["settings"][setting]["DIT+ICP"]["seconds_per_pair"] > dit["seconds_per_pair"]
     assert "| DIT |" in (out / "results.md").read_text()
     assert (out / "success_ratio.png").stat().st_size > 10_000

@@ -59,6 +59,15 @@ def test_the_verdict_stage_judges_by_agreement_or_fitness():
     assert np.isnan(pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
 
 
+def test_auto_refines_scans_by_gicp_and_sparse_clouds_by_icp():
+    dense = pipeline.DENSE_POINTS
+    assert pipeline.refinement_for("auto", dense, dense) == "gicp"
+    assert pipeline.refinement_for("auto", dense, dense - 1) == "icp"  # both clouds must be dense
+    for method in ("icp", "gicp", "none"):
+        assert pipeline.refinement_for(method, 10, 10 * dense) == method
+    assert pipeline.InferenceSettings(refine="auto").refinement_for(1024, 1024) == "icp"
+
+
 def test_a_result_not_trusted_is_unconfirmed_only_where_its_band_was_mostly_right():
     band = lambda pairs, right: (1.0, 2.0, pairs, right)
     assert pipeline.verdict_level(True, None, 0.5) == "trusted"

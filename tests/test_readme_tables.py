@@ -20,7 +20,7 @@ SETTINGS = {"independent_clean": {
 def test_best_table_ranks_by_success_then_within_5_then_error():
     row = readme_tables.best_table(SETTINGS)[2]
     assert row.startswith("| independent_clean | fgr: 80 % success, 95 % within 5 deg, iso R 20 | DIT+ICP: 80 %")
-    assert row.endswith("| 10 % / iso 9 | 80 % / iso 3 |")
+    assert row.endswith("| 10 % / iso 9 | 80 % / iso 3 | - |")  # no pipeline row in these results
 
 
 def test_versus_table_shows_the_network_and_the_strongest_baseline():
@@ -46,5 +46,5 @@ def test_verdict_table_counts_flagged_failures_and_right_trusted_results(tmp_pat
     (tmp_path / "scans" / "results.json").write_text(json.dumps({"scans": "/data/dragon/", "pair_sets": {"skip1": {
         "DIT": {"summary": {"pairs": 15, "verdict": verdict}}, "DIT+ICP": {"summary": {"pairs": 15}}}}}))
     rows = readme_tables.verdict_table([str(tmp_path / "scans"), str(tmp_path / "mn")])[2:]
-    assert rows == ["| dragon skip1 (15 pairs) | 3 of 4 | 9 of 10 | - | - |",
-                    "| mn independent_clean (14 pairs) | - | 5 of 5 | 3 of 4 | 9 of 10 |"]
+    assert rows == ["| dragon skip1 (15 pairs) | 3 of 4 | 9 of 10 | - | - | - | - |",
+                    "| mn independent_clean (14 pairs) | - | 5 of 5 | 3 of 4 | 9 of 10 | - | - |"]

@@ -147,7 +147,8 @@ def test_result_matrix_and_apply_agree(tiny_registrar):
 
 def test_shipped_weights_load_by_default():
     registrar = registration.load()
-    assert registrar.settings.refine == "icp", "ICP after the network is the default"
+    assert registrar.settings.refine == "auto", "ICP, or GICP on scans, after the network is the default"
+    assert registrar.settings.feature_candidate, "and a second candidate where the result is not trusted"
     path = registration.shipped_weights()
     assert registrar.settings == registration.settings_from_extra(checkpoint.read_extra(path))
     assert registrar.settings.n_points == 1000 and registrar.settings.agreement_bands_icp is not None
@@ -188,7 +189,8 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
     reports the refined fitness. Fitness is a share of points within two spacings, not what the refinement
     minimises, so it must rise only where the network started far off the surface."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
-    model_ = registration.load(n_points=512, verdict_rule="fitness")  # one direction: this checks the refinement
+    # One direction and no second candidate: this checks the refinement.
+    model_ = registration.load(n_points=512, verdict_rule="fitness", feature_candidate=False)
     plain_errors, refined_errors = [], []
     for index in range(6):
         shape = modelnet_shapes[index].astype(np.float64)
@@ -340,3 +342,26 @@ def test_gicp_refinement_registers_a_real_scan_pair_through_the_pipeline(dragon_
     assert result.refinement == "gicp" and result.network is not None and result.refine_seconds > 0
     assert _rotation_error_deg(result.rotation, pair.rotation) < 0.5
     assert result.verdict and result.agreement <= result.threshold == registration.load().settings.max_disagreement("icp")
+
+
+def test_the_feature_candidate_replaces_a_wrong_network_result_on_views_48_degrees_apart(dragon_dir):
+    """Dragon scans 48 and 96: the refined network lands about 90 degrees off and the two directions
+    disagree; the second candidate (local features, then GICP) lays more of the source onto the target, so
+    the result is its: within 2 degrees, labelled, the network's own result kept in ``first``, its time
+    counted. Without the candidate the same pair stays wrong."""
+    pytest.importorskip("kiss_matcher")
+    from dit_jax.data import scans
+
+    pair = next(p for p in scans.scan_pairs(scans.load_scans(dragon_dir), skip=2)
+                if p.name.endswith("_48->dragonStandRight_96"))
+    result = registration.load().register(pair.source, pair.target)
+    assert result.candidate == "features" and result.label == "features + GICP"
+    assert _rotation_error_deg(result.rotation, pair.rotation) < 2.0
+    assert result.first is not None and result.first.candidate == "network" and not result.first.verdict
+    assert _rotation_error_deg(result.first.rotation, pair.rotation) > 30.0
+    assert result.candidate_seconds > 0 and result.total_seconds == pytest.approx(
+        result.seconds + result.refine_seconds + result.candidate_seconds)
+    assert "local features" in result.evidence() and result.to_json()["candidate"] == "features"
+    alone = registration.load(feature_candidate=False).register(pair.source, pair.target)
+    assert alone.candidate == "network" and alone.first is None and np.isnan(alone.candidate_agreement)
+    np.testing.assert_allclose(alone.rotation, result.first.rotation, atol=1e-9)

@@ -11,10 +11,15 @@ import numpy as np
 from dit_jax import geometry
 
 
+#: The network alone.
 METHOD_DIT = "DIT"
-
-
+#: The network refined by the settings' refinement (ICP on sparse clouds, GICP on scans: ``refine="auto"``).
 METHOD_DIT_ICP = "DIT+ICP"
+#: The default pipeline: DIT+ICP, then the feature-matching candidate where its result is not trusted
+#: (:func:`dit_jax.pipeline.second_candidate`).
+METHOD_PIPELINE = "pipeline"
+#: The rows that come from the registration pipeline (the rest are baselines).
+PIPELINE_METHODS = (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE)
 #: Rotation thresholds (degrees) of the real-scan tables and curves.
 SCAN_THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
 
@@ -29,6 +34,9 @@ class Estimates:
       fitness: (P,) the verdict's fitness (DIT only, else None).
       agreement: (P,) degrees between the two directions (DIT under the agreement verdict, else None).
       backward: (P,) bool, the inverse of the target-onto-source motion was kept (DIT+ICP only, else None).
+      verdict: (P,) bool, the pipeline's own verdict (the pipeline row only, else None: the other rows'
+        verdicts are scored from their agreement or fitness).
+      candidate: (P,) str, which estimate the pipeline kept, "network" or "features" (the pipeline row only).
     """
 
     rotation: np.ndarray
@@ -37,9 +45,11 @@ class Estimates:
     fitness: np.ndarray | None = None
     agreement: np.ndarray | None = None
     backward: np.ndarray | None = None
+    verdict: np.ndarray | None = None
+    candidate: np.ndarray | None = None
 
     @classmethod
-    def from_results(cls, results: Sequence) -> "Estimates":
+    def from_results(cls, results: Sequence, *, own_verdict: bool = False) -> "Estimates":
         """From :class:`dit_jax.pipeline.Result` s, each timed with its refinement."""
         agreement = np.array([r.agreement for r in results])
         refined = bool(results) and results[0].refinement is not None
@@ -48,17 +58,23 @@ class Estimates:
                    seconds=np.array([r.total_seconds for r in results]),
                    fitness=np.array([r.fitness for r in results]),
                    agreement=None if np.isnan(agreement).all() else agreement,
-                   backward=np.array([r.direction == "backward" for r in results]) if refined else None)
+                   backward=np.array([r.direction == "backward" for r in results]) if refined else None,
+                   verdict=np.array([r.verdict for r in results]) if own_verdict else None,
+                   candidate=np.array([r.candidate for r in results]) if own_verdict else None)
 
 
 def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None) -> dict[str, Estimates]:
     """DIT's estimates of ``pairs`` ((src, tgt), ...) through the registration pipeline, as users get them:
-    ``{METHOD_DIT: the network's result, METHOD_DIT_ICP: the refined one}`` (the second where the
-    registrar's settings refine)."""
+    ``{METHOD_DIT: the network's result, METHOD_DIT_ICP: the refined one, METHOD_PIPELINE: the pipeline's
+    result}`` (the second where the registrar's settings refine, the third where they also run the second
+    candidate). One run of the pipeline gives all three: each result keeps the stages before it."""
     results = registrar.register_pairs(pairs, batch_size=batch_size, on_pair=bar.update if bar else None)
-    out = {METHOD_DIT: Estimates.from_results([r.network or r for r in results])}
-    if registrar.settings.refine == "icp":
-        out[METHOD_DIT_ICP] = Estimates.from_results(results)
+    refined = [r.first or r for r in results]
+    out = {METHOD_DIT: Estimates.from_results([r.network or r for r in refined])}
+    if registrar.settings.refine != "none":
+        out[METHOD_DIT_ICP] = Estimates.from_results(refined)
+        if registrar.settings.feature_candidate:
+            out[METHOD_PIPELINE] = Estimates.from_results(results, own_verdict=True)
     return out
 
 

@@ -31,6 +31,12 @@ def refinement_line(r: dict) -> str:
             f"{r['mean_after']:.3g} deg.")
 
 
+def candidate_sentence(kept: int) -> str:
+    """What the pipeline's second candidate did, for a verdict line."""
+    return (f" Where DIT+ICP was not trusted it also registered by local features, and kept that match on "
+            f"{kept} pairs (it laid more of the source onto the target).")
+
+
 def _data_limited(r: dict) -> str:
     missed = r["good"] - r["good_within_goal"]
     if "good_missed_data" not in r or not missed:
@@ -74,6 +80,8 @@ def markdown_tables(results: dict) -> str:
                         lines[-1] += (f" It keeps the better fitting of its two registrations (source onto target, "
                                       f"target onto source), the second on {r['backward_kept']} pairs; both are in "
                                       "its time per pair.")
+                    elif "feature_candidate_kept" in r and key == "verdict":
+                        lines[-1] += candidate_sentence(r["feature_candidate_kept"])
                     elif "extra_seconds_per_pair" in r[key]:
                         lines[-1] += (f" Its second registration (target onto source) takes "
                                       f"{r[key]['extra_seconds_per_pair']:.3f} s per pair more.")
@@ -191,6 +199,8 @@ def scan_tables(results: dict) -> str:
         for name, r in methods.items():
             if r["summary"].get("verdict"):
                 lines += ["", verdict_line(name, r["summary"]["verdict"])]
+                if any("candidate" in row for row in r["rows"]):
+                    lines[-1] += candidate_sentence(sum(row.get("candidate") == "features" for row in r["rows"]))
         lines.append("")
     return "\n".join(lines)
 

@@ -12,7 +12,8 @@ import numpy as np
 from dit_jax import baselines as baselines_lib
 from dit_jax import icp as icp_lib, pipeline
 from dit_jax.evaluators import report
-from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, SCAN_THRESHOLDS, agreement_rule, fitness_rule,
+from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, SCAN_THRESHOLDS, agreement_rule,
+                                       fitness_rule,
                                        progress_bar, refinement_summary, rotation_error_deg, run_dit,
                                        verdict_summary, Estimates)
 
@@ -109,11 +110,15 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 if method == METHOD_DIT_ICP:
                     row["beats_truth"] = icp_lib.fits_better(pair.source, pair.target, (rotation, translation),
                                                              (pair.rotation, pair.translation))
+                if est.candidate is not None:
+                    row["candidate"] = str(est.candidate[k])
                 if est.fitness is not None:
                     row["fitness"] = float(est.fitness[k])
                     verdict_settings = registrar.settings
                     refine = "icp" if method == METHOD_DIT_ICP else "none"
-                    if est.agreement is not None:
+                    if est.verdict is not None:  # the pipeline's own, second candidate included
+                        row.update(verdict=bool(est.verdict[k]))
+                    elif est.agreement is not None:
                         row.update(agreement=float(est.agreement[k]),
                                    verdict=bool(est.agreement[k] <= verdict_settings.max_disagreement(refine)))
                     else:
@@ -125,6 +130,8 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 rule = (agreement_rule(registrar.settings.max_disagreement(refine))
                         if registrar.settings.verdict_rule == "agreement"
                         else fitness_rule(registrar.settings.min_fitness))
+                if method == METHOD_PIPELINE:
+                    rule += ", or the feature match agrees with it as closely"
                 summary["verdict"] = verdict_summary(np.array([r["rot_err"] for r in rows]),
                                                      np.array([r["verdict"] for r in rows]), rule)
             results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}

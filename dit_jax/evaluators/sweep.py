@@ -24,7 +24,9 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     Writes ``angle_sweep.md``, ``.json`` and ``.png``."""
     from dit_jax import registration
 
-    changes = {"refine": "icp" if refine else "none"} | ({"n_points": n_points} if n_points else {})
+    # The network's own range: no second candidate (its results are not what the sweep measures).
+    changes = ({"refine": "icp" if refine else "none", "feature_candidate": False}
+               | ({"n_points": n_points} if n_points else {}))
     registrar = registration.load(checkpoint_dir, **changes)
     n_points = registrar.settings.n_points
     test_shapes = shapes_lib.load_shapes(data_dir, "test",

@@ -31,7 +31,7 @@ from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import report
-from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, Estimates, agreement_rule, fitness_rule,
+from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, Estimates, agreement_rule, fitness_rule,
                                        progress_bar, refinement_summary, run_dit, verdict_summary)
 
 
@@ -102,10 +102,13 @@ def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, 
     for evidence in ("agreement", "fitness"):
         if getattr(pred, evidence) is not None:
             result["per_pair"][evidence] = np.round(np.asarray(getattr(pred, evidence), np.float64), 5).tolist()
-    if pred.agreement is not None and max_disagreement is not None:
+    if pred.verdict is not None:  # the pipeline's own verdict, its second candidate included
+        result["verdict"] = verdict_summary(errors, pred.verdict, "the pipeline's own verdict")
+        result["feature_candidate_kept"] = int(np.sum(pred.candidate == "features"))
+    elif pred.agreement is not None and max_disagreement is not None:
         result["verdict"] = verdict_summary(errors, pred.agreement <= max_disagreement,
                                             agreement_rule(max_disagreement))
-    if pred.fitness is not None and min_fitness is not None:
+    if pred.fitness is not None and min_fitness is not None and pred.verdict is None:
         result["verdict_fitness"] = verdict_summary(errors, pred.fitness >= min_fitness, fitness_rule(min_fitness))
     by_category = {}
     for label in np.unique(truth["label"]):
@@ -209,7 +212,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         scored = {}
         for name, pred in preds.items():
             verdict_options = {}
-            if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP):
+            if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE):
                 verdict_options = dict(min_fitness=inference_settings.min_fitness,
                                        max_disagreement=inference_settings.max_disagreement(
                                            "icp" if name == METHOD_DIT_ICP else "none"))
@@ -218,7 +221,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         for name in baselines:
             if name in scored:
                 scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
-        order = [m for m in (METHOD_DIT, METHOD_DIT_ICP) if m in scored] + list(baselines)
+        order = [m for m in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE) if m in scored] + list(baselines)
         if METHOD_DIT_ICP in scored:
             errors = {m: np.array(scored[m]["per_pair"]["rot_err"]) for m in (METHOD_DIT, METHOD_DIT_ICP)}
             refined = preds[METHOD_DIT_ICP]

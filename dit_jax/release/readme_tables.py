@@ -21,7 +21,7 @@ import os
 from dit_jax.evaluators import common as evaluation
 
 #: evaluate.py's names of the network's own rows; every other method is a baseline.
-NETWORK = (evaluation.METHOD_DIT, evaluation.METHOD_DIT_ICP)
+NETWORK = evaluation.PIPELINE_METHODS
 
 
 def within5(stats: dict) -> float:
@@ -39,8 +39,8 @@ def percent(x: float) -> str:
 
 
 def best_table(settings: dict) -> list[str]:
-    lines = ["| setting | best (success, then within 5 deg, then iso R) | runner-up | DIT | DIT+ICP |",
-             "|---|---|---|---|---|"]
+    lines = ["| setting | best (success, then within 5 deg, then iso R) | runner-up | " + " | ".join(NETWORK) + " |",
+             "|---|---|---|" + "---|" * len(NETWORK)]
     for name, methods in settings.items():
         ranked = sorted(methods, key=lambda m: rank_key(methods[m]))
 
@@ -94,8 +94,8 @@ def _count(summary: dict | None, what: str) -> str:
 
 
 def verdict_table(directories: list[str]) -> list[str]:
-    lines = ["| data | DIT alone: failures (> 5 deg) flagged | DIT alone: trusted within 5 deg | "
-             "DIT+ICP: failures flagged | DIT+ICP: trusted within 5 deg |", "|---|---|---|---|---|"]
+    lines = ["| data | " + " | ".join(f"{m}: failures (> 5 deg) flagged | {m}: trusted within 5 deg"
+                                      for m in NETWORK) + " |", "|---|" + "---|---|" * len(NETWORK)]
     for directory in directories:
         results = json.load(open(os.path.join(directory, "results.json")))
         if "pair_sets" in results:  # evaluate.py --scans
@@ -108,8 +108,8 @@ def verdict_table(directories: list[str]) -> list[str]:
         for name, methods in groups.items():
             pairs = methods[NETWORK[0]]["pairs"]
             verdicts = [(methods.get(m) or {}).get("verdict") for m in NETWORK]
-            lines.append(f"| {name} ({pairs} pairs) | {_count(verdicts[0], 'flagged')} | {_count(verdicts[0], 'trusted')} "
-                         f"| {_count(verdicts[1], 'flagged')} | {_count(verdicts[1], 'trusted')} |")
+            lines.append(f"| {name} ({pairs} pairs) | " + " | ".join(
+                f"{_count(v, 'flagged')} | {_count(v, 'trusted')}" for v in verdicts) + " |")
     return lines
 
 

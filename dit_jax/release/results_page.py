@@ -33,7 +33,7 @@ from dit_jax.evaluators import common
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
-NETWORK = (common.METHOD_DIT, common.METHOD_DIT_ICP)
+NETWORK = common.PIPELINE_METHODS
 
 #: The evaluation directories in docs/ the tables read, in the order they are shown, with a reader's name.
 SOURCES = (
