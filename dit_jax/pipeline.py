@@ -274,12 +274,15 @@ class Result:
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
+        if self.first is not None and np.isnan(self.candidate_agreement):
+            return f"{self.first.evidence()}; a registration by local features found no match"
         if not np.isnan(self.candidate_agreement):
             first = self.first.evidence() if self.first is not None else ""
-            kept = "the feature match's" if self.candidate == "features" else "the network's"
-            return (f"{first}; a registration by local features then lands {self.candidate_agreement:.2f} deg from "
-                    f"the network's (trusted up to {self.threshold:g} deg), and {kept} lays more of the source onto the "
-                    "target")
+            line = (f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
+                    f"deg from the network's (trusted up to {self.threshold:g} deg)")
+            if self.candidate == "features":
+                line += " and lays more of the source onto the target, so it is the result"
+            return line
         if self.verdict_rule == "agreement":
             line = (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
                     f"this one's inverse (trusted up to {self.threshold:g} deg)")
