@@ -124,7 +124,7 @@ class InferenceSettings(Record):
     """
 
     n_points: int = 1000
-    fps_pool: int = 50_000
+    fps_pool: int = 20_000
     seed: int = 0
     centring: str = "auto"
     n_iters: int | None = None

@@ -54,8 +54,8 @@ class Registrar:
     def register(self, src, tgt, *, refine: str | None = None, rotation_search: bool | None = None) -> Result:
         """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units.
 
-        ``refine`` ("icp" or "none") and ``rotation_search`` change the Registrar's settings for this call
-        (None: keep them). Raises :class:`InputError` naming the cloud DIT cannot register."""
+        ``refine`` (one of :data:`~dit_jax.pipeline.REFINEMENTS`) and ``rotation_search`` change the
+        Registrar's settings for this call (None: keep them). Raises :class:`InputError` naming the cloud DIT cannot register."""
         return self.register_pairs([(src, tgt)], refine=refine, rotation_search=rotation_search, batch_size=1)[0]
 
     def register_pairs(self, pairs, *, refine: str | None = None, rotation_search: bool | None = None,

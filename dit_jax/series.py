@@ -191,7 +191,7 @@ def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = Fal
       clouds: K >= 2 (N_k, 3) clouds in the order they were taken, so that neighbours overlap.
       loop: the last also overlaps the first (a turntable's full turn): register it onto the last as well
         and close the loop (:func:`close_loop`). Needs K >= 3.
-      refine: passed to ``registrar.register`` (None: its default, ICP).
+      refine: passed to ``registrar.register`` (None: its settings' own).
       progress: called as ``progress(done, total)`` after each link.
 
     Returns :class:`SeriesResult`.

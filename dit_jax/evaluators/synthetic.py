@@ -105,6 +105,7 @@ def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, 
     if pred.verdict is not None:  # the pipeline's own verdict, its second candidate included
         result["verdict"] = verdict_summary(errors, pred.verdict, "the pipeline's own verdict")
         result["feature_candidate_kept"] = int(np.sum(pred.candidate == "features"))
+        result["per_pair"]["verdict"] = np.asarray(pred.verdict, bool).tolist()
     elif pred.agreement is not None and max_disagreement is not None:
         result["verdict"] = verdict_summary(errors, pred.agreement <= max_disagreement,
                                             agreement_rule(max_disagreement))

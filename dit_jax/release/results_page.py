@@ -172,12 +172,15 @@ def _settings_of(results: dict) -> pipeline.InferenceSettings:
     return pipeline.InferenceSettings(**recorded)
 
 
-def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str) -> dict:
-    """{level: (results, right)} of results with these agreements (degrees), right or not."""
+def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str,
+                 confirmed=None) -> dict:
+    """{level: (results, right)} of results with these agreements (degrees), right or not. ``confirmed``: per
+    result, whether the pipeline's second candidate confirmed it (trusted whatever the agreement)."""
     counts = {level: [0, 0] for level in pipeline.VERDICT_LEVELS}
     threshold, bands = settings.max_disagreement(refine), settings.agreement_bands(refine)
-    for a, ok in zip(agreement, right):
-        level = pipeline.verdict_level(a <= threshold, pipeline.agreement_band(bands, a),
+    confirmed = [False] * len(agreement) if confirmed is None else confirmed
+    for a, ok, sure in zip(agreement, right, confirmed):
+        level = pipeline.verdict_level(bool(sure) or a <= threshold, pipeline.agreement_band(bands, a),
                                        settings.unconfirmed_min_right)
         counts[level][0] += 1
         counts[level][1] += int(ok)
@@ -199,19 +202,27 @@ def levels_table() -> list[str]:
                 criterion = info.get(set_name, {}).get("criterion")
                 for method in NETWORK:
                     r = methods.get(method)
-                    if r and all(row.get("agreement") is not None for row in r["rows"]):
+                    refined = methods.get(common.METHOD_DIT_ICP)
+                    if method == common.METHOD_PIPELINE and r and refined and "agreement" in refined["rows"][0]:
+                        # Its level: trusted where it says so, else the level of DIT+ICP's own agreement.
+                        sets.append((set_name, method, [row["agreement"] for row in refined["rows"]],
+                                     [_right_scans(row, criterion) for row in r["rows"]],
+                                     [row["verdict"] for row in r["rows"]]))
+                    elif r and all(row.get("agreement") is not None for row in r["rows"]):
                         sets.append((set_name, method, [row["agreement"] for row in r["rows"]],
-                                     [_right_scans(row, criterion) for row in r["rows"]]))
+                                     [_right_scans(row, criterion) for row in r["rows"]], None))
         else:
             for setting, methods in results.get("settings", {}).items():
                 for method in NETWORK:
                     per_pair = (methods.get(method) or {}).get("per_pair", {})
+                    if method == common.METHOD_PIPELINE and "verdict" not in per_pair:
+                        continue  # measured before the pipeline kept its per-pair verdicts
                     if "agreement" in per_pair:
                         sets.append((setting, method, per_pair["agreement"],
-                                     [e <= 5.0 for e in per_pair["rot_err"]]))
-        for set_name, method, agreement, right in sets:
+                                     [e <= 5.0 for e in per_pair["rot_err"]], per_pair.get("verdict")))
+        for set_name, method, agreement, right, confirmed in sets:
             refine = "none" if method == common.METHOD_DIT else "icp"
-            counts = level_counts(np.asarray(agreement, float), right, settings, refine)
+            counts = level_counts(np.asarray(agreement, float), right, settings, refine, confirmed)
             cells = " | ".join(f"{n}, {100 * ok / n:.0f} %" if n else "0" for n, ok in counts.values())
             lines.append(f"| {title}: {set_name} | {method} | {cells} |")
     return lines
