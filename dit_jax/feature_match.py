@@ -29,6 +29,9 @@ MIN_VOXEL_SPACINGS = 2.0
 FEATURE_POINTS = 10_000
 #: KISS-Matcher's default voxel size (it was made for LiDAR in metres); clouds are scaled to meet it.
 NATIVE_VOXEL = 0.3
+#: Clouds that occupy fewer voxels than this are not handed to the library (it crashes the process on a few
+#: points); their feature match is "no estimate".
+MIN_VOXELS = 32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -54,6 +57,19 @@ def feature_voxel(spacing: float, points: int, min_spacings: float = MIN_VOXEL_S
     return spacing * max(min_spacings, float(np.sqrt(points / FEATURE_POINTS)))
 
 
+def occupied_voxels(points: np.ndarray, voxel: float) -> int:
+    """How many cells of a grid of ``voxel`` (the points' units) the (N, 3) ``points`` occupy."""
+    cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    extent = cells.max(axis=0) + 1
+    return len(np.unique((cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]))
+
+
+def _enough_voxels(points: np.ndarray, voxel: float) -> bool:
+    """Whether ``points`` occupy at least :data:`MIN_VOXELS` cells: a few thousand of them usually tell."""
+    subset = points[:: max(1, len(points) // 4096)]
+    return occupied_voxels(subset, voxel) >= MIN_VOXELS or occupied_voxels(points, voxel) >= MIN_VOXELS
+
+
 def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, seed: int = 0,
              voxel_spacings: float | None = None) -> FeatureMatch:
     """Registers src (N, 3) onto tgt (M, 3) by KISS-Matcher at the voxel of :func:`feature_voxel`.
@@ -64,7 +80,8 @@ def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, 
       seed: the spacing's subset.
       voxel_spacings: a voxel of this many point spacings instead of :func:`feature_voxel`'s.
 
-    Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the matcher finds no motion.
+    Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the matcher finds no motion or the
+    clouds occupy fewer than :data:`MIN_VOXELS` voxels.
     """
     import kiss_matcher
 
@@ -77,15 +94,18 @@ def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, 
     voxel = (feature_voxel(spacing, max(len(src), len(tgt))) if voxel_spacings is None
              else voxel_spacings * spacing)
     identity = FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
-    if not np.isfinite(voxel) or voxel <= 0:
+    if not np.isfinite(voxel) or voxel <= 0 or not (_enough_voxels(src, voxel) and _enough_voxels(tgt, voxel)):
         return identity
     # One centre and one factor for both clouds, so the motion maps back exactly: with x' = f (x - c),
     # y' = R x' + t' gives y = R x + t' / f + c - R c.
     centre = tgt.mean(axis=0)
     factor = NATIVE_VOXEL / voxel
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel_size=NATIVE_VOXEL))
-    solution = matcher.estimate(((src - centre) * factor).astype(np.float32),
-                                ((tgt - centre) * factor).astype(np.float32))
+    try:
+        solution = matcher.estimate(((src - centre) * factor).astype(np.float32),
+                                    ((tgt - centre) * factor).astype(np.float32))
+    except RuntimeError:  # the library refuses some inputs (too few points after the voxel grid, say)
+        return identity
     inliers = int(matcher.get_num_final_inliers()) if solution.valid else 0
     rotation = np.asarray(solution.rotation, np.float64)
     translation = np.asarray(solution.translation, np.float64).reshape(3)

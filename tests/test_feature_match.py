@@ -49,3 +49,13 @@ def test_a_cloud_without_features_gives_the_identity_and_no_nan():
     np.testing.assert_allclose(found.rotation @ found.rotation.T, np.eye(3), atol=1e-5)
     if found.inliers == 0:
         np.testing.assert_array_equal(found.rotation, np.eye(3))
+
+
+def test_a_few_points_give_no_estimate_instead_of_a_crash():
+    """The library ends the process on clouds of three points; fewer than MIN_VOXELS occupied voxels are
+    never handed to it."""
+    rng = np.random.default_rng(0)
+    few = rng.normal(size=(3, 3))
+    found = feature_match.register(few, few + 0.1)
+    assert found.inliers == 0 and np.array_equal(found.rotation, np.eye(3))
+    assert feature_match.occupied_voxels(few, 10.0) == 1
