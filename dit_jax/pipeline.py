@@ -15,9 +15,9 @@ A batch of pairs goes through four stages, each a function of its own:
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
 
 Where the verdict does not trust the network's result and :attr:`InferenceSettings.feature_candidate` is on,
-:func:`second_candidate` registers the pair once more by local features (:mod:`dit_jax.feature_match`), refines
-that estimate the same way and keeps whichever of the two lays more of the source onto the target; the result is trusted where
-the two independent estimates agree.
+:func:`second_candidate` registers the pair once more by local features (:mod:`dit_jax.feature_match`),
+refines that estimate the same way and keeps whichever of the two lays more of the source onto the target;
+the result is trusted where the two independent estimates agree.
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
@@ -45,7 +45,8 @@ from dit_jax import geometry, icp as icp_lib
 from dit_jax import model as model_lib
 from dit_jax.configs import PRECISIONS, DITConfig, Record
 
-#: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto" (:func:`refinement_for`).
+#: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
+#: (:func:`refinement_for`).
 REFINEMENTS = ("none", "icp", "gicp", "auto")
 #: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
 #: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's).
@@ -106,7 +107,7 @@ class InferenceSettings(Record):
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
       feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
-        local features too and keep the better fitting of the two (:func:`second_candidate`).
+        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -199,7 +200,8 @@ class Result:
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        the second candidate's (:func:`second_candidate`), kept because it lays more of the source onto the target.
+        the second candidate's (:func:`second_candidate`), kept because it lays more of the source onto the
+        target.
       candidate_agreement: degrees between the second candidate's refined rotation and the nearer of the
         network's two refined ones; NaN where no second candidate ran.
       candidate_seconds: wall time of the second candidate, its refinement included (0 where none ran).
@@ -691,9 +693,8 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
     if method == "none":
         return network_result
     backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
-    # GICP and the feature match work at the clouds' point spacing: measured once for the pair.
-    spacing = (max(icp_lib.point_spacing(p.src, seed=settings.seed), icp_lib.point_spacing(p.tgt, seed=settings.seed))
-               if method == "gicp" or settings.feature_candidate else None)
+    # GICP (and the second candidate) work at the clouds' point spacing: measured once for the pair.
+    spacing = _spacing(p, settings.seed) if method == "gicp" else None
     refined = refine_pair(p, (e["rotation"], e["translation"]), backward, best_direction=settings.best_direction,
                           seed=settings.seed, method=method, spacing=spacing)
     fitness = _fitness(p, refined.rotation, refined.translation, config)
@@ -709,6 +710,11 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
     return result
 
 
+def _spacing(p: Normalised, seed: int) -> float:
+    """The pair's point spacing: the larger of its two clouds' (:func:`dit_jax.icp.point_spacing`)."""
+    return max(icp_lib.point_spacing(p.src, seed=seed), icp_lib.point_spacing(p.tgt, seed=seed))
+
+
 def _fitness(p: Normalised, rotation: np.ndarray, translation: np.ndarray, config: DITConfig) -> float:
     """The fitness of a motion in the caller's units, as the model measures it (:func:`dit_jax.geometry.fitness`
     on the sampled clouds)."""
@@ -722,18 +728,19 @@ def second_candidate(p: Normalised, result: Result, refined: Refined, settings: 
                      config: DITConfig, *, spacing: float | None = None) -> Result:
     """The pipeline's second candidate for a pair whose refined network ``result`` the verdict did not trust.
 
-    Registers the caller's clouds by local features (:func:`dit_jax.feature_match.register`), refines that estimate
-    by ``result.refinement`` (source onto target), and keeps it where it lays more of the source onto the
-    target than ``result`` does: the share of source points within :data:`CANDIDATE_OVERLAP` point spacings of
-    a target point (:func:`dit_jax.icp.overlap`; ties keep the network's). The two estimates are independent (one learned on sampled
-    points, one from local geometry), so where the candidate's rotation lies within the refinement's
-    agreement threshold (:meth:`InferenceSettings.max_disagreement`) of either of the network's refined
-    directions, the result is trusted; otherwise it keeps ``result``'s level. ``spacing``: the clouds' point
+    Registers the caller's clouds by local features (:func:`dit_jax.feature_match.register`), refines that
+    estimate by ``result.refinement`` (source onto target), and keeps it where it lays more of the source onto
+    the target than ``result`` does: the share of source points within :data:`CANDIDATE_OVERLAP` point
+    spacings of a target point (:func:`dit_jax.icp.overlap`; ties keep the network's). The two estimates are
+    independent (one learned on sampled points, one from local geometry), so where the candidate's rotation
+    lies within the refinement's agreement threshold (:meth:`InferenceSettings.max_disagreement`) of either of
+    the network's refined directions, the result is trusted; otherwise it keeps ``result``'s level. ``spacing``: the clouds' point
     spacing (:func:`dit_jax.icp.point_spacing`; measured here otherwise).
     """
     from dit_jax import feature_match
 
     started = time.perf_counter()
+    spacing = _spacing(p, settings.seed) if spacing is None else spacing
     match = feature_match.register(p.src, p.tgt, seed=settings.seed, spacing=spacing)
     if match.inliers == 0:  # no estimate: the network's result stands, its level unchanged
         return dataclasses.replace(result, candidate_seconds=time.perf_counter() - started, first=result)
@@ -744,8 +751,6 @@ def second_candidate(p: Normalised, result: Result, refined: Refined, settings: 
         network_rotations.append(refined.backward_rotation.T)  # target onto source, inverted
     agreement = min(geometry.rotation_angle_deg(own.rotation.T @ r) for r in network_rotations)
     threshold = settings.max_disagreement(result.refinement)
-    if spacing is None:
-        spacing = max(icp_lib.point_spacing(p.src, seed=settings.seed), icp_lib.point_spacing(p.tgt, seed=settings.seed))
     shares = icp_lib.overlap(p.src, p.tgt, [(result.rotation, result.translation), (own.rotation, own.translation)],
                              CANDIDATE_OVERLAP * spacing, seed=settings.seed)
     better = shares[1] > shares[0]

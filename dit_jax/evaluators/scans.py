@@ -1,5 +1,5 @@
-"""Evaluation on real scans with known poses (:mod:`dit_jax.data.scans`): DIT, DIT+ICP and the baselines on
-pairs of scans, in the users' path (:meth:`dit_jax.registration.Registrar.register_pairs`)."""
+"""Evaluation on real scans with known poses (:mod:`dit_jax.data.scans`): DIT, DIT+ICP, the default pipeline and
+the baselines on pairs of scans, in the users' path (:meth:`dit_jax.registration.Registrar.register_pairs`)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ from dit_jax import baselines as baselines_lib
 from dit_jax import icp as icp_lib, pipeline
 from dit_jax.evaluators import report
 from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, SCAN_THRESHOLDS, agreement_rule,
-                                       fitness_rule,
-                                       progress_bar, refinement_summary, rotation_error_deg, run_dit,
+                                       fitness_rule, progress_bar, refinement_summary, rotation_error_deg, run_dit,
                                        verdict_summary, Estimates)
 
 
@@ -54,8 +53,9 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     Pairs: the pair sets of :func:`dit_jax.data.scans.load_pair_sets` (a series gives scan i with scan i +
     ``skip`` for each skip: 1 adjacent, 2 every second one; a 3DMatch folder its gt.log lists). Writes
     ``results.md``, ``results.json`` (every pair's errors, the verdicts), ``success_ratio.png`` and
-    ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT and DIT+ICP (one run of
-    the pipeline; ``inference``: changes to the checkpoint's settings, ``{"refine": "none"}`` drops DIT+ICP)
+    ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT, DIT+ICP and the pipeline
+    (one run of the pipeline, :func:`dit_jax.evaluators.common.run_dit`; ``inference``: changes to the
+    checkpoint's settings, ``{"refine": "none"}`` drops DIT+ICP)
     and ``baselines`` (their tuned options for any setting). Errors: isotropic rotation error in degrees, and
     translation error over the target's bounding-box diagonal.
     """

@@ -31,8 +31,8 @@ from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import report
-from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, Estimates, agreement_rule, fitness_rule,
-                                       progress_bar, refinement_summary, run_dit, verdict_summary)
+from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, Estimates, agreement_rule,
+                                       fitness_rule, progress_bar, refinement_summary, run_dit, verdict_summary)
 
 
 #: The rotation error that "within ... up to symmetry" (:func:`dit_jax.metrics.within_up_to_symmetry`) allows,
