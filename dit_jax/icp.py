@@ -231,7 +231,7 @@ def overlap(src: np.ndarray, tgt: np.ndarray, motions: Sequence[tuple], radius: 
     from scipy.spatial import cKDTree
 
     src = _thinned(np.asarray(src, np.float64), max_points, seed)
-    tree = cKDTree(np.asarray(tgt, np.float64))
+    tree = cKDTree(np.asarray(tgt, np.float64), balanced_tree=False, compact_nodes=False)  # few queries: quick to build
     shares = []
     for rotation, translation in motions:
         moved = src @ np.asarray(rotation, np.float64).T + np.asarray(translation, np.float64)
@@ -419,7 +419,8 @@ def point_spacing(points: np.ndarray, *, seed: int = 0, samples: int = 2_000, tr
     from scipy.spatial import cKDTree
 
     points = np.asarray(points, np.float64)
-    tree = tree if tree is not None else cKDTree(points)
+    # Built for a few thousand queries only: an unbalanced, non-compact tree builds in half the time.
+    tree = tree if tree is not None else cKDTree(points, balanced_tree=False, compact_nodes=False)
     rows = np.random.default_rng(seed).choice(len(points), min(samples, len(points)), replace=False)
     return float(np.median(tree.query(points[rows], k=2)[0][:, 1]))
 
@@ -447,7 +448,7 @@ def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translat
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     target = _thinned(tgt, TARGET_POINTS, seed)
-    tree = cKDTree(target)
+    tree = cKDTree(target, balanced_tree=False, compact_nodes=False)  # a few thousand queries: quick to build
     if spacing is None:
         spacing = max(point_spacing(src, seed=seed), point_spacing(tgt, seed=seed))
     finest_factor = max(float(np.sqrt(max(len(src), len(tgt)) / GICP_POINTS)), 1.0)

@@ -313,3 +313,16 @@ def test_gicp_refinement_never_fits_worse_than_its_start():
         src, tree, start, np.zeros(3))
     if result.iterations == 0:
         np.testing.assert_array_equal(result.rotation, start)
+
+
+def test_overlap_counts_the_source_points_that_land_on_the_target():
+    """Two samplings of one surface: at the true motion most source points lie within two spacings of the
+    target, turned 30 degrees far fewer, moved ten radii away none; shares in [0, 1], one per motion."""
+    src, other = _surface(4000, seed=5), _surface(4000, seed=6)
+    truth, t_truth = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([0.3, -0.1, 0.2])
+    tgt = other @ truth.T + t_truth
+    radius = 2 * icp.point_spacing(tgt)
+    turned = euler_zyx_to_matrix([30.0, 0.0, 0.0]) @ truth
+    shares = icp.overlap(src, tgt, [(truth, t_truth), (turned, t_truth), (truth, t_truth + 10.0)], radius)
+    assert shares.shape == (3,) and np.all((shares >= 0) & (shares <= 1))
+    assert shares[0] > 0.9 and shares[1] < 0.5 * shares[0] and shares[2] == 0.0
