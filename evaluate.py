@@ -40,7 +40,7 @@ def _inference_changes(args) -> dict:
     """The changes to the checkpoint's inference settings (:class:`dit_jax.pipeline.InferenceSettings`) that
     evaluate.py's flags ask for."""
     changes = {"n_points": args.n_points, "n_iters": args.iters, "refine": args.refine,
-               "feature_candidate": None if args.features is None else args.features == "on",
+               "feature_candidate": args.features,
                "best_direction": None if args.best_direction is None else args.best_direction == "on",
                "verdict_rule": "fitness" if args.no_verdict else None}
     return {name: value for name, value in changes.items() if value is not None}
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
     parser.add_argument("--refine", choices=["auto", "icp", "gicp", "none"], default=None,
                         help="the DIT+ICP row's refinement (default: the checkpoint's); none drops the row")
-    parser.add_argument("--features", choices=["on", "off"], default=None,
+    parser.add_argument("--features", choices=["auto", "on", "off"], default=None,
                         help="the pipeline row: the second candidate by local features where DIT+ICP is not "
                              "trusted (default: the checkpoint's)")
     parser.add_argument("--batch-size", type=int, default=8)

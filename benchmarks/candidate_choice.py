@@ -29,7 +29,7 @@ def main() -> None:
     from dit_jax import feature_match, geometry, icp, pipeline, registration
     from dit_jax.data import scans as scans_lib
 
-    model = registration.load(feature_candidate=False)
+    model = registration.load(feature_candidate="off")
     records = []
     for folder in args.scans:
         for set_name, found in scans_lib.load_pair_sets(folder).items():

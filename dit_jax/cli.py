@@ -96,10 +96,10 @@ def _parser() -> argparse.ArgumentParser:
                              "generalized ICP at the clouds' point spacing, far faster on large scans); auto "
                              "(gicp on scans, icp on sparse clouds); none: the network alone (faster, less "
                              "accurate). Default: the checkpoint's")
-    parser.add_argument("--features", choices=("on", "off"), default=None,
+    parser.add_argument("--features", choices=("auto", "on", "off"), default=None,
                         help="where the verdict does not trust the refined result, also register by local "
-                             "features (KISS-Matcher) and keep the better fitting of the two (default: the "
-                             "checkpoint's)")
+                             "features (KISS-Matcher) and keep whichever lays more of SRC onto TGT; auto: on "
+                             "scans of 5,000 points or more (default: the checkpoint's)")
     parser.add_argument("--any-rotation", action="store_true",
                         help="for clouds at any relative rotation: start the network from 24 turns of SRC "
                              "and go on from the best fitting (about 24 times the network's time)")
@@ -305,7 +305,7 @@ def _model_kwargs(args) -> dict:
     if args.best_direction is not None:
         kwargs["best_direction"] = args.best_direction == "on"
     if args.features is not None:
-        kwargs["feature_candidate"] = args.features == "on"
+        kwargs["feature_candidate"] = args.features
     if args.max_disagreement is not None:
         kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
     return kwargs

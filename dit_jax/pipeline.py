@@ -14,7 +14,7 @@ A batch of pairs goes through four stages, each a function of its own:
    :attr:`InferenceSettings.best_direction` says so;
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
 
-Where the verdict does not trust the network's result and :attr:`InferenceSettings.feature_candidate` is on,
+Where the verdict does not trust the network's result and :attr:`InferenceSettings.feature_candidate` says so,
 :func:`second_candidate` registers the pair once more by local features (:mod:`dit_jax.feature_match`),
 refines that estimate the same way and keeps whichever of the two lays more of the source onto the target;
 the result is trusted where the two independent estimates agree.
@@ -49,8 +49,11 @@ from dit_jax.configs import PRECISIONS, DITConfig, Record
 #: (:func:`refinement_for`).
 REFINEMENTS = ("none", "icp", "gicp", "auto")
 #: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
-#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's).
+#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's);
+#: ``feature_candidate="auto"`` runs the second candidate on such clouds only.
 DENSE_POINTS = 5_000
+#: When the pipeline runs its second candidate (:attr:`InferenceSettings.feature_candidate`).
+FEATURE_CANDIDATES = ("auto", "on", "off")
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
 CENTRINGS = ("auto", "shared", "separate")
 #: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
@@ -107,7 +110,9 @@ class InferenceSettings(Record):
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
       feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
-        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`).
+        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`):
+        "on", "off", or "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse
+        shapes it measured worse than the refined network alone, docs/refinement.md).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -134,7 +139,7 @@ class InferenceSettings(Record):
     guard_iterations: bool | None = None
     precision: str | None = None
     refine: str = "auto"
-    feature_candidate: bool = True
+    feature_candidate: str = "auto"
     rotation_search: bool = False
     verdict_rule: str = "agreement"
     best_direction: bool = True
@@ -146,7 +151,10 @@ class InferenceSettings(Record):
     unconfirmed_min_right: float = 0.5
 
     def __post_init__(self):
-        for name, allowed in (("centring", CENTRINGS), ("refine", REFINEMENTS), ("verdict_rule", VERDICTS)):
+        if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
+            object.__setattr__(self, "feature_candidate", "on" if self.feature_candidate else "off")
+        for name, allowed in (("centring", CENTRINGS), ("refine", REFINEMENTS), ("verdict_rule", VERDICTS),
+                              ("feature_candidate", FEATURE_CANDIDATES)):
             value = getattr(self, name)
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
@@ -170,6 +178,12 @@ class InferenceSettings(Record):
         """The refinement stage 3 runs on clouds of these sizes: :attr:`refine`, with "auto" resolved
         (:func:`refinement_for`)."""
         return refinement_for(self.refine, src_points, tgt_points)
+
+    def runs_feature_candidate(self, src_points: int, tgt_points: int) -> bool:
+        """Whether the second candidate runs (where the result is not trusted) on clouds of these sizes."""
+        if self.feature_candidate == "auto":
+            return min(src_points, tgt_points) >= DENSE_POINTS
+        return self.feature_candidate == "on"
 
     def max_disagreement(self, refine: str) -> float:
         """The agreement verdict's threshold (degrees) for ``refine``: the network's for "none", ICP's for a
@@ -705,7 +719,7 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
                      refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
                      direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
                      **common)
-    if settings.feature_candidate and not result.verdict:
+    if not result.verdict and settings.runs_feature_candidate(len(p.src), len(p.tgt)):
         result = second_candidate(p, result, refined, settings, config, spacing=spacing)
     return result
 

@@ -68,6 +68,19 @@ def test_auto_refines_scans_by_gicp_and_sparse_clouds_by_icp():
     assert pipeline.InferenceSettings(refine="auto").refinement_for(1024, 1024) == "icp"
 
 
+def test_the_second_candidate_runs_on_scans_unless_told_otherwise():
+    dense = pipeline.DENSE_POINTS
+    auto = pipeline.InferenceSettings(feature_candidate="auto")
+    assert auto.runs_feature_candidate(dense, dense) and not auto.runs_feature_candidate(1024, 10 * dense)
+    assert pipeline.InferenceSettings(feature_candidate="on").runs_feature_candidate(100, 100)
+    assert not pipeline.InferenceSettings(feature_candidate="off").runs_feature_candidate(dense, dense)
+    # Settings stored as a bool before "auto" read as "on" and "off".
+    assert pipeline.InferenceSettings(feature_candidate=True).feature_candidate == "on"
+    assert pipeline.InferenceSettings.from_dict({"feature_candidate": False}).feature_candidate == "off"
+    with pytest.raises(ValueError, match="feature_candidate"):
+        pipeline.InferenceSettings(feature_candidate="sometimes")
+
+
 def test_a_result_not_trusted_is_unconfirmed_only_where_its_band_was_mostly_right():
     band = lambda pairs, right: (1.0, 2.0, pairs, right)
     assert pipeline.verdict_level(True, None, 0.5) == "trusted"

@@ -148,7 +148,7 @@ def test_result_matrix_and_apply_agree(tiny_registrar):
 def test_shipped_weights_load_by_default():
     registrar = registration.load()
     assert registrar.settings.refine == "auto", "ICP, or GICP on scans, after the network is the default"
-    assert registrar.settings.feature_candidate, "and a second candidate where the result is not trusted"
+    assert registrar.settings.feature_candidate == "auto", "and a second candidate on scans not confirmed"
     path = registration.shipped_weights()
     assert registrar.settings == registration.settings_from_extra(checkpoint.read_extra(path))
     assert registrar.settings.n_points == 1000 and registrar.settings.agreement_bands_icp is not None
@@ -190,7 +190,7 @@ def test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_ver
     minimises, so it must rise only where the network started far off the surface."""
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
     # One direction and no second candidate: this checks the refinement.
-    model_ = registration.load(n_points=512, verdict_rule="fitness", feature_candidate=False)
+    model_ = registration.load(n_points=512, verdict_rule="fitness", feature_candidate="off")
     plain_errors, refined_errors = [], []
     for index in range(6):
         shape = modelnet_shapes[index].astype(np.float64)
@@ -362,6 +362,6 @@ def test_the_feature_candidate_replaces_a_wrong_network_result_on_views_48_degre
     assert result.candidate_seconds > 0 and result.total_seconds == pytest.approx(
         result.seconds + result.refine_seconds + result.candidate_seconds)
     assert "local features" in result.evidence() and result.to_json()["candidate"] == "features"
-    alone = registration.load(feature_candidate=False).register(pair.source, pair.target)
+    alone = registration.load(feature_candidate="off").register(pair.source, pair.target)
     assert alone.candidate == "network" and alone.first is None and np.isnan(alone.candidate_agreement)
     np.testing.assert_allclose(alone.rotation, result.first.rotation, atol=1e-9)

@@ -73,7 +73,7 @@ def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None)
     out = {METHOD_DIT: Estimates.from_results([r.network or r for r in refined])}
     if registrar.settings.refine != "none":
         out[METHOD_DIT_ICP] = Estimates.from_results(refined)
-        if registrar.settings.feature_candidate:
+        if registrar.settings.feature_candidate != "off":
             out[METHOD_PIPELINE] = Estimates.from_results(results, own_verdict=True)
     return out
 

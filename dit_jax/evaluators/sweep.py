@@ -25,7 +25,7 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     from dit_jax import registration
 
     # The network's own range: no second candidate (its results are not what the sweep measures).
-    changes = ({"refine": "icp" if refine else "none", "feature_candidate": False}
+    changes = ({"refine": "icp" if refine else "none", "feature_candidate": "off"}
                | ({"n_points": n_points} if n_points else {}))
     registrar = registration.load(checkpoint_dir, **changes)
     n_points = registrar.settings.n_points
