@@ -21,8 +21,8 @@ import dataclasses
 
 import numpy as np
 
-#: The finest voxel of the features, in point spacings. Chosen on the shared real scans (the dragon's 30
-#: pairs, the kitchen's 3 and the LiDAR pair) among 2-8 spacings: the finest registered the most.
+#: The finest voxel of the features, in point spacings: the finest of those tried registered the most of the
+#: shared real scans (docs/refinement.md, benchmarks/feature_voxel.py).
 MIN_VOXEL_SPACINGS = 2.0
 #: On larger scans the voxel grows so that a surface sampled by the larger cloud's points keeps about this
 #: many voxels (a surface's count falls with the square of the voxel): the time stays bounded.

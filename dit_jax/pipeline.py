@@ -71,8 +71,8 @@ SIZE_RATIO_WARNING = 10.0
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
 #: :func:`second_candidate` keeps the estimate that lays more source points within this many point spacings
-#: of the target. On the dragon's scan pairs it picked the right one of two every time, where the trimmed fit
-#: preferred two wrong poses of views 48 degrees apart (docs/refinement.md, "A second candidate").
+#: of the target: on views that overlap by a third, the trimmed fit can prefer a wrong pose that piles the
+#: source into the target's middle (docs/refinement.md, "Choosing between the two candidates").
 CANDIDATE_OVERLAP = 2.0
 #: The verdict's levels (:func:`verdict_level`), most confident first.
 VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
