@@ -16,9 +16,10 @@ import os
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
-from dit_jax import model
+from dit_jax import compile_cache
 from dit_jax.configs import DITConfig
 
 FORMAT = 1
@@ -73,8 +74,7 @@ def update_config(directory: str | os.PathLike, changes: dict) -> DITConfig:
         new = old.replace(**changes)
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: cannot apply {changes}: {err}") from None
-    shapes = [jax.eval_shape(lambda: model.init(jax.random.key(0), c)) for c in (old, new)]
-    if jax.tree_util.tree_map(lambda a: a.shape, shapes[0]) != jax.tree_util.tree_map(lambda a: a.shape, shapes[1]):
+    if param_shapes(old) != param_shapes(new):
         raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: {changes} would change the params' "
                               f"shapes; train or convert a new checkpoint instead")
     meta["dit_config"] = new.to_dict()
@@ -126,11 +126,33 @@ def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
     """
     config = read_config(directory)
     path = os.path.abspath(os.fspath(directory))
-    abstract = jax.eval_shape(lambda: model.init(jax.random.key(0), config))
     try:
         with _handler() as ckptr:
-            params = ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore(abstract))).params
+            params = ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore())).params
     except Exception as err:
         raise CheckpointError(f"{path}: params do not restore for the stored config "
                               f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
-    return params, config
+    stored = _shapes(params)
+    expected = param_shapes(config)
+    if stored != expected:
+        wrong = sorted(set(stored.items()) ^ set(expected.items()))[0][0]
+        raise CheckpointError(f"{path}: params do not restore for the stored config (first difference at "
+                              f"{wrong}: stored {stored.get(wrong)}, the config needs {expected.get(wrong)})")
+    return jax.device_put(params), config
+
+
+def param_shapes(config: DITConfig) -> dict[str, tuple[int, ...]]:
+    """The shape of each parameter ``config`` makes, by its path ("a/b/kernel"). Tracing the model's init
+    costs more than restoring its weights, so the answer is kept in the compilation cache where it is on."""
+    def compute():
+        from dit_jax import model  # Flax loads only where the shapes are not in the cache
+
+        return {name: list(shape) for name, shape in
+                _shapes(jax.eval_shape(lambda: model.init(jax.random.key(0), config))).items()}
+
+    return {name: tuple(shape) for name, shape in compile_cache.memo("param-shapes", config, compute).items()}
+
+
+def _shapes(tree) -> dict[str, tuple[int, ...]]:
+    flat = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {"/".join(str(getattr(k, "key", k)) for k in path): tuple(np.shape(leaf)) for path, leaf in flat}

@@ -352,14 +352,12 @@ def main(argv: list[str] | None = None) -> int:
 
     compile_cache.from_args(args)
     from dit_jax import registration
-    from dit_jax.checkpoint import CheckpointError
-    from dit_jax.convert import ConversionError
     from dit_jax.geometry import rotation_angle_deg
 
     if args.pairs is not None:
         try:
             return _register_list(args, pairs, shard, _model_kwargs(args))
-        except (CheckpointError, ConversionError, ValueError, OSError) as err:
+        except (ValueError, OSError) as err:  # a bad checkpoint or .pth file is a ValueError
             return _fail(str(err))
     try:
         model = registration.load(args.checkpoint, **_model_kwargs(args))
@@ -376,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
             _write_moved(args.src, args.out, result.rotation, result.translation, src)
         if args.plot is not None:
             result.plot(args.plot, src, tgt, title=f"{os.path.basename(args.src)} onto {os.path.basename(args.tgt)}")
-    except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
+    except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too
         return _fail(str(err))
 
     if args.json:
@@ -487,8 +485,6 @@ def series_main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     from dit_jax import registration, series
-    from dit_jax.checkpoint import CheckpointError
-    from dit_jax.convert import ConversionError
     from dit_jax.geometry import rotation_angle_deg
 
     try:
@@ -520,7 +516,7 @@ def series_main(argv: list[str] | None = None) -> int:
             os.makedirs(args.out_dir, exist_ok=True)
             for path, pose, cloud in zip(args.scans, result.poses, clouds):
                 _write_moved(path, os.path.join(args.out_dir, os.path.basename(path)), pose[:3, :3], pose[:3, 3], cloud)
-    except (io.CloudFileError, CheckpointError, ConversionError, ValueError, OSError) as err:
+    except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too
         return fail(str(err))
 
     names = args.scans

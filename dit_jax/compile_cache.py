@@ -8,16 +8,31 @@ The directory, in order: ``--compile-cache DIR``; the environment variable ``DIT
 ``$XDG_CACHE_HOME/dit-jax/xla``, else ``~/.cache/dit-jax/xla``. ``--no-compile-cache`` (or the variable set
 to ``off``) turns it off. A directory that cannot be created leaves the cache off with a note on stderr:
 caching only saves time, so it never stops a run.
+
+XLA's cache skips compiling, not tracing: the Python that builds a program (Flax's modules, each parameter's
+shape check) still runs in every process. So :func:`call` also keeps the traced program itself, exported
+with :mod:`jax.export`, under ``DIR/exported/``, and :func:`memo` keeps small results that depend only on the
+code and a config (the shapes a config's parameters must have). Their keys include a digest of the package's
+source, JAX's version and the settings that change tracing, so an edit to the code never reuses a stale one.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
+import json
 import os
+import pathlib
 import sys
+import tempfile
 
 #: Overrides the default directory; "off" turns the cache off.
 ENV_VAR = "DIT_JAX_COMPILE_CACHE"
+
+_enabled: dict[str, str | None] = {"directory": None}
+#: In this process: a key's program, deserialized once.
+_programs: dict[str, object] = {}
 
 
 def default_dir() -> str | None:
@@ -55,7 +70,103 @@ def enable(directory: str | None) -> str | None:
     # JAX's defaults skip programs compiled in under a second; DIT's small ones add up at start-up.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    _enabled["directory"] = directory
     return directory
+
+
+def directory() -> str | None:
+    """The directory :func:`enable` turned on in this process, or None."""
+    return _enabled["directory"]
+
+
+@functools.cache
+def _source_digest() -> str:
+    """A digest of this package's Python source and of what else decides how JAX traces it."""
+    import jax
+    import jaxlib
+
+    digest = hashlib.sha256()
+    root = pathlib.Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    digest.update(repr((jax.__version__, jaxlib.__version__, jax.default_backend(), jax.config.jax_enable_x64,
+                        jax.config.jax_default_matmul_precision)).encode())
+    return digest.hexdigest()
+
+
+def _key(name: str, parts) -> str:
+    return f"{name}-" + hashlib.sha256(f"{_source_digest()}|{parts!r}".encode()).hexdigest()[:32]
+
+
+def _write_atomically(path: str, data: bytes) -> None:
+    """Writes ``data`` to ``path`` through a temporary file, so a reader never sees half of it."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    handle, staging = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".staging-")
+    try:
+        with os.fdopen(handle, "wb") as f:
+            f.write(data)
+        os.chmod(staging, 0o644)  # as XLA's own entries: readable by whoever shares the cache
+        os.replace(staging, path)
+    except OSError:
+        if os.path.exists(staging):
+            os.remove(staging)
+
+
+def memo(name: str, parts, compute):
+    """``compute()``, a JSON-able value that depends only on this package's code and ``parts`` (a value with a
+    stable ``repr``, such as a frozen config), kept under ``DIR/memo/`` while the cache is on."""
+    if directory() is None:
+        return compute()
+    path = os.path.join(directory(), "memo", _key(name, parts) + ".json")
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        pass
+    value = compute()
+    _write_atomically(path, json.dumps(value).encode())
+    return value
+
+
+def call(name: str, fn, parts, *args):
+    """``fn(*args)``, where ``fn`` is a function of arrays (pytrees of arrays) that JAX can jit and ``parts``
+    (a value with a stable ``repr``, such as a frozen config) holds whatever else ``fn`` depends on.
+
+    While the cache is on, the program is traced once per ``parts`` and argument shapes across processes:
+    exported (:mod:`jax.export`) to ``DIR/exported/`` on first use and read back after, so a later process
+    compiles it from XLA's cache without running ``fn``'s Python. The result is the same either way (the same
+    program). With the cache off, or where a program cannot be exported or read, ``fn`` is jitted as usual.
+    """
+    import jax
+
+    if directory() is None:
+        return fn(*args)
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    signature = (parts, str(tree), tuple((tuple(x.shape), str(x.dtype)) for x in leaves))
+    key = _key(name, signature)
+    program = _programs.get(key)
+    if program is None:
+        program = _programs[key] = _load_or_export(key, fn, args)
+    return program(*args)
+
+
+def _load_or_export(key: str, fn, args):
+    import jax
+    from jax import export
+
+    path = os.path.join(directory(), "exported", key + ".bin")
+    try:
+        with open(path, "rb") as f:
+            return jax.jit(export.deserialize(bytearray(f.read())).call)
+    except Exception:  # absent, damaged, or no serializer: export it afresh
+        pass
+    jitted = jax.jit(fn)
+    try:
+        exported = export.export(jitted)(*args)
+        _write_atomically(path, bytes(exported.serialize()))
+    except Exception:  # cannot export: jit as usual (an error of fn's own comes back from the call)
+        return jitted
+    return jax.jit(exported.call)
 
 
 def from_args(args: argparse.Namespace) -> str | None:

@@ -159,6 +159,11 @@ class DITConfig(Record):
         if problems:
             raise ValueError("invalid DITConfig: " + "; ".join(problems))
 
+    @property
+    def min_points(self) -> int:
+        """The fewest points per cloud this network accepts: the kNN graph needs k of them, GMCCE k_s + 1."""
+        return max(self.k, self.gmcce_k + 1, 3)
+
 
 
 def paper(setting: str = "clean") -> DITConfig:

@@ -145,20 +145,15 @@ def forward(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, u
     return feats, head(src, tgt, feats.scores, feats.temperature, config, use_gmcce)
 
 
-def min_points(config: DITConfig) -> int:
-    """The fewest points per cloud DIT accepts: the kNN graph needs k of them, GMCCE k_s + 1."""
-    return max(config.k, config.gmcce_k + 1, 3)
-
-
 def _check_inputs(src: jax.Array, tgt: jax.Array, config: DITConfig) -> None:
     for name, cloud in (("src", src), ("tgt", tgt)):
         if cloud.ndim != 3 or cloud.shape[-1] != 3:
             raise ValueError(f"{name} must have shape (B, N, 3), got {tuple(cloud.shape)}")
         if not jnp.issubdtype(cloud.dtype, jnp.floating):
             raise ValueError(f"{name} must be floating point, got {cloud.dtype}")
-        if cloud.shape[1] < min_points(config):
+        if cloud.shape[1] < config.min_points:
             raise ValueError(f"{name} has {cloud.shape[1]} points; this config needs at least "
-                             f"{min_points(config)} (k={config.k}, gmcce_k={config.gmcce_k})")
+                             f"{config.min_points} (k={config.k}, gmcce_k={config.gmcce_k})")
     if src.shape[0] != tgt.shape[0]:
         raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
 

@@ -41,8 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import geometry, icp as icp_lib
-from dit_jax import model as model_lib
+from dit_jax import compile_cache, geometry, icp as icp_lib
 from dit_jax.configs import PRECISIONS, DITConfig, Record
 
 #: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
@@ -520,14 +519,25 @@ def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, ba
         rows = np.r_[start:start + real, np.full(batch_size - real, start + real - 1)]
         src, tgt = jnp.asarray(src_n[rows]), jnp.asarray(tgt_n[rows])
         if start == 0 and len(src_n) > batch_size:  # many batches: compile outside their timings
-            jax.block_until_ready(model_lib.register(params, src, tgt, config))
+            jax.block_until_ready(_register(params, src, tgt, config))
         started = time.perf_counter()
-        out = jax.device_get(model_lib.register(params, src, tgt, config))
+        out = jax.device_get(_register(params, src, tgt, config))
         seconds.append(np.full(real, (time.perf_counter() - started) / real))
         outputs.append(jax.tree.map(lambda a: a[:real], out))
     rotation, translation, extras = jax.tree.map(lambda *a: np.concatenate(a), *outputs)
     return (np.asarray(rotation, np.float64), np.asarray(translation, np.float64), extras,
             np.zeros(len(src_n)), np.concatenate(seconds))
+
+
+def _register(params, src: jax.Array, tgt: jax.Array, config: DITConfig):
+    """:func:`dit_jax.model.register`, its program traced once per config and shapes across processes
+    (:func:`dit_jax.compile_cache.call`)."""
+    def program(params, src, tgt):
+        from dit_jax import model as model_lib  # Flax loads only where a program is traced, not read back
+
+        return model_lib.register(params, src, tgt, config)
+
+    return compile_cache.call("register", program, config, params, src, tgt)
 
 
 def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int):
@@ -653,7 +663,7 @@ def register_pairs(params, config: DITConfig, settings: InferenceSettings, pairs
     the first cloud DIT cannot register, before any network work.
     """
     run_config = settings.model_config(config)
-    need = model_lib.min_points(run_config)
+    need = run_config.min_points
     prepared = []
     for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
         prepared.append(sample_and_normalise(src, tgt, settings, need))

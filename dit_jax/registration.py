@@ -16,9 +16,7 @@ import importlib.resources
 import os
 
 import jax
-import jax.numpy as jnp
 
-from dit_jax import model as model_lib
 from dit_jax import pipeline
 from dit_jax.configs import DITConfig
 from dit_jax.pipeline import (CENTRINGS, REFINEMENTS, VERDICTS, InferenceSettings, InputError, Result,  # noqa: F401
@@ -46,8 +44,8 @@ class Registrar:
     def __init__(self, params, config: DITConfig, settings: InferenceSettings | None = None, **changes):
         self.settings = (settings or InferenceSettings()).replace(**changes)
         self.config = self.settings.model_config(config)  # what the network runs
-        self.params = jax.tree_util.tree_map(jnp.asarray, params)
-        need = model_lib.min_points(self.config)
+        self.params = jax.device_put(params)  # one transfer for the tree, where jnp.asarray runs a program a leaf
+        need = self.config.min_points
         if self.settings.n_points < need:
             raise ValueError(f"n_points={self.settings.n_points} is below the model's minimum {need}")
 
@@ -83,12 +81,13 @@ def load(checkpoint: str | os.PathLike | None = None, **changes) -> Registrar:
     """A :class:`Registrar` from an orbax checkpoint directory, the authors' ``.pth`` weights, or (None) the
     shipped weights, with the inference settings the checkpoint stores; ``changes`` override any of them."""
     from dit_jax import checkpoint as ckpt_lib  # orbax is slow to import; only loading needs it
-    from dit_jax import convert
 
     path = os.fspath(checkpoint) if checkpoint is not None else shipped_weights()
     if checkpoint is None and not os.path.isdir(path):
         raise ckpt_lib.CheckpointError(f"no checkpoint given and the shipped weights are missing ({path})")
     if os.path.isfile(path) and path.endswith((".pth", ".pt", ".t7")):
+        from dit_jax import convert  # Flax, for the authors' weights only
+
         state_dict = convert.load_pth(path)
         config = convert.infer_config(state_dict)
         params, extra = convert.from_torch_state_dict(state_dict, config), {}

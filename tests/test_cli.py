@@ -69,13 +69,13 @@ def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, 
     the turn it went on from; the JSON report carries it too."""
     folder, _, _ = pair
     batches = []
-    original = pipeline.model_lib.register
+    original = pipeline._register
 
     def counting(params, src, tgt, config):
         batches.append(src.shape[0])
         return original(params, src, tgt, config)
 
-    monkeypatch.setattr(pipeline.model_lib, "register", counting)
+    monkeypatch.setattr(pipeline, "_register", counting)
     code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
                          "--refine", "none", "--any-rotation")
     assert code == 0, err

@@ -40,10 +40,12 @@ def test_a_second_dit_register_reuses_the_first_ones_programs(tmp_path):
     same transform. Times: docs/benchmarks.md."""
     cache = tmp_path / "xla"
     first = _register(["--compile-cache", str(cache)])
-    entries = set(os.listdir(cache))
+    entries = {p.relative_to(cache) for p in cache.rglob("*")}
     assert len(entries) >= 3  # the registration and the small programs around it
+    assert [p.name for p in (cache / "exported").iterdir() if p.name.startswith("register-")], \
+        "the network's traced program is kept too"
     second = _register(["--compile-cache", str(cache)])
-    assert set(os.listdir(cache)) == entries
+    assert {p.relative_to(cache) for p in cache.rglob("*")} == entries
     assert second == first
 
 
@@ -51,3 +53,67 @@ def test_no_compile_cache_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.setenv(compile_cache.ENV_VAR, str(tmp_path / "xla"))
     _register(["--no-compile-cache"])
     assert not (tmp_path / "xla").exists()
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    """:func:`compile_cache.call` and :func:`compile_cache.memo` pointed at a fresh directory, with nothing
+    loaded in this process yet (as in a new process); JAX's own cache settings are left alone."""
+    monkeypatch.setitem(compile_cache._enabled, "directory", str(tmp_path))
+    monkeypatch.setattr(compile_cache, "_programs", {})
+    return tmp_path
+
+
+def test_call_traces_a_program_once_across_processes(cache_dir, monkeypatch):
+    import jax.numpy as jnp
+
+    traced = []
+
+    def fn(params, x):
+        traced.append(x.shape)  # runs only while JAX traces fn
+        return jnp.tanh(x @ params["w"]) * params["scale"]
+
+    params = {"w": jnp.eye(3) * 2.0, "scale": jnp.asarray(0.5)}
+    x = jnp.arange(12.0).reshape(4, 3) / 10
+    expected = jnp.tanh(x @ params["w"]) * 0.5
+    assert jnp.allclose(compile_cache.call("f", fn, "v1", params, x), expected)
+    assert traced == [(4, 3)] and len(list((cache_dir / "exported").iterdir())) == 1
+    assert jnp.allclose(compile_cache.call("f", fn, "v1", params, x + 1), jnp.tanh((x + 1) @ params["w"]) * 0.5)
+    assert len(traced) == 1, "a second call in the same process reuses the program"
+
+    monkeypatch.setattr(compile_cache, "_programs", {})  # a new process, as far as the cache can tell
+    assert jnp.allclose(compile_cache.call("f", fn, "v1", params, x), expected)
+    assert len(traced) == 1, "read back from the directory, not traced again"
+
+    compile_cache.call("f", lambda p, x: fn(p, x) + 1, "v2", params, x)  # other settings: another program
+    compile_cache.call("f", fn, "v1", params, jnp.ones((5, 3)))  # another shape: another program
+    assert traced == [(4, 3), (4, 3), (5, 3)] and len(list((cache_dir / "exported").iterdir())) == 3
+
+
+def test_call_recovers_from_a_damaged_program_and_runs_without_a_cache(cache_dir, monkeypatch):
+    import jax.numpy as jnp
+
+    fn = lambda x: x * 3.0  # noqa: E731
+    x = jnp.arange(4.0)
+    compile_cache.call("g", fn, None, x)
+    (program,) = (cache_dir / "exported").iterdir()
+    program.write_bytes(b"not a program")
+    monkeypatch.setattr(compile_cache, "_programs", {})
+    assert jnp.allclose(compile_cache.call("g", fn, None, x), x * 3.0)
+    assert program.read_bytes() != b"not a program", "exported afresh"
+    monkeypatch.setitem(compile_cache._enabled, "directory", None)
+    assert jnp.allclose(compile_cache.call("g", fn, None, x), x * 3.0)
+
+
+def test_memo_computes_once_per_parts(cache_dir):
+    computed = []
+
+    def compute():
+        computed.append(1)
+        return {"a": [1, 2]}
+
+    assert compile_cache.memo("m", ("config", 1), compute) == {"a": [1, 2]}
+    assert compile_cache.memo("m", ("config", 1), compute) == {"a": [1, 2]}
+    assert len(computed) == 1
+    compile_cache.memo("m", ("config", 2), compute)
+    assert len(computed) == 2

@@ -300,7 +300,7 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3] + [3.0, -2.0, 1.0]
     truth = euler_zyx_to_matrix([150.0, -40.0, 70.0])
     tgt = src @ truth.T + [0.5, 0.2, -0.1]
-    monkeypatch.setattr(pipeline.model_lib, "register", exact_network)
+    monkeypatch.setattr(pipeline, "_register", exact_network)
     turns = []
     for kept in (0, 5, 23):
         monkeypatch.setattr(pipeline.icp_lib, "best_start", lambda scores, kept=kept: kept)
