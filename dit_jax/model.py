@@ -188,7 +188,8 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
         matches = (out.correspondences, out.weights)
         carry = (keep(new_rotation, rotation), keep(new_translation, translation), keep(new_moved, moved),
                  keep(new_cost, cost), jax.tree.map(keep, matches, last))
-        record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.soft_weights, accept)
+        record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.soft_weights, accept,
+                  out.correspondences)
         return carry, record
 
     n_src = src.shape[0]
@@ -196,13 +197,16 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
              (jnp.zeros(n_src, jnp.int32), jnp.zeros(n_src, src.dtype)))
     carry, records = jax.lax.scan(iteration, start, jnp.arange(config.n_iters))
     rotation, translation, moved, _, (correspondences, weights) = carry
-    step_r, step_t, temperature, fallback, soft_weights, accepted = records
+    step_r, step_t, temperature, fallback, soft_weights, accepted, step_matches = records
     extras = {
         "step_rotation": step_r,  # (n_iters, 3, 3), each iteration's own increment
         "step_translation": step_t,  # (n_iters, 3)
         "temperature": temperature,  # (n_iters,)
         "gmcce_fallback": fallback,  # (n_iters,) bool
         "accepted": accepted,  # (n_iters,) bool: the iteration's update was kept (see guard_iterations)
+        # (n_iters, N) each iteration's matches into tgt; the first iteration's increment and matches are the
+        # network's own estimate (soft mode from the identity), what a one-iteration config returns
+        "step_correspondences": step_matches,
         "correspondences": correspondences,  # (N,) the last kept iteration's matches into tgt
         "weights": weights,  # (N,) its Procrustes weights
         "inlier_ratio": jnp.mean((weights > 0.5).astype(src.dtype)) if config.n_iters > 1
@@ -318,5 +322,8 @@ def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_
         return (rotation, translation, moved), record
 
     start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src)
+    if n_iters == 1:  # the same record without a scan, whose autodiff costs tracing and compile time
+        _, record = iteration(start, jnp.asarray(0))
+        return jax.tree.map(lambda a: a[None], record)
     _, records = jax.lax.scan(iteration, start, jnp.arange(n_iters))
     return records

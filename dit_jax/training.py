@@ -398,20 +398,21 @@ def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, mode
             out[name] = float(np.mean([out[f"{s}/{name}"] for s in dataset.datasets]))
         return out
     n = min(n_pairs, len(dataset))
-    one_step = model_config.replace(n_iters=1)
     errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",
                                                "network_translation_error", "network_match_accuracy")}
     match_labels = jax.vmap(losses.match_labels)
     for start in range(0, n, batch_size):
         b = dataset.batch(np.arange(start, min(n, start + batch_size)))
         src, tgt = jnp.asarray(b["src"]), jnp.asarray(b["tgt"])
-        for prefix, cfg in (("", model_config), ("network_", one_step)):
-            rotation, translation, extras = model.register(params, src, tgt, cfg)
-            errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(rotation, b["R"])))
-            errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(translation, b["t"])))
-            if prefix == "network_":
-                labels = match_labels(src, tgt, extras["correspondences"], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
-                errors["network_match_accuracy"].append(np.asarray(labels).reshape(-1))
+        # One program for both figures: the first iteration's increment is the network's own estimate.
+        rotation, translation, extras = model.register(params, src, tgt, model_config)
+        first = {"": (rotation, translation),
+                 "network_": (extras["step_rotation"][:, 0], extras["step_translation"][:, 0])}
+        for prefix, (r, t) in first.items():
+            errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"])))
+            errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"])))
+        labels = match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
+        errors["network_match_accuracy"].append(np.asarray(labels).reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 
 

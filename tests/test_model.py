@@ -120,7 +120,7 @@ def test_reference_weights_register_their_pair_with_part_of_the_target(reference
 
 def test_cached_embeddings_give_the_uncached_iterations(params):
     """register reuses the target's embedding and memory and the source's kNN graph; recomputing all of
-    them every iteration, as the authors do, gives the same registration."""
+    them every iteration, as the authors do, gives the same registration, iteration by iteration."""
     src, tgt = _pair(5, batch=1)
     rot, trans, extras = model.register(params, src, tgt, CONFIG)
     moved, total_r, total_t = src[0], jnp.eye(3), jnp.zeros(3)
@@ -129,6 +129,11 @@ def test_cached_embeddings_give_the_uncached_iterations(params):
         total_r, total_t = out.rotation @ total_r, out.rotation @ total_t + out.translation
         moved = moved @ out.rotation.T + out.translation
         np.testing.assert_allclose(np.asarray(out.rotation), np.asarray(extras["step_rotation"][0, i]), atol=1e-5)
+        np.testing.assert_allclose(np.asarray(out.translation), np.asarray(extras["step_translation"][0, i]),
+                                   atol=1e-5)
+        # Each iteration's matches are recorded: the first's are the network's own (training's validation).
+        np.testing.assert_array_equal(np.asarray(out.correspondences),
+                                      np.asarray(extras["step_correspondences"][0, i]))
     np.testing.assert_allclose(np.asarray(rot[0]), np.asarray(total_r), atol=1e-5)
     np.testing.assert_allclose(np.asarray(trans[0]), np.asarray(total_t), atol=1e-5)
 

@@ -18,10 +18,14 @@ from dit_jax import losses, model, training
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY_RECIPE = training.load_config(ROOT / "configs" / "tiny.py")
-TINY = dataclasses.replace(TINY_RECIPE, max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4)
+# No validation before the first step: the run that validates at step 0 (the default) is the resumed one.
+TINY = dataclasses.replace(TINY_RECIPE, max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4,
+                           validate_at_start=False)
+#: train.py's arguments for TINY but validate_at_start (the default, True).
+TINY_ARGS_VALIDATING = ["--config", str(ROOT / "configs" / "tiny.py"), "--config.max_steps=12",
+                        "--config.ckpt_every=4", "--config.eval_every=6", "--config.val_pairs=4"]
 #: train.py's arguments for TINY.
-TINY_ARGS = ["--config", str(ROOT / "configs" / "tiny.py"), "--config.max_steps=12", "--config.ckpt_every=4",
-             "--config.eval_every=6", "--config.val_pairs=4"]
+TINY_ARGS = [*TINY_ARGS_VALIDATING, "--config.validate_at_start=False"]
 
 
 @pytest.fixture(scope="module")
@@ -33,11 +37,7 @@ def _params(workdir):
     return training.export_params(str(workdir), str(pathlib.Path(workdir) / "exported"))
 
 
-def _equal_params(dir_a, dir_b):
-    from dit_jax import checkpoint
-
-    a, _ = checkpoint.restore(dir_a)
-    b, _ = checkpoint.restore(dir_b)
+def _equal_trees(a, b):
     return jax.tree.all(jax.tree.map(lambda x, y: bool(np.array_equal(np.asarray(x), np.asarray(y))), a, b))
 
 
@@ -126,18 +126,15 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
         training.train(TINY, str(workdir), prepared_dir=prepared, progress=False)
 
 
-def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared, tiny_run):
-    """validate_at_start=False: no step-0 validation (what a short GPU lease cannot afford to compile), the
-    end's still runs. A run stopped before any validation still leaves weights: dit_jax.release.device_stage
-    then bundles its latest checkpoints, and export_params reads them."""
+def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run):
+    """validate_at_start=False (tiny_run's): no step-0 validation (what a short GPU lease cannot afford to
+    compile), the later ones still run. A run stopped before any validation still leaves weights:
+    dit_jax.release.device_stage then bundles its latest checkpoints, and export_params reads them."""
     import tarfile
 
     from dit_jax.release import device_stage
 
-    # tiny_run's config but for the flag: the same train step, which the session's compilation cache holds.
-    config = dataclasses.replace(TINY, validate_at_start=False)
-    training.train(config, str(tmp_path / "run"), prepared_dir=prepared, progress=False)
-    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    records = [json.loads(line) for line in (tiny_run[0] / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["split"] == "val"] == [6, 12]
 
     never_validated = tmp_path / "stopped"
@@ -161,10 +158,11 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, prepared,
 
 
 def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_run):
-    _, whole = tiny_run  # the same run, uninterrupted
+    """The run killed after its step-4 checkpoint and resumed ends at tiny_run's parameters (the same run,
+    uninterrupted, and without the step-0 validation this one makes: validating changes no step)."""
     workdir = tmp_path / "killed"
-    cmd = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--workdir", str(workdir), "--no-progress",
-           "--prepared-dir", prepared]
+    cmd = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS_VALIDATING, "--workdir", str(workdir),
+           "--no-progress", "--prepared-dir", prepared]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and not (workdir / "checkpoints" / "4").exists():
@@ -174,7 +172,10 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_
     assert (workdir / "checkpoints" / "4").exists(), "the run made no checkpoint before the kill"
     resumed = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    assert _equal_params(whole["model"], workdir / "model")
+    (step, resumed_params), (whole_step, whole_params) = _last_params(workdir), _last_params(tiny_run[0])
+    assert step == whole_step == 12 and _equal_trees(resumed_params, whole_params)
+    records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
+    assert sorted(r["step"] for r in records if r["split"] == "val") == [0, 6, 12]
 
 
 def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
@@ -378,7 +379,6 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     """
     # One checkpoint and one validation, both at step 12: the same steps, less to save and wait for.
     args = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--config.ckpt_every=12", "--config.eval_every=12",
-            "--config.validate_at_start=False",
             "--no-progress", "--prepared-dir", prepared]
     # two CPU devices per process, whatever device count the environment asks for
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
