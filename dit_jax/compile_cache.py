@@ -135,7 +135,7 @@ def call(name: str, fn, parts, *args):
     While the cache is on, the program is traced once per ``parts`` and argument shapes across processes:
     exported (:mod:`jax.export`) to ``DIR/exported/`` on first use and read back after, so a later process
     compiles it from XLA's cache without running ``fn``'s Python. The result is the same either way (the same
-    program). With the cache off, or where a program cannot be exported or read, ``fn`` is jitted as usual.
+    program). With the cache off, ``fn`` is called as it is; where a program cannot be exported, it is jitted.
     """
     import jax
 
