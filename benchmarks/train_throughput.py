@@ -5,6 +5,7 @@ measured in the same run.
     python benchmarks/train_throughput.py                                   # configs/cpu.py and configs/paper.py
     python benchmarks/train_throughput.py --config configs/cpu.py --compare HEAD~1
     python benchmarks/train_throughput.py --config configs/paper.py --remat on
+    python benchmarks/train_throughput.py --config configs/cpu.py --mix        # a mix of every setting
 
 Random clouds of the recipe's point count; each step is compiled first, then timed (median of --steps).
 The work per step is counted on the step's jaxpr, loops times their trip counts: GFLOP (matrix products at
@@ -15,6 +16,10 @@ cost analysis counts a loop's body once). The probe is the best GFLOP/s of a flo
 and times its step in a child process with the same arguments, alternating with this tree's, and prints
 the ratio of pairs per second. Peak memory: the process's peak resident set (VmHWM, compilation included)
 and, on an accelerator, the device's peak bytes in use. Prints one JSON record per recipe.
+
+``--mix`` trains on real pairs of a mix instead (the recipe's ``settings``, else every setting of
+:data:`dit_jax.data.pairs.SETTINGS`, from the embedded shapes), one batch of each setting in turn: it reports
+the train-step programs compiled for the whole mix, the compile and first step, and each setting's step.
 """
 
 import argparse
@@ -116,6 +121,40 @@ def measure(config_path: str, steps: int, n_points: int | None, remat: str, coun
     return record
 
 
+def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
+    """Compiles the recipe's train step for a mix of settings and times a batch of each setting in turn."""
+    from dit_jax import training
+    from dit_jax.data import pairs
+
+    config = training.load_config(config_path)
+    config = dataclasses.replace(config, settings=config.settings or tuple(pairs.SETTINGS), data_dir=None,
+                                 n_points=n_points or config.n_points)
+    optimizer = training.make_optimizer(config, 1000)
+    mesh = training.make_mesh()
+    state = training.replicate(training.init_state(config, optimizer), mesh)
+    step = training.make_train_step(config, optimizer, mesh)
+    train_ds, _ = training.make_datasets(config)
+    b = config.batch_size
+    batches = {s: train_ds.setting_batch(s, np.arange(b)) for s in dict.fromkeys(config.settings)}
+    record = {"config": config_path, "mix": list(batches), "mix_one_size": config.mix_one_size,
+              "cloud_points": sorted({v["src"].shape[1] for v in batches.values()}), "batch_size": b}
+    t0 = time.perf_counter()
+    state, out = step(state, training.shard_batch(next(iter(batches.values())), mesh))
+    out["loss"].block_until_ready()
+    record["compile_and_first_step_s"] = time.perf_counter() - t0
+    per_setting = {}
+    for _ in range(steps):
+        for setting, batch in batches.items():
+            t0 = time.perf_counter()
+            state, out = step(state, training.shard_batch(batch, mesh))
+            out["loss"].block_until_ready()
+            per_setting.setdefault(setting, []).append(time.perf_counter() - t0)
+    record["first_step_of_each_setting_s"] = {s: t[0] for s, t in per_setting.items()}
+    record["step_s"] = float(np.median([t for ts in per_setting.values() for t in ts[1:] or ts]))
+    record["compiled_train_steps"] = step._cache_size()
+    return record
+
+
 @contextlib.contextmanager
 def worktree(rev: str):
     """A temporary checkout of ``rev`` (a git worktree, removed afterwards)."""
@@ -149,9 +188,18 @@ def main():
     parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
                         help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off")
     parser.add_argument("--compare", metavar="REV", help="also time the step of this git revision")
+    parser.add_argument("--mix", action="store_true", help="real pairs of a mix of settings (see above)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     configs = args.config or list(DEFAULT_CONFIGS)
+    if args.mix:
+        import jax
+
+        for config_path in configs:
+            record = {"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
+                      **measure_mix(config_path, args.steps, args.n_points)}
+            print(json.dumps(record, indent=2), flush=True)
+        return
 
     if args.child:  # one recipe, timed only: the other tree's library may not count work the same way
         print(json.dumps(measure(configs[0], args.steps, args.n_points, args.remat, count=False)))

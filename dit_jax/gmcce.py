@@ -115,7 +115,8 @@ def confidence(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float 
     return 2.0 * jax.nn.sigmoid(-sharpness * error)
 
 
-def weights(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0, threshold: float = 0.99,
+def weights(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0,
+            threshold: float | jax.Array = 0.99,
             min_dist2: float = 0.1, min_keep: float = 0.0) -> jax.Array:
     """GMCCE's inlier weights: 1.0 where :func:`confidence` exceeds ``threshold``, else 0.0. Shape (N,).
 

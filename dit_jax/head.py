@@ -74,7 +74,7 @@ class HeadOutput(NamedTuple):
 
 
 def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Array, config: DITConfig,
-         use_gmcce: bool) -> HeadOutput:
+         use_gmcce: bool, gmcce_threshold: jax.Array | None = None) -> HeadOutput:
     """Correspondences, weights and the rigid motion mapping ``src`` onto ``tgt``.
 
     Args:
@@ -84,6 +84,8 @@ def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Arr
       temperature: scalar from :class:`TemperatureNet`.
       config: supplies the GMCCE parameters.
       use_gmcce: GMCCE mode (static).
+      gmcce_threshold: () GMCCE's threshold as an array, in place of ``config.gmcce_threshold``: one compiled
+        program for several thresholds.
 
     Returns:
       A :class:`HeadOutput`. When GMCCE flags no correspondence as an inlier (possible only with
@@ -100,7 +102,8 @@ def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Arr
     tgt_soft = jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST)
     if use_gmcce:
         inliers = gmcce.weights(src, tgt_soft, k=config.gmcce_k, sharpness=config.gmcce_sharpness,
-                                threshold=config.gmcce_threshold, min_dist2=config.gmcce_min_dist2,
+                                threshold=config.gmcce_threshold if gmcce_threshold is None else gmcce_threshold,
+                                min_dist2=config.gmcce_min_dist2,
                                 min_keep=config.gmcce_min_keep)
         fallback = jnp.sum(inliers) == 0
         weights = jnp.where(fallback, soft_weights, inliers)

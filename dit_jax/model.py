@@ -158,7 +158,8 @@ def _check_inputs(src: jax.Array, tgt: jax.Array, config: DITConfig) -> None:
         raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
 
 
-def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
+def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
+                  gmcce_threshold: jax.Array | None = None):
     """The iterative registration of one pair (SPEC.md section 10).
 
     Computed once, not per iteration: the target's kNN graph, PSE, positional encoding and encoder memory
@@ -175,7 +176,8 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
     def iteration(carry, index):
         rotation, translation, moved, cost, last = carry
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn)
-        run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce)
+        run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce,
+                                          gmcce_threshold)
         out = jax.lax.cond(index >= 1, lambda: run_head(True), lambda: run_head(False))
         new_moved = geometry.apply_transform(out.rotation, out.translation, moved)
         if config.guard_iterations:
@@ -221,7 +223,8 @@ _MAP_PAIRS_ABOVE = 2048 * 2048
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
+def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
+             gmcce_threshold: jax.Array | None = None):
     """Estimates the rigid motion mapping each source cloud onto its target.
 
     ``n_iters`` iterations: the first in soft mode, the rest in GMCCE mode; each re-runs the network on the
@@ -235,6 +238,8 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
       src: (B, N, 3) source clouds.
       tgt: (B, M, 3) target clouds; M may differ from N.
       config: the :class:`DITConfig` the params were made for.
+      gmcce_threshold: (B,) each pair's GMCCE threshold, in place of ``config.gmcce_threshold``: pairs of
+        settings with different thresholds then run in one compiled program.
 
     Returns:
       ``(R, t, extras)`` with R (B, 3, 3), t (B, 3) such that ``tgt ~ src @ R^T + t``, and ``extras``: a dict of
@@ -246,16 +251,21 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     """
     _check_inputs(src, tgt, config)
     chex.assert_rank([src, tgt], 3)
+    if gmcce_threshold is not None:
+        gmcce_threshold = jnp.broadcast_to(jnp.asarray(gmcce_threshold, src.dtype), src.shape[:1])
     if src.shape[0] == 1:
         # The same computation without the batch axis: XLA's CPU buffer assignment keeps ~5x more memory
         # alive for a vmapped batch of one (5.5 GB instead of 1.0 GB for one iteration at 8192 points).
-        return jax.tree.map(lambda a: a[None], _register_one(params, src[0], tgt[0], config))
+        threshold = None if gmcce_threshold is None else gmcce_threshold[0]
+        return jax.tree.map(lambda a: a[None], _register_one(params, src[0], tgt[0], config, threshold))
+    one = lambda pair: _register_one(params, pair[0], pair[1], config, *pair[2:])
+    pairs = (src, tgt) if gmcce_threshold is None else (src, tgt, gmcce_threshold)
     large = src.shape[1] * tgt.shape[1] > _MAP_PAIRS_ABOVE
     if large or jax.default_backend() == "cpu":
         # One pair at a time: memory stays that of one pair, and on CPU it is faster than the vmapped
         # batch (the matmuls of one pair already fill the cores, and the batched ones pay for transposes).
-        return jax.lax.map(lambda pair: _register_one(params, pair[0], pair[1], config), (src, tgt))
-    return jax.vmap(_register_one, in_axes=(None, 0, 0, None))(params, src, tgt, config)
+        return jax.lax.map(one, pairs)
+    return jax.vmap(one)(pairs)
 
 
 class Iterations(NamedTuple):

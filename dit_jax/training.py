@@ -8,6 +8,7 @@ non-finite updates) and :func:`validate`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -39,6 +40,9 @@ class TrainConfig:
       settings: train on a mix of these settings instead (each batch from one of them, see
         :class:`dit_jax.data.pairs.MixedPairs`; repeat one to draw it more often); validation then covers
         each of them, and the mean over them chooses the best checkpoint.
+      mix_one_size: with ``settings``, every cloud of the mix is thinned at random to the fewest points any
+        setting's clouds hold, so the whole mix runs one compiled train step and one validation program;
+        False keeps each setting's own cloud size (a train step and a validation program per size).
       data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
       unseen: the unseen-category split (labels 0-19 train, 20-39 test).
       variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).
@@ -58,8 +62,8 @@ class TrainConfig:
       eval_every, ckpt_every: steps between validations / checkpoints (also at the end).
       validate_at_start: validate the starting params before the first step (the first point of every
         curve). Off where compiling the validation costs more than the point is worth: on a short GPU lease
-        it compiles a registration per setting before any training (docs/training.md); its value is
-        known from the checkpoint a run starts from.
+        it compiles the validation's registration program before any training (docs/training.md); its value
+        is known from the checkpoint a run starts from.
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
@@ -76,6 +80,7 @@ class TrainConfig:
     model: DITConfig = dataclasses.field(default_factory=configs.cpu)
     setting: str = "clean"
     settings: tuple[str, ...] = ()
+    mix_one_size: bool = True
     data_dir: str | None = None
     unseen: bool = False
     variant: str = "authors"
@@ -123,6 +128,7 @@ class TrainConfig:
                       else DITConfig.from_dict(model))
         d["lr_drops"] = tuple(d.get("lr_drops", ()))
         d["settings"] = tuple(d.get("settings", ()))
+        d.setdefault("mix_one_size", False)  # records from before the field: each setting its own size
         return cls(**d)
 
     def to_config_dict(self):
@@ -232,8 +238,11 @@ def _batch_loss(params, batch, model_config: DITConfig, config: TrainConfig, key
     n_pairs = batch["src"].shape[0]
     keys = jax.random.split(key, n_pairs)
     pairs = (batch["src"], batch["tgt"], batch["R"], batch["t"], keys)
-    by_device = jax.tree.map(lambda a: a.reshape(devices, n_pairs // devices, *a.shape[1:]), pairs)
-    totals, terms = jax.vmap(part)(by_device)
+    if devices == 1:  # the same sums, without a batching pass over the whole traced loss
+        totals, terms = part(pairs)
+    else:
+        by_device = jax.tree.map(lambda a: a.reshape(devices, n_pairs // devices, *a.shape[1:]), pairs)
+        totals, terms = jax.vmap(part)(by_device)
     return jnp.mean(totals), jax.tree.map(jnp.mean, terms)
 
 
@@ -359,8 +368,9 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     # unseen split they keep the training categories (a test-style unseen config would keep 20-39 instead).
     val_config = pairs_lib.PairConfig(train=False, unseen=False, **common)
     if config.settings:
-        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings)
-        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)))
+        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings, one_size=config.mix_one_size)
+        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)),
+                                   one_size=config.mix_one_size)
     else:
         train = pairs_lib.PairDataset(train_shapes, train_config)
         val = pairs_lib.PairDataset(val_shapes, val_config)
@@ -385,34 +395,45 @@ def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, mode
       same soft iteration.
 
     For :class:`~dit_jax.data.pairs.MixedPairs`, each setting's ``n_pairs`` are measured (keys
-    ``SETTING/...``, full inference with that setting's GMCCE threshold) and the plain keys are the means over
-    the settings.
+    ``SETTING/...``, full inference with that setting's GMCCE threshold, passed as an array so that settings
+    of one cloud size share one compiled program) and the plain keys are the means over the settings.
+    Batches are always ``batch_size`` pairs (the last one filled up with pairs already counted), so one
+    program serves every batch.
     """
     if isinstance(dataset, pairs_lib.MixedPairs):
         out = {}
-        for setting, ds in dataset.datasets.items():
-            cfg = model_config.replace(gmcce_threshold=configs.GMCCE_THRESHOLDS[setting])
-            out.update({f"{setting}/{k}": v for k, v in validate(params, ds, cfg, n_pairs, batch_size).items()})
+        for setting in dataset.datasets:
+            threshold = np.float32(configs.GMCCE_THRESHOLDS[setting])
+            errors = _validation_errors(params, functools.partial(dataset.setting_batch, setting),
+                                        min(n_pairs, len(dataset)), model_config, batch_size, threshold)
+            out.update({f"{setting}/{k}": v for k, v in errors.items()})
         for key in [k for k in out if k.startswith(f"{dataset.settings[0]}/")]:
             name = key.split("/", 1)[1]
             out[name] = float(np.mean([out[f"{s}/{name}"] for s in dataset.datasets]))
         return out
-    n = min(n_pairs, len(dataset))
+    return _validation_errors(params, dataset.batch, min(n_pairs, len(dataset)), model_config, batch_size)
+
+
+def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, model_config: DITConfig,
+                       batch_size: int, gmcce_threshold: np.ndarray | None = None) -> dict[str, float]:
+    """:func:`validate`'s figures for pairs ``batch_of(indices)``, indices in ``range(n)``."""
     errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",
                                                "network_translation_error", "network_match_accuracy")}
     match_labels = jax.vmap(losses.match_labels)
-    for start in range(0, n, batch_size):
-        b = dataset.batch(np.arange(start, min(n, start + batch_size)))
+    size = min(batch_size, n)
+    for start in range(0, n, size):
+        real = min(size, n - start)
+        b = batch_of(np.arange(start, start + size) % n)
         src, tgt = jnp.asarray(b["src"]), jnp.asarray(b["tgt"])
         # One program for both figures: the first iteration's increment is the network's own estimate.
-        rotation, translation, extras = model.register(params, src, tgt, model_config)
+        rotation, translation, extras = model.register(params, src, tgt, model_config, gmcce_threshold)
         first = {"": (rotation, translation),
                  "network_": (extras["step_rotation"][:, 0], extras["step_translation"][:, 0])}
         for prefix, (r, t) in first.items():
-            errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"])))
-            errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"])))
+            errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"]))[:real])
+            errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"]))[:real])
         labels = match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
-        errors["network_match_accuracy"].append(np.asarray(labels).reshape(-1))
+        errors["network_match_accuracy"].append(np.asarray(labels)[:real].reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 
 

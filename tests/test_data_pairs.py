@@ -229,3 +229,23 @@ def test_pair_view_reads_a_stacked_batch_and_swaps_clouds(modelnet_test):
     np.testing.assert_array_equal(swapped.batch([2])["src"], ds.batch([2])["tgt"])
     np.testing.assert_array_equal(swapped[2]["tgt"], ds[2]["src"])
     np.testing.assert_array_equal(pairs.PairView(stacked, swap=True)[5]["src"], stacked["tgt"][5])
+
+
+def test_a_mix_of_one_size_thins_every_setting_to_its_smallest_clouds(modelnet_test):
+    """``one_size``: every setting's clouds hold the mix's fewest points (here the partial setting's 800 of
+    1000), and the thinned pairs keep exact counterparts where both points stayed, the same on every call."""
+    config = pairs.PairConfig(n_points=1000)
+    mix = pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial"), one_size=True)
+    assert mix.cloud_points == 800
+    clean = mix.setting_batch("clean", np.arange(6))
+    assert clean["src"].shape == clean["tgt"].shape == (6, 800, 3)
+    for i in range(6):
+        moved, target = _counterparts(clean, i)
+        np.testing.assert_allclose(moved, target, atol=2e-6)
+        assert 0.7 < len(moved) / 800 < 0.9  # about 800 / 1000 of the kept source points kept their counterpart
+    again = mix.setting_batch("clean", np.arange(6))
+    np.testing.assert_array_equal(again["src"], clean["src"])
+    partial = mix.setting_batch("low_noise_partial", np.arange(6))
+    np.testing.assert_array_equal(partial["src"], mix.datasets["low_noise_partial"].batch(np.arange(6))["src"])
+    assert pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(
+        np.arange(2))["src"].shape[1] in (800, 1000)

@@ -37,3 +37,24 @@ def test_a_clamped_temperature_is_not_pushed_further_out():
     net, params, phi_x, phi_y = _net_at_lower_clamp()
     grads = jax.grad(lambda p: net.apply(p, phi_x, phi_y))(params)  # wants it lower still: nothing to do
     assert all(float(jnp.max(jnp.abs(g))) == 0.0 for g in jax.tree.leaves(grads))
+
+
+def test_a_gmcce_threshold_passed_as_an_array_is_the_configs_threshold():
+    """``gmcce_threshold`` as an array (how settings with different thresholds share one compiled program)
+    gives what the config's own threshold gives, and a threshold the confidences straddle changes the
+    weights, so the array is what decides."""
+    from dit_jax import configs
+    from dit_jax.head import head
+
+    rng = np.random.default_rng(0)
+    src = jnp.asarray(rng.uniform(-1, 1, (40, 3)), jnp.float32)
+    tgt = src + jnp.asarray(rng.normal(0, 0.03, (40, 3)), jnp.float32)
+    scores = jnp.asarray(np.eye(40) * 4 + rng.normal(0, 0.1, (40, 40)), jnp.float32)
+    config = configs.tiny()
+    run = jax.jit(lambda threshold: head(src, tgt, scores, jnp.float32(1.0), config, True, threshold).weights)
+    weights = {}
+    for threshold in (0.3, 0.9):
+        weights[threshold] = np.asarray(run(jnp.float32(threshold)))
+        own = head(src, tgt, scores, jnp.float32(1.0), config.replace(gmcce_threshold=threshold), True)
+        np.testing.assert_array_equal(weights[threshold], np.asarray(own.weights))
+    assert weights[0.3].sum() > weights[0.9].sum()

@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import logging
 import os
 import pathlib
 import shutil
@@ -7,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -65,8 +67,8 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     steps = 30
     from dit_jax import configs
 
-    base = dataclasses.replace(TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), n_points=128, max_steps=steps,
-                               train_iters=1)
+    base = dataclasses.replace(TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), settings=(), n_points=128,
+                               max_steps=steps, train_iters=1)
     optimizer = training.make_optimizer(base, steps)
     mesh = training.make_mesh()
     step = training.make_train_step(base, optimizer, mesh)
@@ -98,25 +100,47 @@ def test_non_finite_batches_are_skipped_not_applied(prepared):
     assert any(jax.tree.leaves(changed))
 
 
+class TinyRun(NamedTuple):
+    workdir: pathlib.Path
+    result: dict
+    lowered: list[str]  # the programs lowered while it trained, by name ("jit(step)", ...)
+
+
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory, prepared):
     """One TINY run of 12 steps (checkpoints at 4, 8 and 12), trained in this process into a relative
-    workdir, as `python train.py` gets by default: (workdir, train's result). Several tests read it, so
-    the suite trains it once."""
+    workdir, as `python train.py` gets by default, with the names of the programs it lowered. Several tests
+    read it, so the suite trains it once."""
     directory = tmp_path_factory.mktemp("tiny")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.chdir(directory)
-        result = training.train(TINY, "run", prepared_dir=prepared, progress=False)
-    return directory / "run", result
+    lowered = []
+    handler = logging.Handler(logging.DEBUG)
+    handler.emit = lambda record: lowered.append(record.getMessage().split()[1])
+    pxla = logging.getLogger("jax._src.interpreters.pxla")  # logs "Compiling NAME ..." for every lowering
+    level = pxla.level
+    jax.clear_caches()  # every program this run needs is lowered here, whatever ran before in this process
+    pxla.addHandler(handler)
+    pxla.setLevel(logging.DEBUG)
+    try:
+        with pytest.MonkeyPatch.context() as patch:
+            patch.chdir(directory)
+            result = training.train(TINY, "run", prepared_dir=prepared, progress=False)
+    finally:
+        pxla.removeHandler(handler)
+        pxla.setLevel(level)
+    return TinyRun(directory / "run", result, lowered)
 
 
 def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
-    workdir, result = tiny_run
+    workdir, result, lowered = tiny_run
     assert result["step"] == 12 and result["skipped"] == 0
     assert sorted(os.listdir(workdir / "checkpoints")) == ["12", "4", "8"]
     assert os.listdir(workdir / "best")
     lines = (workdir / "metrics.jsonl").read_text().splitlines()
     assert any('"split": "val"' in line for line in lines) and len(lines) >= 12
+    # A mix of two settings whose clouds differ in size (64 and 51 points), thinned to one size: one train
+    # step and one validation program for both settings, each with its own GMCCE threshold.
+    assert lowered.count("jit(step)") == 1 and lowered.count("jit(register)") == 1, lowered
+    assert set(TINY.settings) <= {key.split("/")[0] for key in result["val"] if "/" in key}
     from dit_jax import checkpoint
 
     _, config = checkpoint.restore(result["model"])
@@ -134,11 +158,11 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run)
 
     from dit_jax.release import device_stage
 
-    records = [json.loads(line) for line in (tiny_run[0] / "metrics.jsonl").read_text().splitlines()]
+    records = [json.loads(line) for line in (tiny_run.workdir / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["split"] == "val"] == [6, 12]
 
     never_validated = tmp_path / "stopped"
-    shutil.copytree(tiny_run[0], never_validated)
+    shutil.copytree(tiny_run.workdir, never_validated)
     shutil.rmtree(never_validated / "best")
     device_stage._bundle(str(never_validated), str(tmp_path / "stopped.tar"))
     with tarfile.open(tmp_path / "stopped.tar") as tar:
@@ -149,9 +173,9 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run)
 
     assert checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))[
         "chosen_by"] == "checkpoints"
-    latest = checkpoint.read_extra(training.export_params(str(tiny_run[0]), str(tmp_path / "end"), latest=True))
+    latest = checkpoint.read_extra(training.export_params(str(tiny_run.workdir), str(tmp_path / "end"), latest=True))
     assert (latest["chosen_by"], latest["step"]) == ("checkpoints", 12)
-    device_stage._bundle(str(tiny_run[0]), str(tmp_path / "validated.tar"))
+    device_stage._bundle(str(tiny_run.workdir), str(tmp_path / "validated.tar"))
     with tarfile.open(tmp_path / "validated.tar") as tar:
         assert any(n.startswith("best/") for n in tar.getnames())
         assert not any(n.startswith("checkpoints") for n in tar.getnames())
@@ -172,7 +196,7 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_
     assert (workdir / "checkpoints" / "4").exists(), "the run made no checkpoint before the kill"
     resumed = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    (step, resumed_params), (whole_step, whole_params) = _last_params(workdir), _last_params(tiny_run[0])
+    (step, resumed_params), (whole_step, whole_params) = _last_params(workdir), _last_params(tiny_run.workdir)
     assert step == whole_step == 12 and _equal_trees(resumed_params, whole_params)
     records = [json.loads(line) for line in (workdir / "metrics.jsonl").read_text().splitlines()]
     assert sorted(r["step"] for r in records if r["split"] == "val") == [0, 6, 12]
@@ -181,7 +205,7 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_
 def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
     # A copy of a finished run cut back to its step-4 checkpoint, then damaged.
     config = dataclasses.replace(TINY, max_steps=4)
-    shutil.copytree(tiny_run[0], tmp_path / "run")
+    shutil.copytree(tiny_run.workdir, tmp_path / "run")
     for step in ("8", "12"):
         shutil.rmtree(tmp_path / "run" / "checkpoints" / step)
     for f in (tmp_path / "run" / "checkpoints" / "4" / "state").rglob("*"):
@@ -244,7 +268,7 @@ def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
 
     _, config, workdir = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.lr=0.5",
                                       "--config.model.n_blocks=2", "--config.max_steps=7"])
-    assert config.lr == 0.5 and config.model.n_blocks == 2 and config.max_steps == 7 and workdir == "runs/tiny-clean"
+    assert config.lr == 0.5 and config.model.n_blocks == 2 and config.max_steps == 7 and workdir == "runs/tiny-mix"
     assert dataclasses.replace(config, lr=TINY_RECIPE.lr, max_steps=None,
                                model=TINY_RECIPE.model) == TINY_RECIPE, "nothing else moves"
     _, config, _ = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.differentiable=false",
@@ -282,7 +306,7 @@ def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path
 
     for path in sorted((ROOT / "configs").rglob("*.py")):
         assert isinstance(training.load_config(path), training.TrainConfig), path
-    recorded = checkpoint.read_extra(tiny_run[1]["model"])["train_config"]
+    recorded = checkpoint.read_extra(tiny_run.result["model"])["train_config"]
     assert training.TrainConfig.from_json(recorded) == TINY
     legacy = dict(TINY.to_json(), model="cpu", model_overrides=[["n_blocks", 1]])
     assert training.TrainConfig.from_json(legacy).model == configs.cpu("clean").replace(n_blocks=1)
@@ -396,7 +420,7 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     assert results[0]["val"] == results[1]["val"]
 
     # The first step, four devices in two processes against one.
-    one_workdir, _ = tiny_run
+    one_workdir = tiny_run.workdir
     one, four = _step_record(one_workdir, 1), _step_record(tmp_path / "two", 1)
     summary = f"losses {one['loss']} {four['loss']}, grad norms {one['grad_norm']} {four['grad_norm']}"
     # The order of reductions differs across devices, and the gradient (through softmax at temperatures up

@@ -23,6 +23,7 @@ def get_config():
     return dataclasses.replace(before, model=configs.cpu('clean'),
                                setting='clean',
                                settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
+                               mix_one_size=False,  # trained before the mix had one size
                                max_steps=1000,
                                lr_drops=(0.75, 0.9),
                                val_pairs=24,

@@ -75,6 +75,8 @@ SCAN_DISTANCE = 2.0
 SCAN_GAMMA = 2.0
 SCAN_MAX_VIEW_ANGLE = 60.0
 SCAN_KEEP = 0.2
+#: Names the random stream that thins a mix's clouds to one size (see :class:`MixedPairs`).
+_THIN_STREAM = 0x7417
 
 
 @dataclasses.dataclass(frozen=True)
@@ -207,10 +209,12 @@ class PairDataset:
     def __getitem__(self, n: int) -> dict[str, np.ndarray]:
         return {k: v[0] for k, v in self.batch([n]).items()}
 
-    def _rng(self, n: int, epoch: int) -> np.random.Generator:
+    def _rng(self, n: int, epoch: int, *stream: int) -> np.random.Generator:
+        """Pair n's generator; ``stream`` names another one of the same pair (draws that must not move the
+        pair's own)."""
         if self.config.train:
-            return np.random.default_rng([self.config.seed, epoch, n])
-        return np.random.default_rng(n)
+            return np.random.default_rng([self.config.seed, epoch, n, *stream])
+        return np.random.default_rng([n, *stream] if stream else n)
 
     def batch(self, indices, epoch: int = 0) -> dict[str, np.ndarray]:
         """Pairs ``indices`` (of this dataset, not shape rows) stacked on a leading axis."""
@@ -413,19 +417,29 @@ def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
 class MixedPairs:
     """Pairs of several settings over the same shapes, for training on a mix.
 
-    Each batch comes whole from one setting (the clouds of a batch must have one size), chosen at random by
-    the batch's first pair and the epoch, so the mix is the same on every run and a resumed run sees the
-    same batches. ``datasets`` maps each setting to its :class:`PairDataset`; list a setting twice in
-    ``settings`` to draw it twice as often.
+    Each batch comes whole from one setting, chosen at random by the batch's first pair and the epoch, so the
+    mix is the same on every run and a resumed run sees the same batches. ``datasets`` maps each setting to
+    its :class:`PairDataset`; list a setting twice in ``settings`` to draw it twice as often.
+
+    With ``one_size`` every cloud of every setting is thinned at random to :attr:`cloud_points`, the fewest
+    points any setting's clouds hold: all batches then have one shape, so a train step compiles once for the
+    whole mix (settings whose clouds hold more points lose some at random, a density the network should
+    handle anyway). Without it each setting keeps its own size and compiles its own step.
     """
 
-    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...]):
+    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...], *, one_size: bool = False):
         if not settings:
             raise ValueError("MixedPairs needs at least one setting")
         self.settings = tuple(settings)
         self.datasets = {s: PairDataset(shapes, dataclasses.replace(config, setting=s)) for s in self.settings}
         self.config = self.datasets[self.settings[0]].config
         self.shapes = shapes
+        self.one_size = one_size
+
+    @property
+    def cloud_points(self) -> int:
+        """Points in each cloud with ``one_size``: the fewest any setting's clouds hold."""
+        return min(ds.config.cloud_points(self.shapes.points.shape[1]) for ds in self.datasets.values())
 
     @property
     def rows(self) -> np.ndarray:
@@ -441,7 +455,39 @@ class MixedPairs:
         return self.settings[int(pick)]
 
     def batch(self, indices, epoch: int = 0) -> dict[str, np.ndarray]:
-        return self.datasets[self.setting_of(indices, epoch)].batch(indices, epoch)
+        return self.setting_batch(self.setting_of(indices, epoch), indices, epoch)
+
+    def setting_batch(self, setting: str, indices, epoch: int = 0) -> dict[str, np.ndarray]:
+        """Pairs ``indices`` of ``setting``, thinned to :attr:`cloud_points` with ``one_size``."""
+        ds = self.datasets[setting]
+        out = ds.batch(indices, epoch)
+        if not self.one_size:
+            return out
+        # A stream of its own per pair: thinning moves none of the pair's other draws.
+        return thin(out, self.cloud_points, [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]])
+
+
+def thin(pairs: Mapping[str, np.ndarray], keep: int, rngs) -> dict[str, np.ndarray]:
+    """Pairs (a stacked batch, as :meth:`PairDataset.batch` gives) whose clouds keep ``keep`` random points
+    each, drawn from ``rngs`` (one generator per pair); ``correspondence`` follows the kept points (-1 where a
+    source point's counterpart was dropped). Clouds already that size are kept as they are."""
+    src, tgt = pairs["src"], pairs["tgt"]
+    if src.shape[1] < keep or tgt.shape[1] < keep:
+        raise ValueError(f"cannot thin clouds of {src.shape[1]} and {tgt.shape[1]} points to {keep}")
+    if src.shape[1] == tgt.shape[1] == keep:
+        return dict(pairs)
+    b = src.shape[0]
+    src_rows = np.stack([np.sort(rng.choice(src.shape[1], keep, replace=False)) for rng in rngs])
+    tgt_rows = np.stack([np.sort(rng.choice(tgt.shape[1], keep, replace=False)) for rng in rngs])
+    # where[i, j]: the new row of the target's old row j (-1: dropped)
+    where = np.full((b, tgt.shape[1] + 1), -1, np.int64)
+    np.put_along_axis(where, tgt_rows, np.broadcast_to(np.arange(keep), (b, keep)), axis=1)
+    old = np.take_along_axis(pairs["correspondence"], src_rows, axis=1)
+    return dict(pairs,
+                src=np.take_along_axis(src, src_rows[..., None], axis=1),
+                tgt=np.take_along_axis(tgt, tgt_rows[..., None], axis=1),
+                correspondence=np.take_along_axis(where, np.where(old >= 0, old, tgt.shape[1]), axis=1)
+                .astype(pairs["correspondence"].dtype))
 
 
 class PairView:
