@@ -43,6 +43,12 @@ class TrainConfig:
       mix_one_size: with ``settings``, every cloud of the mix is thinned at random to the fewest points any
         setting's clouds hold, so the whole mix runs one compiled train step and one validation program;
         False keeps each setting's own cloud size (a train step and a validation program per size).
+      mix_points: with ``mix_one_size``, the points each cloud of the mix is thinned to (at most the fewest
+        any setting holds, the default): fewer points, cheaper steps, and room for ``mix_sampling`` to vary.
+        Without it, a cap: clouds of more points are thinned to it, the others keep their size.
+      mix_sampling: how the mix's clouds are thinned, in training and in validation: "uniform" (points at
+        random) or "varied" (each cloud by a sampler drawn at random: uniform, a density gradient or
+        farthest-point sampling, see :data:`dit_jax.data.pairs.SAMPLERS`), so no one sampling is learned.
       data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
       unseen: the unseen-category split (labels 0-19 train, 20-39 test).
       variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).
@@ -81,6 +87,8 @@ class TrainConfig:
     setting: str = "clean"
     settings: tuple[str, ...] = ()
     mix_one_size: bool = True
+    mix_points: int | None = None
+    mix_sampling: str = "uniform"
     data_dir: str | None = None
     unseen: bool = False
     variant: str = "authors"
@@ -368,9 +376,9 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
     # unseen split they keep the training categories (a test-style unseen config would keep 20-39 instead).
     val_config = pairs_lib.PairConfig(train=False, unseen=False, **common)
     if config.settings:
-        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings, one_size=config.mix_one_size)
-        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)),
-                                   one_size=config.mix_one_size)
+        thinning = dict(one_size=config.mix_one_size, points=config.mix_points, sampling=config.mix_sampling)
+        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings, **thinning)
+        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)), **thinning)
     else:
         train = pairs_lib.PairDataset(train_shapes, train_config)
         val = pairs_lib.PairDataset(val_shapes, val_config)

@@ -231,21 +231,63 @@ def test_pair_view_reads_a_stacked_batch_and_swaps_clouds(modelnet_test):
     np.testing.assert_array_equal(pairs.PairView(stacked, swap=True)[5]["src"], stacked["tgt"][5])
 
 
+def _thinned_clean_pairs(mix, n, size):
+    """The mix's first ``n`` clean pairs, checked: clouds of ``size`` points, exact counterparts where both
+    points stayed, the same on a second call."""
+    batch = mix.setting_batch("clean", np.arange(n))
+    assert batch["src"].shape == batch["tgt"].shape == (n, size, 3)
+    for i in range(n):
+        moved, target = _counterparts(batch, i)
+        np.testing.assert_allclose(moved, target, atol=2e-6)
+    np.testing.assert_array_equal(mix.setting_batch("clean", np.arange(n))["tgt"], batch["tgt"])
+    return batch
+
+
 def test_a_mix_of_one_size_thins_every_setting_to_its_smallest_clouds(modelnet_test):
     """``one_size``: every setting's clouds hold the mix's fewest points (here the partial setting's 800 of
     1000), and the thinned pairs keep exact counterparts where both points stayed, the same on every call."""
     config = pairs.PairConfig(n_points=1000)
     mix = pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial"), one_size=True)
     assert mix.cloud_points == 800
-    clean = mix.setting_batch("clean", np.arange(6))
-    assert clean["src"].shape == clean["tgt"].shape == (6, 800, 3)
-    for i in range(6):
-        moved, target = _counterparts(clean, i)
-        np.testing.assert_allclose(moved, target, atol=2e-6)
-        assert 0.7 < len(moved) / 800 < 0.9  # about 800 / 1000 of the kept source points kept their counterpart
-    again = mix.setting_batch("clean", np.arange(6))
-    np.testing.assert_array_equal(again["src"], clean["src"])
+    clean = _thinned_clean_pairs(mix, 6, 800)
+    for i in range(6):  # about 800 / 1000 of the kept source points kept their counterpart
+        assert 0.7 < (clean["correspondence"][i] >= 0).mean() < 0.9
     partial = mix.setting_batch("low_noise_partial", np.arange(6))
     np.testing.assert_array_equal(partial["src"], mix.datasets["low_noise_partial"].batch(np.arange(6))["src"])
     assert pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(
         np.arange(2))["src"].shape[1] in (800, 1000)
+
+
+def test_samplers_keep_distinct_patterns():
+    """``uniform`` keeps points at random; ``density`` favours one side (the kept points' centroid moves),
+    ``farthest`` spreads them (no two kept points close): what makes a varied mix vary."""
+    cloud = np.random.default_rng(0).uniform(-1, 1, (3000, 3))
+    from scipy.spatial import cKDTree
+
+    def kept(sampler, seed):
+        idx = pairs.sample_points(cloud, 600, np.random.default_rng(seed), sampler)
+        assert len(np.unique(idx)) == 600 and np.all(np.diff(idx) > 0)
+        return cloud[idx]
+
+    shift = {s: [float(np.linalg.norm(kept(s, seed).mean(axis=0))) for seed in range(4)] for s in pairs.SAMPLERS}
+    assert min(shift["density"]) > 2 * max(shift["uniform"]), shift
+    closest = {s: min(float(cKDTree(c).query(c, k=2)[0][:, 1].min()) for c in [kept(s, 0)])
+               for s in ("uniform", "farthest")}
+    assert closest["farthest"] > 5 * closest["uniform"], closest
+    with pytest.raises(ValueError, match="unknown sampler"):
+        pairs.sample_points(cloud, 10, np.random.default_rng(0), "voxel")
+
+
+def test_a_varied_mix_thins_each_cloud_its_own_way_and_keeps_counterparts(modelnet_test):
+    mix = pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
+                           one_size=True, points=300, sampling="varied")
+    assert mix.cloud_points == 300
+    _thinned_clean_pairs(mix, 8, 300)
+    with pytest.raises(ValueError, match="points"):
+        pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
+                         one_size=True, points=900)
+    # Without one size, points caps each setting: larger clouds are thinned, smaller ones keep their size.
+    capped = pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
+                              points=900, sampling="varied")
+    assert capped.setting_batch("clean", np.arange(2))["src"].shape == (2, 900, 3)
+    assert capped.setting_batch("low_noise_partial", np.arange(2))["src"].shape == (2, 800, 3)

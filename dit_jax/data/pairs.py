@@ -421,25 +421,41 @@ class MixedPairs:
     mix is the same on every run and a resumed run sees the same batches. ``datasets`` maps each setting to
     its :class:`PairDataset`; list a setting twice in ``settings`` to draw it twice as often.
 
-    With ``one_size`` every cloud of every setting is thinned at random to :attr:`cloud_points`, the fewest
-    points any setting's clouds hold: all batches then have one shape, so a train step compiles once for the
-    whole mix (settings whose clouds hold more points lose some at random, a density the network should
-    handle anyway). Without it each setting keeps its own size and compiles its own step.
+    With ``one_size`` every cloud of every setting is thinned to :attr:`cloud_points` (``points``, else the
+    fewest points any setting's clouds hold) by :func:`thin`: all batches then have one shape, so a train step
+    compiles once for the whole mix. Without it each setting keeps its own size and compiles its own step,
+    unless ``points`` caps it (clouds of more points are thinned to ``points``; a step per size that remains).
+    ``sampling="varied"`` thins each cloud by a sampler drawn at random (:data:`SAMPLERS`), so that no one
+    sampling pattern is learned.
     """
 
-    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...], *, one_size: bool = False):
+    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...], *, one_size: bool = False,
+                 points: int | None = None, sampling: str = "uniform"):
         if not settings:
             raise ValueError("MixedPairs needs at least one setting")
+        if sampling not in ("uniform", "varied"):
+            raise ValueError(f"unknown sampling {sampling!r}; choose uniform or varied")
         self.settings = tuple(settings)
         self.datasets = {s: PairDataset(shapes, dataclasses.replace(config, setting=s)) for s in self.settings}
         self.config = self.datasets[self.settings[0]].config
         self.shapes = shapes
         self.one_size = one_size
+        self.sampling = sampling
+        self._sizes = {s: ds.config.cloud_points(shapes.points.shape[1]) for s, ds in self.datasets.items()}
+        fewest = min(self._sizes.values())
+        if points is not None and not 0 < points <= (fewest if one_size else max(self._sizes.values())):
+            raise ValueError(f"points ({points}) must be in 1..{fewest if one_size else max(self._sizes.values())}"
+                             f", the {'fewest' if one_size else 'most'} points a cloud of this mix holds")
+        self.points = points if points is not None or not one_size else fewest
 
     @property
-    def cloud_points(self) -> int:
-        """Points in each cloud with ``one_size``: the fewest any setting's clouds hold."""
-        return min(ds.config.cloud_points(self.shapes.points.shape[1]) for ds in self.datasets.values())
+    def cloud_points(self) -> int | None:
+        """Points in each cloud with ``one_size``; else the cap ``points`` (None: each setting its own)."""
+        return self.points
+
+    def setting_points(self, setting: str) -> int:
+        """Points in each cloud of ``setting``'s batches."""
+        return self._sizes[setting] if self.points is None else min(self.points, self._sizes[setting])
 
     @property
     def rows(self) -> np.ndarray:
@@ -458,27 +474,65 @@ class MixedPairs:
         return self.setting_batch(self.setting_of(indices, epoch), indices, epoch)
 
     def setting_batch(self, setting: str, indices, epoch: int = 0) -> dict[str, np.ndarray]:
-        """Pairs ``indices`` of ``setting``, thinned to :attr:`cloud_points` with ``one_size``."""
+        """Pairs ``indices`` of ``setting``, thinned to :meth:`setting_points`."""
         ds = self.datasets[setting]
         out = ds.batch(indices, epoch)
-        if not self.one_size:
+        if self.points is None:
             return out
         # A stream of its own per pair: thinning moves none of the pair's other draws.
-        return thin(out, self.cloud_points, [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]])
+        return thin(out, self.setting_points(setting), [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]],
+                    self.sampling)
 
 
-def thin(pairs: Mapping[str, np.ndarray], keep: int, rngs) -> dict[str, np.ndarray]:
-    """Pairs (a stacked batch, as :meth:`PairDataset.batch` gives) whose clouds keep ``keep`` random points
-    each, drawn from ``rngs`` (one generator per pair); ``correspondence`` follows the kept points (-1 where a
-    source point's counterpart was dropped). Clouds already that size are kept as they are."""
+#: The ways :func:`thin` can pick the points a cloud keeps: at random (``uniform``); at random with a density
+#: that grows along a random direction, 4-40 times higher at one end of the cloud than at the other
+#: (``density``); or spread evenly by farthest-point sampling, as a Poisson-disk sample is (``farthest``).
+SAMPLERS = ("uniform", "density", "farthest")
+
+
+def sample_points(points: np.ndarray, keep: int, rng: np.random.Generator, sampler: str = "uniform") -> np.ndarray:
+    """Sorted indices (keep,) of the points of ``points`` (N, 3) that ``sampler`` (one of :data:`SAMPLERS`)
+    keeps, drawn from ``rng``."""
+    n = len(points)
+    if sampler == "uniform":
+        return np.sort(rng.choice(n, keep, replace=False))
+    if sampler == "density":
+        along = np.asarray(points, np.float64) @ _unit_vectors(rng, 1)[0]
+        along = (along - along.min()) / max(float(np.ptp(along)), 1e-12)
+        weights = np.exp(rng.uniform(np.log(4.0), np.log(40.0)) * along)
+        return np.sort(rng.choice(n, keep, replace=False, p=weights / weights.sum()))
+    if sampler == "farthest":
+        points = np.asarray(points, np.float64)
+        taken = np.empty(keep, np.int64)
+        taken[0] = rng.integers(n)
+        gap = np.sum((points - points[taken[0]]) ** 2, axis=1)
+        for i in range(1, keep):
+            taken[i] = int(np.argmax(gap))
+            gap = np.minimum(gap, np.sum((points - points[taken[i]]) ** 2, axis=1))
+        return np.sort(taken)
+    raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
+
+
+def thin(pairs: Mapping[str, np.ndarray], keep: int, rngs, sampling: str = "uniform") -> dict[str, np.ndarray]:
+    """Pairs (a stacked batch, as :meth:`PairDataset.batch` gives) whose clouds keep ``keep`` points each,
+    drawn from ``rngs`` (one generator per pair); ``correspondence`` follows the kept points (-1 where a
+    source point's counterpart was dropped). ``sampling``: "uniform" (points at random) or "varied" (each
+    cloud by one of :data:`SAMPLERS`, drawn at random: the source and the target may differ). Clouds already
+    that size are kept as they are."""
     src, tgt = pairs["src"], pairs["tgt"]
     if src.shape[1] < keep or tgt.shape[1] < keep:
         raise ValueError(f"cannot thin clouds of {src.shape[1]} and {tgt.shape[1]} points to {keep}")
     if src.shape[1] == tgt.shape[1] == keep:
         return dict(pairs)
     b = src.shape[0]
-    src_rows = np.stack([np.sort(rng.choice(src.shape[1], keep, replace=False)) for rng in rngs])
-    tgt_rows = np.stack([np.sort(rng.choice(tgt.shape[1], keep, replace=False)) for rng in rngs])
+
+    def rows(clouds):
+        if sampling == "uniform":
+            return np.stack([sample_points(c, keep, rng) for c, rng in zip(clouds, rngs)])
+        return np.stack([sample_points(c, keep, rng, SAMPLERS[rng.integers(len(SAMPLERS))])
+                         for c, rng in zip(clouds, rngs)])
+
+    src_rows, tgt_rows = rows(src), rows(tgt)
     # where[i, j]: the new row of the target's old row j (-1: dropped)
     where = np.full((b, tgt.shape[1] + 1), -1, np.int64)
     np.put_along_axis(where, tgt_rows, np.broadcast_to(np.arange(keep), (b, keep)), axis=1)
