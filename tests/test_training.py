@@ -117,7 +117,9 @@ def tiny_run(tmp_path_factory, prepared):
     handler.emit = lambda record: lowered.append(record.getMessage().split()[1])
     pxla = logging.getLogger("jax._src.interpreters.pxla")  # logs "Compiling NAME ..." for every lowering
     level = pxla.level
-    jax.clear_caches()  # every program this run needs is lowered here, whatever ran before in this process
+    # Validation's program is lowered here, whatever ran before in this process (the train step is made
+    # afresh by train()); clearing only this function's cache spares the other tests' programs.
+    model.register.clear_cache()
     pxla.addHandler(handler)
     pxla.setLevel(logging.DEBUG)
     try:
