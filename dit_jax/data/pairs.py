@@ -439,23 +439,18 @@ class MixedPairs:
         self.datasets = {s: PairDataset(shapes, dataclasses.replace(config, setting=s)) for s in self.settings}
         self.config = self.datasets[self.settings[0]].config
         self.shapes = shapes
-        self.one_size = one_size
         self.sampling = sampling
         self._sizes = {s: ds.config.cloud_points(shapes.points.shape[1]) for s, ds in self.datasets.items()}
-        fewest = min(self._sizes.values())
-        if points is not None and not 0 < points <= (fewest if one_size else max(self._sizes.values())):
-            raise ValueError(f"points ({points}) must be in 1..{fewest if one_size else max(self._sizes.values())}"
-                             f", the {'fewest' if one_size else 'most'} points a cloud of this mix holds")
-        self.points = points if points is not None or not one_size else fewest
-
-    @property
-    def cloud_points(self) -> int | None:
-        """Points in each cloud with ``one_size``; else the cap ``points`` (None: each setting its own)."""
-        return self.points
+        limit, which = (min(self._sizes.values()), "fewest") if one_size else (max(self._sizes.values()), "most")
+        if points is not None and not 0 < points <= limit:
+            raise ValueError(f"points ({points}) must be in 1..{limit}, the {which} points a cloud of this mix holds")
+        #: Points in each cloud with ``one_size``; else the cap ``points`` (None: each setting its own size).
+        self.cloud_points = points if points is not None or not one_size else limit
 
     def setting_points(self, setting: str) -> int:
         """Points in each cloud of ``setting``'s batches."""
-        return self._sizes[setting] if self.points is None else min(self.points, self._sizes[setting])
+        own = self._sizes[setting]
+        return own if self.cloud_points is None else min(self.cloud_points, own)
 
     @property
     def rows(self) -> np.ndarray:
@@ -477,7 +472,7 @@ class MixedPairs:
         """Pairs ``indices`` of ``setting``, thinned to :meth:`setting_points`."""
         ds = self.datasets[setting]
         out = ds.batch(indices, epoch)
-        if self.points is None:
+        if self.cloud_points is None:
             return out
         # A stream of its own per pair: thinning moves none of the pair's other draws.
         return thin(out, self.setting_points(setting), [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]],
