@@ -152,6 +152,22 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
         training.train(TINY, str(workdir), prepared_dir=prepared, progress=False)
 
 
+def test_a_lease_brings_its_compilation_cache_back_within_the_tools_file_limit(tmp_path):
+    """device_stage's xla_cache.tar keeps the largest entries (the train steps) that fit the limit, and the
+    next lease's --cache-from unpacks them where the persistent cache looks."""
+    from dit_jax.release import device_stage
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for name, size in (("jit_step-a-cache", 600), ("jit_step-b-cache", 500), ("jit_register-c-cache", 300),
+                       ("jit_sign-d-cache", 50)):
+        (cache / name).write_bytes(bytes(size))
+    device_stage._cache_out(str(cache), str(tmp_path / "xla_cache.tar"), limit=1000)
+    device_stage._cache_in(str(tmp_path / "xla_cache.tar"), str(tmp_path / "next"))
+    assert sorted(os.listdir(tmp_path / "next")) == ["jit_register-c-cache", "jit_sign-d-cache", "jit_step-a-cache"]
+    assert (tmp_path / "next" / "jit_step-a-cache").read_bytes() == bytes(600)
+
+
 def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run):
     """validate_at_start=False (tiny_run's): no step-0 validation (what a short GPU lease cannot afford to
     compile), the later ones still run. A run stopped before any validation still leaves weights:

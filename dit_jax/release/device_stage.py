@@ -19,7 +19,9 @@ best checkpoint so far is kept, or its latest where it never validated: ``--conf
 skips the validation before the first step, whose compiling ate most of a 15-minute lease), and writes to
 ``--out`` for each run one ``NAME.tar`` (``best/`` or ``checkpoints/``,
 ``metrics.jsonl``, ``train_config.json``: what ``dit-ship-weights`` and
-``dit_jax.training.export_params`` read) and a log. Each run is ``python train.py``'s ``training.train``
+``dit_jax.training.export_params`` read) and a log, and ``xla_cache.tar``: the persistent compilation cache,
+which the next lease carries back in (``--cache-from``) so that programs of the same shapes load instead of
+compiling. Each run is ``python train.py``'s ``training.train``
 with the given arguments; the data are the packed shapes (:mod:`dit_jax.data.packed`), recorded under the
 directory they were packed from.
 """
@@ -121,12 +123,38 @@ def _bundle(workdir: str, out: str) -> None:
                 tar.add(os.path.join(workdir, name), arcname=name)
 
 
+def _cache_in(tar_path: str, cache_dir: str) -> None:
+    """Unpacks a compilation cache an earlier lease brought back (:func:`_cache_out`) into ``cache_dir``."""
+    os.makedirs(cache_dir, exist_ok=True)
+    with tarfile.open(tar_path) as tar:
+        tar.extractall(cache_dir, filter="data")
+    print(f"compilation cache: {len(os.listdir(cache_dir))} entries from {tar_path}", flush=True)
+
+
+def _cache_out(cache_dir: str, out: str, limit: int = 15 << 20) -> None:
+    """The compilation cache as one tar for the next lease (the programs of the same shapes then load in
+    seconds instead of compiling): the largest entries first (the train steps), as many as fit in ``limit``
+    bytes (the device tool brings back files of at most 16 MiB)."""
+    if not os.path.isdir(cache_dir):
+        return
+    entries = sorted((e for e in os.scandir(cache_dir) if e.is_file()), key=lambda e: -e.stat().st_size)
+    total = 0
+    with tarfile.open(out, "w") as tar:
+        for entry in entries:
+            if total + entry.stat().st_size <= limit:
+                tar.add(entry.path, arcname=entry.name)
+                total += entry.stat().st_size
+    print(f"compilation cache: {total / 2**20:.1f} MiB to {out}", flush=True)
+
+
 def run(args) -> int:
     start = time.time()
     deadline = start + args.seconds
     print(_versions("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "chex", "numpy", "scipy"), flush=True)
     os.makedirs(args.out, exist_ok=True)
     os.makedirs(args.workdir, exist_ok=True)
+    if args.cache_from:
+        _cache_in(args.cache_from, args.compile_cache)
     runs = []
     for spec in args.run:
         name, _, sets = spec.partition(":")
@@ -190,6 +218,7 @@ def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) ->
             _bundle(workdir, os.path.join(args.out, f"{name}.tar"))
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
+    _cache_out(args.compile_cache, os.path.join(args.out, "xla_cache.tar"))
     print(json.dumps(summary, indent=1), flush=True)
     return 0
 
@@ -213,6 +242,8 @@ def main() -> int:
     r.add_argument("--out", required=True, help="bundles and logs")
     r.add_argument("--workdir", default="/tmp/device_stage")
     r.add_argument("--compile-cache", default="/tmp/device_stage_xla")
+    r.add_argument("--cache-from", default=None, metavar="TAR",
+                   help="a compilation cache an earlier lease wrote to --out (xla_cache.tar), carried here")
     r.add_argument("--seconds", type=float, required=True, help="wall-clock budget of the whole command")
     r.add_argument("--run", action="append", required=True, metavar="NAME[:FIELD=VALUE,...]")
     r.add_argument("--steps", type=int, default=None,
