@@ -37,3 +37,16 @@ def test_the_varied_copy_resamples_every_cloud_and_keeps_correspondences_true():
     for s, t, c in zip(out["src"], out["tgt"], out["correspondence"]):
         kept = c >= 0
         np.testing.assert_array_equal(s[kept], t[c[kept]])
+
+
+def test_both_checkpoints_run_the_shipped_weights_model_options():
+    """A candidate exported from training stores the authors' GMCCE defaults in its config; the rule must
+    run it with the options the shipped weights run under, not those."""
+    from dit_jax import configs, registration
+
+    shipped_config = configs.DITConfig().replace(gmcce_threshold=0.9, gmcce_min_keep=0.3, guard_iterations=True)
+    shipped = registration.Registrar({}, shipped_config)
+    settings = shipping_rule.inference_settings(shipped)
+    candidate = registration.Registrar({}, configs.DITConfig(), settings)
+    assert candidate.config == shipped.config
+    assert settings.refine == "none" and not settings.rotation_search

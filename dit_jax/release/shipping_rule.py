@@ -5,7 +5,8 @@
 
 Both checkpoints register the same held-out validation pairs (the training split's held-out shapes,
 categories 0-19, :func:`dit_jax.training.validation_batches`; never a test pair) through the pipeline with
-the shipped weights' inference settings, unrefined: what the network and its GMCCE iterations give. The pairs
+the shipped weights' inference settings and model options (:func:`inference_settings`), unrefined: what the
+network and its GMCCE iterations give. The pairs
 come twice: as the settings draw them from ModelNet40's points ("own"), and with every cloud resampled by a
 sampler drawn per cloud (:data:`dit_jax.data.pairs.SAMPLERS`: uniform, a density gradient, farthest-point;
 "varied"), so that a model that learned one sampling pattern is caught. The candidate passes where, on each
@@ -21,7 +22,7 @@ import os
 
 import numpy as np
 
-from dit_jax import geometry, registration, training
+from dit_jax import geometry, pipeline, registration, training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
 
@@ -32,6 +33,15 @@ SAMPLINGS = ("own", "varied")
 #: Summed share within :data:`RIGHT_DEG` the hard settings must gain, and the most any one may lose.
 GAIN, LOSS = 0.15, 0.1
 RIGHT_DEG = 5.0
+
+
+def inference_settings(shipped: registration.Registrar) -> pipeline.InferenceSettings:
+    """The shipped weights' inference settings, unrefined, with every model option they run under (GMCCE
+    threshold, kept share, guard, iterations, precision) written out: a checkpoint stores some of them in its
+    model config, so without this a candidate exported from training would run its own (the authors'
+    defaults) instead."""
+    options = {name: getattr(shipped.config, name) for name in pipeline.MODEL_OVERRIDES}
+    return shipped.settings.replace(refine="none", rotation_search=False, **options)
 
 
 def resampled(batch: dict, points: int, seed: int = 0) -> dict:
@@ -93,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     shipped = registration.load(args.shipped)
-    settings = shipped.settings.replace(refine="none", rotation_search=False)
     candidate = registration.load(args.candidate)
+    settings = inference_settings(shipped)
     registrars = {"shipped": registration.Registrar(shipped.params, shipped.config, settings),
                   "candidate": registration.Registrar(candidate.params, candidate.config, settings)}
     batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs)
