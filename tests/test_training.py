@@ -330,6 +330,26 @@ def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path
     assert training.TrainConfig.from_json(legacy).model == configs.cpu("clean").replace(n_blocks=1)
 
 
+def test_the_shipped_recipe_files_are_what_trained_the_shipped_weights():
+    """configs/shipped/runN.py gives the config the shipped weights record for run N (the last run in
+    ``train_config``, each earlier one under ``trained_from``), up to where the weights started from: the
+    records hold that path as it was on the training machine."""
+    from dit_jax import checkpoint, registration
+
+    extra, records = checkpoint.read_extra(registration.shipped_weights()), []
+    while extra:
+        records.append(extra.get("train_config"))
+        extra = extra.get("trained_from")
+    runs = sorted((ROOT / "configs" / "shipped").glob("run*.py"), key=lambda p: int(p.stem[3:]))
+    assert len(records) == len(runs)  # run 0 (not kept) records nothing
+    for path, record in zip(reversed(runs), records):
+        recorded, recipe = training.TrainConfig.from_json(record), training.load_config(path)
+        if not recipe.settings:  # one setting: how a mix would be thinned does not apply
+            recipe = dataclasses.replace(recipe, mix_one_size=recorded.mix_one_size)
+        assert dataclasses.replace(recorded, init_from=None) == dataclasses.replace(recipe, init_from=None), path
+        assert recorded.init_from and recipe.init_from, path
+
+
 def test_unseen_split_validates_on_held_out_training_categories(prepared):
     """With --unseen, validation pairs come from held-out shapes of categories 0-19 (never empty, never the
     test categories)."""
