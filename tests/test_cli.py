@@ -369,10 +369,10 @@ def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_cl
 def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     """The README's example (two scan-like views of a chair sampled independently, true motion in
     examples/chair_truth.txt): --refine icp lands closer to the truth than the network alone, within 1.5
-    degrees, and --plot writes a PNG. The verdict trusts neither: the two directions of each agree less closely
-    than the shipped thresholds. The network alone (2-3 degrees off, its directions about 9 degrees apart) is
-    "probably wrong" (status 3); DIT+ICP's directions agree within a band of mostly right validation results,
-    so it is "unconfirmed" (status 0), as the README shows. These 400-point clouds get no second candidate."""
+    degrees, and --plot writes a PNG. The network alone (a few degrees off) is not trusted: its directions agree
+    less closely than its threshold, in a band with too few validation results to vouch for it, so it is
+    "probably wrong" (status 3); DIT+ICP's two directions agree within the shipped threshold, so it is
+    "trusted" (status 0), as the README shows. These 400-point clouds get no second candidate."""
     from dit_jax.geometry import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
@@ -386,7 +386,7 @@ def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
         errors[refine] = rotation_angle_deg(np.asarray(report["matrix"])[:3, :3].T @ truth[:3, :3])
         assert report["refinement"] == (None if refine == "none" else "icp")
         if refine == "icp":
-            assert report["verdict"] == "unconfirmed" and report["candidate_agreement_deg"] is None
+            assert report["verdict"] == "trusted" and report["candidate_agreement_deg"] is None
         assert (tmp_path / f"{refine}.png").read_bytes()[:4] == b"\x89PNG"
     assert errors["icp"] < errors["none"] - 1.0 and errors["icp"] < 1.5, errors
 

@@ -214,7 +214,7 @@ def test_the_pages_have_blocks_and_their_outputs():
     """The runner finds what it should: the README's set-up commands, the register example and its output."""
     readme = [b for b in BLOCKS if b.page == "README.md"]
     assert readme[0].code.startswith("python3 -m venv") and "ci" in readme[1].directives
-    assert any(b.output and "unconfirmed" in b.output for b in readme)
+    assert any(b.output and "trusted" in b.output for b in readme)
     assert same_output("a 1.000 deg, 2.50 s\n", "a 1.0004 deg, 9.99 s\n")[0]
     assert not same_output("a 1.000 deg\n", "a 1.1 deg\n")[0]
 
