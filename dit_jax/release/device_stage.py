@@ -131,10 +131,11 @@ def _cache_in(tar_path: str, cache_dir: str) -> None:
     print(f"compilation cache: {len(os.listdir(cache_dir))} entries from {tar_path}", flush=True)
 
 
-def _cache_out(cache_dir: str, out: str, limit: int = 15 << 20) -> None:
+def _cache_out(cache_dir: str, out: str, limit: int = 8 << 20) -> None:
     """The compilation cache as one tar for the next lease (the programs of the same shapes then load in
     seconds instead of compiling): the largest entries first (the train steps), as many as fit in ``limit``
-    bytes (the device tool brings back files of at most 16 MiB)."""
+    bytes. The next lease carries it beside the packed shapes and the working tree, 64 MiB in all: 8 MiB holds
+    the `cpu` recipe's two train steps and leaves that room."""
     if not os.path.isdir(cache_dir):
         return
     entries = sorted((e for e in os.scandir(cache_dir) if e.is_file()), key=lambda e: -e.stat().st_size)
