@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -164,6 +165,54 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
     rows = q.shape[0] if chunk <= 0 else min(chunk, q.shape[0])
     heads_first = lambda a: jnp.swapaxes(a, 0, 1)
     return heads_first(_attention(heads_first(q), heads_first(k), heads_first(v), rows, divisor, precision))
+
+
+def stack_of_layers(parent: nn.Module, template: nn.Module, names: Sequence[str], x: jax.Array,
+                    call: Callable[[nn.Module, jax.Array], jax.Array], *, remat: bool = False,
+                    dropout: bool = False, collect: bool = False) -> tuple[jax.Array, jax.Array | None]:
+    """Layers of one structure and shape applied in turn, ``x = call(layer, x)``, as one ``lax.scan``.
+
+    Each layer keeps its parameters under its own name in ``parent`` (``names``), as if it were a separate
+    submodule; the scan runs over them stacked along a new leading axis, so a compiled program holds one copy
+    of the layer however many there are (compilation and tracing time grow with the program, not the
+    arithmetic). At initialisation the layers run one by one, so each draws its parameters exactly as a
+    separately called submodule would.
+
+    Args:
+      parent: the module that owns the layers' parameters; call from its compact method.
+      template: an unbound layer (``parent=None``) with the layers' attributes.
+      names: the layers' names, in the order they apply.
+      x: the input of the first layer.
+      call: ``call(layer, x)`` runs one layer on its input, e.g. ``lambda layer, x: layer(x, memory)``;
+        closures over other arrays are fine.
+      remat: rematerialise each layer in the backward pass (``jax.checkpoint`` around the scan's body).
+      dropout: each layer gets its own key of the ``dropout`` stream (``parent.make_rng``, folded with the
+        layer's index).
+      collect: also return every layer's output, stacked (L, ...).
+
+    Returns:
+      The last layer's output, and the stacked outputs where ``collect`` (else None).
+    """
+    if parent.is_initializing():
+        outputs = []
+        for name in names:
+            x = call(template.clone(parent=parent, name=name), x)
+            outputs.append(x)
+        return x, (jnp.stack(outputs) if collect else None)
+    params = parent.variables["params"]
+    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *(params[name] for name in names))
+    key = parent.make_rng("dropout") if dropout else None
+
+    def body(carry, layer):
+        layer_params, index = layer
+        rngs = {} if key is None else {"dropout": jax.random.fold_in(key, index)}
+        out = template.apply({"params": layer_params}, carry, method=call, rngs=rngs)
+        return out, (out if collect else None)
+
+    if remat:
+        body = jax.checkpoint(body)
+    x, outputs = jax.lax.scan(body, x, (stacked, jnp.arange(len(names))))
+    return x, outputs
 
 
 def layer_norm(name: str, eps: float = 1e-5) -> nn.LayerNorm:

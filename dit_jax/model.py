@@ -96,14 +96,30 @@ class DIT(nn.Module):
         return self.interact(self.embed(src), self.embed(tgt), deterministic)
 
 
-@functools.partial(jax.jit, static_argnames=("config", "n_points"))
+#: DITConfig fields that change what the network computes but not the parameters it holds: configs that
+#: differ only in these initialise through one compiled program. (A field not named here counts as shaping
+#: the parameters, so a new one can cost a compilation, never a wrong tree.)
+_COMPUTE_ONLY_FIELDS = ("n_iters", "gmcce_k", "gmcce_sharpness", "gmcce_threshold", "gmcce_min_dist2",
+                        "gmcce_min_keep", "guard_iterations", "fitness_radius", "temp_factor", "dropout",
+                        "attention_chunk", "compute_dtype", "precision", "remat")
+
+
 def init(key: jax.Array, config: DITConfig, n_points: int | None = None) -> Params:
     """Fresh parameters for ``config`` (PyTorch-like initialisation). The tree does not depend on N.
 
-    Jitted: one compiled program (cached on disk like the others) instead of a compilation per operation,
-    which took a fresh process ~9 s for the tiny network; the values are the same bits either way.
+    Configs that differ only in :data:`_COMPUTE_ONLY_FIELDS` get the same parameters from the same key,
+    from one compiled program.
     """
-    n_points = n_points or max(config.k, config.gmcce_k + 1, 32)
+    defaults = DITConfig()
+    structure = config.replace(**{name: getattr(defaults, name) for name in _COMPUTE_ONLY_FIELDS})
+    return _init(key, structure, n_points or max(config.k, 32))
+
+
+@functools.partial(jax.jit, static_argnames=("config", "n_points"))
+def _init(key: jax.Array, config: DITConfig, n_points: int) -> Params:
+    """Jitted: one compiled program (cached on disk like the others) instead of a compilation per operation,
+    which took a fresh process ~9 s for the tiny network; the values are the same bits either way, and do not
+    depend on ``n_points`` (the points only carry shapes through the modules)."""
     points = jax.random.normal(key, (n_points, 3))
     return DIT(config).init(key, points, points)["params"]
 

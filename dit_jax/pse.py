@@ -15,7 +15,7 @@ from flax import linen as nn
 
 from dit_jax import geometry
 from dit_jax.configs import PSE_LAYERS, DITConfig
-from dit_jax.layers import attention, layer_norm, torch_dense
+from dit_jax.layers import attention, layer_norm, stack_of_layers, torch_dense
 
 
 def local_feature_integration(features: jax.Array, knn_idx: jax.Array) -> jax.Array:
@@ -72,15 +72,17 @@ class PSE(nn.Module):
     @nn.compact
     def __call__(self, points: jax.Array, knn_idx: jax.Array) -> jax.Array:
         """points: (N, 3); knn_idx: (N, k) from :func:`geometry.knn`. Returns (N, E)."""
-        tokens = []
-        features = points
-        token_transformer = nn.remat(TokenTransformer) if self.config.remat else TokenTransformer
-        for layer in range(1, PSE_LAYERS + 1):
-            lfi = local_feature_integration(features, knn_idx)
-            features = token_transformer(self.config.token_dim, self.config.pse_heads,
-                                         self.config.attention_chunk, self.config.precision,
-                                         name=f"attention{layer}")(lfi)
-            tokens.append(features)
+        c = self.config
+        settings = (c.token_dim, c.pse_heads, c.attention_chunk, c.precision)
+        lfi = lambda features: local_feature_integration(features, knn_idx)
+        first = (nn.remat(TokenTransformer) if c.remat else TokenTransformer)(*settings, name="attention1")
+        tokens = first(lfi(points))
+        # Layers 2 to 8 all read k T wide inputs: the program holds one scanned layer instead of seven.
+        _, later = stack_of_layers(self, TokenTransformer(*settings, parent=None),
+                                   [f"attention{layer}" for layer in range(2, PSE_LAYERS + 1)], tokens,
+                                   lambda layer, features: layer(lfi(features)), remat=c.remat, collect=True)
+        tokens = jnp.concatenate([tokens[None], later])  # (8, N, T), token l of every point
+        tokens = jnp.moveaxis(tokens, 0, 1).reshape(points.shape[0], -1)  # (N, 8 T), token l at columns l T...
         # The paper writes ReLU here; the authors' code (and so their weights) use leaky ReLU.
-        out = jax.nn.leaky_relu(jnp.concatenate(tokens, axis=-1), negative_slope=0.01)
+        out = jax.nn.leaky_relu(tokens, negative_slope=0.01)
         return layer_norm("norm")(out)

@@ -1,9 +1,12 @@
-"""Shared layers: blocked attention equals attention over all rows, in value and in gradient."""
+"""Shared layers: blocked attention equals attention over all rows, in value and in gradient; a scanned stack
+of layers equals the layers applied one by one."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
+from flax import linen as nn
 
 from dit_jax import layers
 
@@ -82,3 +85,46 @@ def test_clip_inward_has_the_value_of_clip_and_a_gradient_back_into_range():
     down = jax.grad(lambda v: jnp.sum(layers.clip_inward(v, 0.01, 100.0)))(x)
     np.testing.assert_array_equal(np.asarray(down), [0.0, 0.0, 1.0, 1.0, 1.0])
     assert not np.any(np.asarray(jax.grad(lambda v: -jnp.sum(jnp.clip(v, 0.01, 100.0)))(x))[:2])
+
+
+class _Layer(nn.Module):
+    """A residual dense layer with dropout: the smallest layer with parameters, an input and randomness."""
+
+    @nn.compact
+    def __call__(self, x, deterministic=True):
+        hidden = nn.Dropout(0.5)(jnp.tanh(nn.Dense(x.shape[-1], name="dense")(x)), deterministic=deterministic)
+        return x + hidden
+
+
+class _Stack(nn.Module):
+    remat: bool = False
+
+    @nn.compact
+    def __call__(self, x, deterministic=True):
+        return layers.stack_of_layers(self, _Layer(parent=None), ["a", "b", "c"], x,
+                                      lambda layer, x: layer(x, deterministic), remat=self.remat,
+                                      dropout=not deterministic, collect=True)
+
+
+def test_a_stack_of_layers_is_its_layers_applied_in_turn_each_with_its_own_parameters():
+    x = jax.random.normal(jax.random.PRNGKey(0), (5, 6))
+    params = _Stack().init(jax.random.PRNGKey(1), x)["params"]
+    assert sorted(params) == ["a", "b", "c"] and params["a"]["dense"]["kernel"].shape == (6, 6)
+    # At initialisation each layer draws its parameters as a submodule of that name would.
+    expected = x
+    outputs = []
+    for name in ("a", "b", "c"):
+        expected = _Layer().apply({"params": params[name]}, expected)
+        outputs.append(expected)
+    last, stacked = _Stack().apply({"params": params}, x)
+    np.testing.assert_allclose(np.asarray(last), np.asarray(expected), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(stacked), np.asarray(jnp.stack(outputs)), rtol=1e-6, atol=1e-6)
+    # With dropout each layer draws its own mask; rematerialised, the same masks and gradients.
+    rngs = {"dropout": jax.random.PRNGKey(2)}
+    loss = lambda p, remat: jnp.sum(_Stack(remat).apply({"params": p}, x, False, rngs=rngs)[0] ** 2)
+    dropped = np.asarray(_Stack().apply({"params": params}, x, False, rngs=rngs)[1])
+    hidden = np.diff(np.concatenate([np.asarray(x)[None], dropped]), axis=0)  # each layer's own branch
+    assert (hidden == 0).any() and not np.array_equal(hidden[0] == 0, hidden[1] == 0)
+    grads, grads_remat = (jax.grad(loss)(params, remat) for remat in (False, True))
+    jax.tree.map(lambda g, h: np.testing.assert_allclose(np.asarray(h), np.asarray(g), rtol=1e-5, atol=1e-6),
+                 grads, grads_remat)

@@ -149,6 +149,19 @@ def test_attention_in_blocks_changes_nothing(params):
 
 
 
+def test_configs_that_hold_the_same_parameters_initialise_alike_from_one_program(params):
+    """Fields that change only what the network computes leave the initial parameters bit for bit, and do not
+    compile init again; a field that shapes them does."""
+    before = model._init._cache_size()
+    computing = CONFIG.replace(n_iters=1, gmcce_k=5, gmcce_threshold=0.5, guard_iterations=True, temp_factor=50.0,
+                               dropout=0.0, attention_chunk=16, compute_dtype="bfloat16", precision="tf32",
+                               remat=True)
+    jax.tree.map(np.testing.assert_array_equal, model.init(jax.random.key(0), computing), params)
+    assert model._init._cache_size() == before
+    wider = jax.eval_shape(lambda: model.init(jax.random.key(0), CONFIG.replace(k=CONFIG.k + 1)))
+    assert jax.tree.map(lambda a: a.shape, wider) != jax.tree.map(lambda a: a.shape, params)
+
+
 def test_remat_gives_the_same_gradients_with_dropout(params):
     """Rematerialised blocks (``remat=True``) recompute the same forward pass, dropout masks included, so the
     training gradients are those of the stored activations; the parameter tree is the same too. (One
@@ -162,7 +175,7 @@ def test_remat_gives_the_same_gradients_with_dropout(params):
 
     plain = CONFIG.replace(dropout=0.2)
     remat = plain.replace(remat=True)
-    assert jax.tree.structure(jax.eval_shape(model.init, jax.random.key(0), remat)) == jax.tree.structure(params)
+    assert jax.tree.structure(jax.eval_shape(lambda: model.init(jax.random.key(0), remat))) == jax.tree.structure(params)
     value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=1)  # under jit, as training runs it
     value, grads = value_and_grad(params, plain)
     value_r, grads_r = value_and_grad(params, remat)
