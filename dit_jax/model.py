@@ -117,9 +117,9 @@ def init(key: jax.Array, config: DITConfig, n_points: int | None = None) -> Para
 
 @functools.partial(jax.jit, static_argnames=("config", "n_points"))
 def _init(key: jax.Array, config: DITConfig, n_points: int) -> Params:
-    """Jitted: one compiled program (cached on disk like the others) instead of a compilation per operation,
-    which took a fresh process ~9 s for the tiny network; the values are the same bits either way, and do not
-    depend on ``n_points`` (the points only carry shapes through the modules)."""
+    """Jitted: one compiled program (cached on disk like the others) instead of a compilation per operation;
+    the values are the same bits either way, and do not depend on ``n_points`` (the points only carry shapes
+    through the modules)."""
     points = jax.random.normal(key, (n_points, 3))
     return DIT(config).init(key, points, points)["params"]
 

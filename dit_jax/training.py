@@ -702,9 +702,11 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
 
     def run_validation(step: int, epoch: int) -> None:
         nonlocal val_metrics, best_val
-        # On the host, then on this process's default device: the registration program is the one a
-        # single-device run compiles (and finds in the compilation cache), whatever the mesh.
-        val_metrics = validate(jax.device_get(state.params), val_ds, model_config, config.val_pairs)
+        # Through the host onto this process's first device, once per validation (not per batch): the
+        # registration program is the one a single-device run compiles (and finds in the compilation cache),
+        # whatever the mesh.
+        params = jax.device_put(jax.device_get(state.params), jax.local_devices()[0])
+        val_metrics = validate(params, val_ds, model_config, config.val_pairs)
         log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
         line = (f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
                 f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "

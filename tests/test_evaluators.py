@@ -1,6 +1,5 @@
 import json
 import os
-import sys
 
 import jax
 import numpy as np
@@ -152,7 +151,6 @@ def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
 
 
 def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import evaluate
 
     assert evaluate.main(["--checkpoint", str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
@@ -160,7 +158,6 @@ def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
 
 
 def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
-    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     import evaluate
     from dit_jax import registration
 

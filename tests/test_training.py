@@ -213,7 +213,6 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_
     proc.wait()
     assert (workdir / "checkpoints" / "4").exists(), "the run made no checkpoint before the kill"
     # Resumed by train.py's main in this process: the same command line, without a second interpreter's start.
-    sys.path.insert(0, str(ROOT))
     import train
 
     assert train.main([*cmd[2:], "--resume"]) == 0
@@ -284,7 +283,6 @@ def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_coun
 def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
     """``--config FILE`` and ``--config.FIELD=VALUE`` (``--config.model.FIELD`` for the network): typed, and
     unknown fields or values of the wrong type end in one line and status 2."""
-    sys.path.insert(0, str(ROOT))
     import train
 
     _, config, workdir = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.lr=0.5",
@@ -308,7 +306,6 @@ def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
 
 
 def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
-    sys.path.insert(0, str(ROOT))
     import train
 
     config = dataclasses.replace(TINY, lr=0.123, model=TINY.model.replace(n_blocks=2))
