@@ -220,38 +220,58 @@ def init_state(config: TrainConfig, optimizer: optax.GradientTransformation) -> 
                       rng=key, skipped=jnp.zeros((), jnp.int32))
 
 
-def _batch_loss(params, batch, model_config: DITConfig, config: TrainConfig, key, devices: int = 1):
-    """Mean loss over the batch and the mean of each term and error.
+def _pair_loss(params, pair, model_config: DITConfig, config: TrainConfig):
+    """One pair's loss and its terms and errors; ``pair`` is ``(src, tgt, R, t, dropout_key)``."""
+    src, tgt, rotation_gt, translation_gt, pair_key = pair
+    its = model.unroll(params, src, tgt, model_config, config.train_iters,
+                       differentiable=config.differentiable, dropout_key=pair_key)
+    total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt, match_radius=config.match_radius,
+                                   correspondence_weight=config.correspondence_weight)
+    terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
+    terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
+    return total, terms
+
+
+def batch_loss_and_grads(params, batch, model_config: DITConfig, config: TrainConfig, key, devices: int = 1):
+    """``((loss, terms), grads)``: the batch's mean loss, the mean of each term and error, and the gradient
+    of the mean loss with respect to ``params``.
 
     The batch (B pairs) splits into ``devices`` equal parts, one per device of the mesh (vmapped, so the
-    sharded axis stays sharded). On a CPU each part's pairs run one after another (``lax.map``): one pair's
-    arrays stay in cache, which runs faster than the vmapped batch; on accelerators they are vmapped.
+    sharded axis stays sharded); pair ``i`` draws its dropout from ``split(key, B)[i]``. On a CPU each part's
+    pairs run one after another, each pair's forward and backward pass together (a scan that adds up the
+    gradients): one pair's arrays stay in cache, and no pair's activations wait for the others' backward
+    pass. On accelerators the pairs are vmapped and the batch's mean loss differentiated at once.
     """
-
-    def one(src, tgt, rotation_gt, translation_gt, pair_key):
-        its = model.unroll(params, src, tgt, model_config, config.train_iters,
-                           differentiable=config.differentiable, dropout_key=pair_key)
-        total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt,
-                                       match_radius=config.match_radius,
-                                       correspondence_weight=config.correspondence_weight)
-        terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
-        terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
-        return total, terms
-
-    def part(pairs):
-        if jax.default_backend() == "cpu":
-            return jax.lax.map(lambda pair: one(*pair), pairs)
-        return jax.vmap(one)(*pairs)
-
     n_pairs = batch["src"].shape[0]
-    keys = jax.random.split(key, n_pairs)
-    pairs = (batch["src"], batch["tgt"], batch["R"], batch["t"], keys)
-    if devices == 1:  # the same sums, without a batching pass over the whole traced loss
-        totals, terms = part(pairs)
-    else:
-        by_device = jax.tree.map(lambda a: a.reshape(devices, n_pairs // devices, *a.shape[1:]), pairs)
-        totals, terms = jax.vmap(part)(by_device)
-    return jnp.mean(totals), jax.tree.map(jnp.mean, terms)
+    pairs = (batch["src"], batch["tgt"], batch["R"], batch["t"], jax.random.split(key, n_pairs))
+
+    def by_device(part):  # the parts' results, one part per device
+        if devices == 1:  # the same sums, without a batching pass over the whole traced loss
+            return part(pairs)
+        return jax.vmap(part)(jax.tree.map(lambda a: a.reshape(devices, n_pairs // devices, *a.shape[1:]), pairs))
+
+    if jax.default_backend() != "cpu":
+        def mean_loss(p):
+            totals, terms = by_device(lambda part_pairs: jax.vmap(lambda *pair: _pair_loss(p, pair, model_config,
+                                                                                            config))(*part_pairs))
+            return jnp.mean(totals), jax.tree.map(jnp.mean, terms)
+
+        return jax.value_and_grad(mean_loss, has_aux=True)(params)
+
+    pair_value_and_grad = jax.value_and_grad(_pair_loss, has_aux=True)
+
+    def part(part_pairs):
+        def add_pair(grad_sum, pair):
+            (total, terms), grads = pair_value_and_grad(params, pair, model_config, config)
+            return jax.tree.map(jnp.add, grad_sum, grads), (total, terms)
+
+        return jax.lax.scan(add_pair, jax.tree.map(jnp.zeros_like, params), part_pairs)
+
+    grad_sums, (totals, terms) = by_device(part)
+    if devices > 1:
+        grad_sums = jax.tree.map(lambda g: jnp.sum(g, axis=0), grad_sums)
+    grads = jax.tree.map(lambda g: g / n_pairs, grad_sums)
+    return (jnp.mean(totals), jax.tree.map(jnp.mean, terms)), grads
 
 
 def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation, mesh: Mesh) -> Callable:
@@ -264,8 +284,8 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
 
     def step(state: TrainState, batch):
         key = jax.random.fold_in(state.rng, state.step)
-        (loss, terms), grads = jax.value_and_grad(_batch_loss, has_aux=True)(
-            state.params, batch, model_config, config, key, mesh.devices.size)
+        (loss, terms), grads = batch_loss_and_grads(state.params, batch, model_config, config, key,
+                                                    mesh.devices.size)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         finite = jnp.isfinite(loss) & jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))

@@ -493,8 +493,9 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
 
 
 def test_the_batch_loss_is_the_mean_of_each_pairs_loss():
-    """The batch runs as one part per device, each part's pairs one after another (on a CPU); its loss and
-    gradients are the mean of each pair's on its own, with each pair's own dropout key."""
+    """The batch runs as one part per device, each part's pairs one after another (on a CPU, each pair's
+    gradients added up as it goes); its loss and gradients are the mean of each pair's on its own, with each
+    pair's own dropout key."""
     config = dataclasses.replace(TINY_RECIPE, batch_size=4)
     model_config = config.model_config()
     params = training.init_state(config, training.make_optimizer(config, 1)).params
@@ -518,8 +519,8 @@ def test_the_batch_loss_is_the_mean_of_each_pairs_loss():
     mean_grads = jax.tree.map(lambda *g: sum(g) / 4, *[g for _, g in singles])
     scale = max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(mean_grads))
     # Two parts of two pairs (one device runs one part of four in every other test of this file).
-    batched = jax.jit(jax.value_and_grad(lambda p, b: training._batch_loss(p, b, model_config, config, key, 2)[0]))
-    value, grads = batched(params, batch)
+    batched = jax.jit(lambda p, b: training.batch_loss_and_grads(p, b, model_config, config, key, 2))
+    (value, _), grads = batched(params, batch)
     np.testing.assert_allclose(float(value), expected, rtol=1e-5)
     for got, want in zip(jax.tree.leaves(grads), jax.tree.leaves(mean_grads)):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-4 * scale)
