@@ -676,18 +676,21 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     primary = is_primary()
     log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
 
-    state = init_state(config, optimizer)
     best_val = math.inf
     latest = last_mgr.latest_step()
     if latest is not None:
         if not resume:
             raise TrainCheckpointError(f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
                                        "continue, or choose a new --workdir")
-        state, meta = _restore(last_mgr, latest, jax.eval_shape(lambda: state), config)
+        # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
+        # overwritten, and a checkpoint of another model is refused before anything is compiled.
+        abstract = jax.eval_shape(lambda: init_state(config, optimizer))
+        state, meta = _restore(last_mgr, latest, abstract, config)
         best_val = meta.get("best_val", math.inf)
         if primary:
             _truncate_log(log_path, latest)
     else:
+        state = init_state(config, optimizer)
         if config.init_from:
             state = _initialise_from(state, config.init_from, optimizer)
         if primary:

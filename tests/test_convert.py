@@ -12,7 +12,11 @@ def _equal_trees(a, b):
 
 def test_round_trip_through_the_authors_names():
     config = configs.tiny().replace(n_blocks=3, n_heads=2)
-    params = model.init(jax.random.key(1), config)
+    # Distinct random values in the network's shapes (a swapped or untransposed weight shows), without
+    # compiling this config's initialisation.
+    rng = np.random.default_rng(1)
+    shapes = jax.eval_shape(lambda: model.init(jax.random.key(1), config))
+    params = jax.tree.map(lambda a: rng.standard_normal(a.shape).astype(a.dtype), shapes)
     state_dict = convert.to_torch_state_dict(params, config)
     assert state_dict["attention.model.decoder.layers.2.src_attn.linears.3.weight"].shape == (32, 32)
     assert _equal_trees(convert.from_torch_state_dict(state_dict, config), params)
