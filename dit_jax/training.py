@@ -234,7 +234,8 @@ def _pair_loss(params, pair, model_config: DITConfig, config: TrainConfig):
 
 def batch_loss_and_grads(params, batch, model_config: DITConfig, config: TrainConfig, key, devices: int = 1):
     """``((loss, terms), grads)``: the batch's mean loss, the mean of each term and error, and the gradient
-    of the mean loss with respect to ``params``.
+    of the mean loss with respect to ``params``. ``batch``: ``src`` (B, N, 3), ``tgt`` (B, M, 3), ``R`` (B, 3, 3),
+    ``t`` (B, 3).
 
     The batch (B pairs) splits into ``devices`` equal parts, one per device of the mesh (vmapped, so the
     sharded axis stays sharded); pair ``i`` draws its dropout from ``split(key, B)[i]``. On a CPU each part's
