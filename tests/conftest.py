@@ -163,7 +163,6 @@ _SLOW_MODULES = ("test_training.py",)
 #: next, longest first, so that neither worker is left with one of them while the other has nothing to do.
 _LONG_TESTS = (
     "test_other_widths_depths_and_point_counts_are_checked",
-    "test_real_scans_refined_by_icp_land_within_a_few_degrees",
     "test_remat_gives_the_same_gradients_with_dropout",
     "test_rotation_search_registers_pairs_far_beyond_the_training_range",
     "test_icp_refinement_improves_independently_sampled_pairs_and_updates_the_verdict",
