@@ -70,16 +70,14 @@ def _from_row_blocks(x: jax.Array, n: int) -> jax.Array:
     return jnp.moveaxis(x, 0, 1).reshape(heads, blocks * rows, width)[:, :n]
 
 
-def _attention_forward(q, k, v, rows: int, divisor: float | None, precision: str):
+def _attention_forward(q, k, v, rows: int, precision: str):
     """Heads-first attention q (h, N, d), k (h, M, d), v (h, M, e) -> out (h, N, e) and the logits'
-    log-sum-exp (h, N), ``rows`` query rows at a time."""
+    log-sum-exp (h, N), ``rows`` query rows at a time. ``q`` comes already divided by the divisor."""
     low = q.dtype != jnp.float32
 
     def block(_, q_rows):
         logits = einsum("hnd,hmd->hnm", q_rows, k, precision=precision,
                         preferred_element_type=jnp.float32 if low else None)
-        if divisor is not None:
-            logits = logits / divisor
         peak = jnp.max(logits, axis=-1, keepdims=True)
         weights = jnp.exp(logits - peak)
         total = jnp.sum(weights, axis=-1, keepdims=True)
@@ -95,17 +93,17 @@ def _attention_forward(q, k, v, rows: int, divisor: float | None, precision: str
     return _from_row_blocks(out, n), _from_row_blocks(lse[..., None], n)[..., 0]
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5))
-def _attention(q, k, v, rows: int, divisor: float | None, precision: str):
-    return _attention_forward(q, k, v, rows, divisor, precision)[0]
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def _attention(q, k, v, rows: int, precision: str):
+    return _attention_forward(q, k, v, rows, precision)[0]
 
 
-def _attention_fwd(q, k, v, rows, divisor, precision):
-    out, lse = _attention_forward(q, k, v, rows, divisor, precision)
+def _attention_fwd(q, k, v, rows, precision):
+    out, lse = _attention_forward(q, k, v, rows, precision)
     return out, (q, k, v, out, lse)
 
 
-def _attention_bwd(rows, divisor, precision, residuals, d_out):
+def _attention_bwd(rows, precision, residuals, d_out):
     # The softmax is recomputed from the saved log-sum-exp instead of stored: the (h, N, M) weights, the
     # largest arrays of the network, are never kept between the passes.
     q, k, v, out, lse = residuals
@@ -119,14 +117,10 @@ def _attention_bwd(rows, divisor, precision, residuals, d_out):
         d_k, d_v = carry
         q_rows, d_out_rows, lse_rows, row_dot_rows = xs
         logits = einsum("hmd,hnd->hmn", k, q_rows, precision=precision, preferred_element_type=jnp.float32)
-        if divisor is not None:
-            logits = logits / divisor
         weights = jnp.exp(logits - lse_rows[:, None, :])
         d_v = d_v + einsum("hmn,hne->hme", weights, d_out_rows, precision=precision)
         d_weights = einsum("hme,hne->hmn", f32(v), d_out_rows, precision=precision)
         d_logits = weights * (d_weights - row_dot_rows[:, None, :])
-        if divisor is not None:
-            d_logits = d_logits / divisor
         d_k = d_k + einsum("hmn,hnd->hmd", d_logits, f32(q_rows), precision=precision)
         d_q = einsum("hnm,hmd->hnd", jnp.swapaxes(d_logits, 1, 2), f32(k), precision=precision)
         return (d_k, d_v), d_q
@@ -151,7 +145,8 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
               chunk: int = 0, *, precision: str) -> jax.Array:
     """softmax(q k^T / divisor) v for each head: q (N, h, d), k (M, h, d), v (M, h, d_v) -> (N, h, d_v).
 
-    ``divisor`` is a Python number (a constant of the program).
+    ``divisor`` is a Python number (a constant of the program); it divides ``q`` before the product, which
+    spares a pass over the (h, N, M) logits in each direction (the same logits to float rounding).
 
     The products run heads-first, (h, N, d) x (h, M, d), which XLA's CPU backend runs faster than the
     points-first layout. The backward pass is written out (as in FlashAttention): it keeps q, k, v, the
@@ -163,8 +158,10 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
     :func:`dot_precision`.
     """
     rows = q.shape[0] if chunk <= 0 else min(chunk, q.shape[0])
+    if divisor is not None:
+        q = q * jnp.asarray(1.0 / divisor, q.dtype)
     heads_first = lambda a: jnp.swapaxes(a, 0, 1)
-    return heads_first(_attention(heads_first(q), heads_first(k), heads_first(v), rows, divisor, precision))
+    return heads_first(_attention(heads_first(q), heads_first(k), heads_first(v), rows, precision))
 
 
 def stack_of_layers(parent: nn.Module, template: nn.Module, names: Sequence[str], x: jax.Array,
