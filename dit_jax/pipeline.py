@@ -743,9 +743,16 @@ def _fitness(p: Normalised, rotation: np.ndarray, translation: np.ndarray, confi
     """The fitness of a motion in the caller's units, as the model measures it (:func:`dit_jax.geometry.fitness`
     on the sampled clouds)."""
     moved = ((p.src[p.src_indices] @ rotation.T + translation) - p.tgt_centre) / p.scale
-    tgt_j = jnp.asarray(p.tgt_n)
-    return float(geometry.fitness(jnp.asarray(moved, jnp.float32), tgt_j,
-                                  config.fitness_radius * geometry.spacing(tgt_j)))
+    return float(_fitness_within_spacings(np.asarray(moved, np.float32), np.asarray(p.tgt_n, np.float32),
+                                          np.float32(config.fitness_radius)))
+
+
+@jax.jit
+def _fitness_within_spacings(moved: jax.Array, tgt: jax.Array, spacings: jax.Array) -> jax.Array:
+    """:func:`dit_jax.geometry.fitness` of moved (N, 3) on tgt (M, 3) within ``spacings`` of the target's
+    point spacing: one compiled program per pair of cloud sizes, where op-by-op dispatch compiles each of
+    its operations."""
+    return geometry.fitness(moved, tgt, spacings * geometry.spacing(tgt))
 
 
 def second_candidate(p: Normalised, result: Result, refined: Refined, settings: InferenceSettings,

@@ -443,12 +443,15 @@ def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, mode
     return _validation_errors(params, dataset.batch, min(n_pairs, len(dataset)), model_config, batch_size)
 
 
+#: :func:`dit_jax.losses.match_labels` of a batch, one compiled program (validation runs outside a jit).
+_batch_match_labels = jax.jit(jax.vmap(losses.match_labels))
+
+
 def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, model_config: DITConfig,
                        batch_size: int, gmcce_threshold: np.ndarray | None = None) -> dict[str, float]:
     """:func:`validate`'s figures for pairs ``batch_of(indices)``, indices in ``range(n)``."""
     errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",
                                                "network_translation_error", "network_match_accuracy")}
-    match_labels = jax.vmap(losses.match_labels)
     size = min(batch_size, n)
     for start in range(0, n, size):
         real = min(size, n - start)
@@ -461,7 +464,7 @@ def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, m
         for prefix, (r, t) in first.items():
             errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"]))[:real])
             errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"]))[:real])
-        labels = match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
+        labels = _batch_match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
         errors["network_match_accuracy"].append(np.asarray(labels)[:real].reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 

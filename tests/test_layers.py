@@ -11,6 +11,11 @@ from flax import linen as nn
 from dit_jax import layers
 
 
+#: attention as a caller jits it: one compiled program per setting, where op-by-op dispatch would compile
+#: each of its operations.
+_attention = jax.jit(layers.attention, static_argnames=("divisor", "chunk", "precision"))
+
+
 @pytest.mark.parametrize("chunk", [0, 7, 16, 50])
 def test_blocked_attention_is_attention(chunk):
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
@@ -18,11 +23,12 @@ def test_blocked_attention_is_attention(chunk):
     k = jax.random.normal(keys[1], (30, 4, 8))
     v = jax.random.normal(keys[2], (30, 4, 6))
     expected = jnp.einsum("hnm,mhd->nhd", jax.nn.softmax(jnp.einsum("nhd,mhd->hnm", q, k) / 2.0, axis=-1), v)
-    out = layers.attention(q, k, v, 2.0, chunk=chunk, precision="highest")
+    out = _attention(q, k, v, 2.0, chunk=chunk, precision="highest")
     assert out.shape == (50, 4, 6)
     np.testing.assert_allclose(np.asarray(out), np.asarray(expected), atol=1e-5)
     loss = lambda q, k, v, c: jnp.sum(jnp.sin(layers.attention(q, k, v, 2.0, chunk=c, precision="highest")))
-    for a, b in zip(jax.grad(loss, argnums=(0, 1, 2))(q, k, v, 0), jax.grad(loss, argnums=(0, 1, 2))(q, k, v, chunk)):
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
+    for a, b in zip(grad(q, k, v, 0), grad(q, k, v, chunk)):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5)
 
 
@@ -46,10 +52,10 @@ def test_attention_gradients_are_those_of_the_formula(head_dims, chunk):
     ours = lambda q, k, v: jnp.sum(weights * jnp.tanh(layers.attention(q, k, v, divisor, chunk=chunk,
                                                                         precision="highest")))
     plain = lambda q, k, v: jnp.sum(weights * jnp.tanh(_plain_attention(q, k, v, divisor)))
-    out = layers.attention(q, k, v, divisor, chunk=chunk, precision="highest")
+    out = _attention(q, k, v, divisor, chunk=chunk, precision="highest")
     np.testing.assert_allclose(np.asarray(out), np.asarray(_plain_attention(q, k, v, divisor)), atol=1e-5)
-    grads = jax.grad(ours, argnums=(0, 1, 2))(q, k, v)
-    expected = jax.grad(plain, argnums=(0, 1, 2))(q, k, v)
+    grads = jax.jit(jax.grad(ours, argnums=(0, 1, 2)))(q, k, v)
+    expected = jax.jit(jax.grad(plain, argnums=(0, 1, 2)))(q, k, v)
     for name, got, want in zip("qkv", grads, expected):
         scale = float(jnp.max(jnp.abs(want)))
         assert scale > 1e-3, name  # a gradient that could be wrong

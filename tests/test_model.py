@@ -6,6 +6,9 @@ import pytest
 from dit_jax import configs, convert, model
 
 CONFIG = configs.tiny()
+# model.features as a caller would jit it: one compiled program, where op-by-op dispatch would compile every
+# operation of the network.
+_features = jax.jit(model.features, static_argnames=("config",))
 
 
 @pytest.fixture(scope="module")
@@ -98,8 +101,8 @@ def test_features_are_permutation_equivariant(params):
     # Point order carries no meaning: permuting the source permutes its features and nothing else.
     src, tgt = _pair(5, batch=1)
     perm = np.random.default_rng(5).permutation(src.shape[1])
-    _, feats = model.features(params, src[0], tgt[0], CONFIG)
-    _, feats_p = model.features(params, src[0][perm], tgt[0], CONFIG)
+    _, feats = _features(params, src[0], tgt[0], CONFIG)
+    _, feats_p = _features(params, src[0][perm], tgt[0], CONFIG)
     np.testing.assert_allclose(np.asarray(feats_p.phi_src), np.asarray(feats.phi_src)[perm], atol=1e-4)
     np.testing.assert_allclose(np.asarray(feats_p.phi_tgt), np.asarray(feats.phi_tgt), atol=1e-4)
 
@@ -143,8 +146,8 @@ def test_attention_in_blocks_changes_nothing(params):
     src, tgt = _pair(6, n=80, m=40, batch=1)
     whole = CONFIG.replace(attention_chunk=0)
     blocked = CONFIG.replace(attention_chunk=32)  # 80 source rows: blocks of 32, 32 and 16 padded
-    _, f_whole = model.features(params, src[0], tgt[0], whole)
-    _, f_blocked = model.features(params, src[0], tgt[0], blocked)
+    _, f_whole = _features(params, src[0], tgt[0], whole)
+    _, f_blocked = _features(params, src[0], tgt[0], blocked)
     np.testing.assert_allclose(np.asarray(f_blocked.scores), np.asarray(f_whole.scores), atol=1e-5)
 
 
