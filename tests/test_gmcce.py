@@ -1,8 +1,13 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from conftest import random_rotation
 from dit_jax import gmcce
+
+#: GMCCE's weights as the registration's program computes them, jitted: one compiled program for the
+#: ModelNet shapes' size, where op-by-op dispatch compiles each operation.
+_weights = jax.jit(gmcce.weights, static_argnames=("k", "sharpness", "min_dist2", "min_keep"))
 
 
 def _moved(shape, seed):
@@ -15,7 +20,7 @@ def test_exact_correspondences_on_modelnet_get_weight_one(modelnet_shapes):
     for index in range(5):
         src = modelnet_shapes[index]
         tgt, _ = _moved(src, index)
-        w = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99))
+        w = np.asarray(_weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99))
         assert (w == 1.0).all(), f"shape {index}: {int((w == 0).sum())} exact matches rejected"
 
 
@@ -24,7 +29,7 @@ def test_scrambled_correspondences_on_modelnet_mostly_get_weight_zero(modelnet_s
         src = modelnet_shapes[index]
         tgt, rng = _moved(src, index)
         tgt = tgt[rng.permutation(len(tgt))]
-        w = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.6))
+        w = np.asarray(_weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.6))
         assert w.mean() < 0.05, f"shape {index}: {w.mean():.1%} of scrambled matches kept"
 
 
@@ -33,7 +38,7 @@ def test_confidence_separates_inliers_from_outliers(modelnet_shapes):
     tgt, rng = _moved(src, 7)
     outliers = rng.choice(len(src), 300, replace=False)
     tgt[outliers] = tgt[rng.permutation(outliers)]
-    w = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.9))
+    w = np.asarray(_weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.9))
     inliers = np.setdiff1d(np.arange(len(src)), outliers)
     assert w[inliers].mean() > 0.9 and w[outliers].mean() < 0.1
 
@@ -74,8 +79,8 @@ def test_min_keep_keeps_the_most_confident_share(modelnet_shapes):
     tgt = tgt + rng.normal(0, 0.02, tgt.shape).astype(np.float32)
     outliers = rng.choice(len(src), 400, replace=False)
     tgt[outliers] = tgt[rng.permutation(outliers)]
-    strict = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99))
-    kept = np.asarray(gmcce.weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99, min_keep=0.2))
+    strict = np.asarray(_weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99))
+    kept = np.asarray(_weights(jnp.asarray(src), jnp.asarray(tgt), threshold=0.99, min_keep=0.2))
     assert strict.sum() < 0.05 * len(src)
     assert kept.sum() >= np.ceil(0.2 * len(src)) and kept.sum() < 0.25 * len(src)
     assert (kept >= strict).all(), "never fewer than the threshold keeps"
