@@ -464,7 +464,8 @@ def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, m
         for prefix, (r, t) in first.items():
             errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"]))[:real])
             errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"]))[:real])
-        labels = _batch_match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"]))
+        labels = _batch_match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]),
+                                     jnp.asarray(b["t"]))
         errors["network_match_accuracy"].append(np.asarray(labels)[:real].reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 
