@@ -324,9 +324,9 @@ def test_rotation_search_registers_pairs_far_beyond_the_training_range(modelnet_
     to about 86): the shipped network alone lands more than 30 degrees off on every one; from the 24 turned
     starts it brings at least two within 10 degrees, the network alone's precision on such halves. Most of the
     others settle near a half turn from the truth, a pose their near-symmetry fits as well (the first is a
-    tent); where the unturned start stays, the result is what it was. 256 points a cloud: the search runs the
+    tent); where the unturned start stays, the result is what it was. 128 points a cloud: the search runs the
     network on 24 starts, and fewer points keep it short."""
-    model_ = registration.load(n_points=256, verdict_rule="fitness", refine="none")
+    model_ = registration.load(n_points=128, verdict_rule="fitness", refine="none")
     truth = euler_zyx_to_matrix([150.0, 30.0, -20.0])
     plain, searched = [], []
     for index in range(6):
