@@ -16,6 +16,7 @@ import time
 from typing import Any, Callable, Iterator, Mapping
 
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -184,7 +185,8 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
 
 
 class TrainState(struct.PyTreeNode):
-    """All that a step changes. ``rng`` is a raw uint32 key so orbax stores it as a plain array."""
+    """All that a step changes. ``opt_state`` is the optimiser's state over the parameters as one vector
+    (:func:`_flat`). ``rng`` is a raw uint32 key so orbax stores it as a plain array."""
 
     step: jax.Array
     params: Any
@@ -216,8 +218,17 @@ def init_state(config: TrainConfig, optimizer: optax.GradientTransformation) -> 
     """A run's first state: fresh parameters from ``config.seed``, ``optimizer``'s state, step 0."""
     key = jax.random.PRNGKey(config.seed)
     params = model.init(jax.random.fold_in(key, 1), config.model_config())
-    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params),
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(_flat(params)),
                       rng=key, skipped=jnp.zeros((), jnp.int32))
+
+
+def _flat(tree) -> jax.Array:
+    """Every leaf of ``tree``, raveled and concatenated in tree order: (P,), P the number of parameters.
+
+    The optimiser, the finiteness check and the skip of a train step work on this one vector: per leaf, each of
+    a hundred small arrays got loops of its own, and they made much of the step's compilation.
+    """
+    return jax.flatten_util.ravel_pytree(tree)[0]
 
 
 def _pair_loss(params, pair, model_config: DITConfig, config: TrainConfig):
@@ -287,17 +298,17 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
         key = jax.random.fold_in(state.rng, state.step)
         (loss, terms), grads = batch_loss_and_grads(state.params, batch, model_config, config, key,
                                                     mesh.devices.size)
-        updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        finite = jnp.isfinite(loss) & jnp.all(jnp.asarray([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+        flat_params, unflatten = jax.flatten_util.ravel_pytree(state.params)
+        flat_grads = _flat(grads)
+        updates, opt_state = optimizer.update(flat_grads, state.opt_state, flat_params)
+        finite = jnp.isfinite(loss) & jnp.all(jnp.isfinite(flat_grads))
         new_state = state.replace(
             step=state.step + 1,
-            params=keep(params, state.params),
-            opt_state=keep(opt_state, state.opt_state),
+            params=unflatten(jnp.where(finite, optax.apply_updates(flat_params, updates), flat_params)),
+            opt_state=jax.tree.map(lambda new, old: jnp.where(finite, new, old), opt_state, state.opt_state),
             skipped=state.skipped + (~finite).astype(jnp.int32),
         )
-        out = dict(terms, loss=loss, grad_norm=optax.global_norm(grads), finite=finite)
+        out = dict(terms, loss=loss, grad_norm=optax.global_norm(flat_grads), finite=finite)
         return new_state, out
 
     return jax.jit(step, out_shardings=(replicated, replicated), donate_argnums=0)
@@ -641,7 +652,7 @@ def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTran
     if shapes(params) != shapes(state.params):
         raise ValueError(f"init_from {path}: its network does not have this run's shape (model config)")
     params = jax.tree.map(jnp.asarray, params)
-    return state.replace(params=params, opt_state=optimizer.init(params))
+    return state.replace(params=params, opt_state=optimizer.init(_flat(params)))
 
 
 def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None,

@@ -6,6 +6,7 @@
 # change of weights or thresholds only DIT, DIT+ICP and the pipeline run again.
 #
 #   bash scripts/remeasure_docs.sh [CHECKPOINT] [DATA_DIR] [SCANS_DIR] [SHARED_DATA_DIR]
+#   STEPS="embedded peers" bash scripts/remeasure_docs.sh    # only the named steps
 #
 # Each step writes its log beside its output in runs/remeasure/ (ignored by git); the first failure stops it.
 set -euo pipefail
@@ -21,6 +22,7 @@ all=(icp fpfh_ransac fgr fpfh_ransac_icp fgr_icp)
 step() {  # step NAME ARGS...: one evaluate.py run, timed, logged to runs/remeasure/NAME.log
   local name=$1
   shift
+  if [[ -n ${STEPS:-} && " $STEPS " != *" $name "* ]]; then return 0; fi
   echo "$(date -u +%H:%M:%S) $name" >&2
   local start=$SECONDS
   python evaluate.py --checkpoint "$checkpoint" --no-progress "$@" > "$logs/$name.log" 2>&1 \

@@ -380,8 +380,14 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     with pytest.raises(ValueError, match="does not have this run's shape"):
         training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
     # A deeper run starts from the shallower checkpoint grown in depth: the same registration to the bit.
+    # Whatever the deeper network's own values (here random, in its shapes, without compiling its
+    # initialisation), its added layers' residual outputs are zeroed.
     deeper = dataclasses.replace(config, model=config.model.replace(n_blocks=config.model.n_blocks + 1))
-    grown = training._initialise_from(training.init_state(deeper, optimizer), str(source), optimizer).params
+    deeper_state = jax.eval_shape(lambda: training.init_state(deeper, optimizer))
+    rng = np.random.default_rng(3)
+    deeper_state = deeper_state.replace(params=jax.tree.map(
+        lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), deeper_state.params))
+    grown = training._initialise_from(deeper_state, str(source), optimizer).params
     points = jax.random.normal(jax.random.PRNGKey(1), (1, 64, 3))
     moved = points @ jnp.asarray(random_rotation(np.random.default_rng(0)), jnp.float32).T
     before = model.register(params, points, moved, config.model_config())
