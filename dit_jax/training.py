@@ -519,8 +519,13 @@ def _restore(manager, step: int, abstract: TrainState, config: TrainConfig) -> t
     try:
         state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
     except Exception as err:
+        # A state saved with the optimiser's state per parameter array (before it was one vector) holds the
+        # params this run expects but not its optimiser state: the weights can still start a run.
+        hint = ("; a checkpoint with the optimiser's state per parameter array (saved before it became one "
+                "vector) does not resume: start a run from its weights (training.export_params, then "
+                "--config.init_from)" if "'opt_state'" in str(err) else "")
         raise TrainCheckpointError(f"{where}: train state does not restore ({type(err).__name__}: "
-                                   f"{str(err).splitlines()[0][:200] if str(err) else ''})") from None
+                                   f"{str(err).splitlines()[0][:200] if str(err) else ''}){hint}") from None
     return state, meta
 
 

@@ -239,6 +239,33 @@ def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
         training.train(other, str(tmp_path / "run"), resume=True, prepared_dir=prepared, progress=False)
 
 
+def test_a_checkpoint_with_the_optimiser_state_per_array_says_how_to_go_on(tmp_path, prepared, tiny_run):
+    """A train state saved with the optimiser's state per parameter array (as before it became one vector)
+    does not resume; the error says so in one line and how to start from its weights, which still export."""
+    import orbax.checkpoint as ocp
+
+    shutil.copytree(tiny_run.workdir, tmp_path / "run")
+    manager = ocp.CheckpointManager(os.path.abspath(tmp_path / "run" / "checkpoints"), item_names=("state", "meta"))
+    raw = manager.restore(12, args=ocp.args.Composite(state=ocp.args.StandardRestore(),
+                                                      meta=ocp.args.JsonRestore()))
+    optimizer = training.make_optimizer(TINY, TINY.max_steps)
+    per_array = training.TrainState(step=raw.state["step"], params=raw.state["params"],
+                                    opt_state=optimizer.init(raw.state["params"]), rng=raw.state["rng"],
+                                    skipped=raw.state["skipped"])
+    shutil.rmtree(tmp_path / "run" / "checkpoints" / "12")  # saved again in the older layout
+    manager.reload()
+    training._save(manager, per_array, raw.meta)
+    with pytest.raises(training.TrainCheckpointError, match="per parameter array") as error:
+        training.train(dataclasses.replace(TINY, max_steps=16), str(tmp_path / "run"), resume=True,
+                       prepared_dir=prepared, progress=False)
+    assert "\n" not in str(error.value) and "--config.init_from" in str(error.value)
+    from dit_jax import checkpoint
+
+    checkpoint_params, _ = checkpoint.restore(
+        training.export_params(str(tmp_path / "run"), str(tmp_path / "model"), latest=True))
+    assert _equal_trees(checkpoint_params, raw.state["params"])
+
+
 def test_losses_vanish_at_the_truth():
     eye, zero = jnp.eye(3), jnp.zeros(3)
     assert float(losses.transformation_loss(eye, zero, eye, zero)) == 0.0
