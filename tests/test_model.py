@@ -184,10 +184,11 @@ def test_remat_gives_the_same_gradients_with_dropout(params):
     value_r, grads_r = value_and_grad(params, remat)
     np.testing.assert_allclose(float(value_r), float(value), rtol=1e-6)
     for g, g_r in zip(jax.tree.leaves(grads), jax.tree.leaves(grads_r)):
-        # Equal up to float32 reassociation, measured against each leaf's largest entry (a different dropout
-        # mask would move them by percents): an absolute 1e-6 failed once on a leaf reaching 3.3 (2.6e-6 off).
+        # Equal up to float32 reassociation, measured against each leaf's largest entry. The softmax and the
+        # Procrustes derivative magnify rounding to about 1e-5 of that scale, more on CPUs with wider vector
+        # units (XLA sums in another order there); another dropout mask moves a leaf by a tenth of it or more.
         scale = max(1.0, float(np.abs(np.asarray(g)).max()))
-        np.testing.assert_allclose(np.asarray(g_r), np.asarray(g), rtol=1e-4, atol=1e-5 * scale)
+        np.testing.assert_allclose(np.asarray(g_r), np.asarray(g), rtol=1e-4, atol=1e-4 * scale)
 
 
 def test_guarded_iterations_never_lower_the_fitness(params):
