@@ -394,13 +394,14 @@ def validation_batches(data_dir: str | None, settings, *, count: int = 24, n_poi
         batches[setting] = ds.batch(np.linspace(0, len(ds) - 1, count).astype(int))
     return batches
 
-def make_datasets(config: TrainConfig, prepared_dir: str | None = None):
+def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress: bool = True):
     """(training pairs, validation pairs) from the training split of the chosen source: two
     :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
     ``config.settings``."""
     settings = config.settings or (config.setting,)
     n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
-    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir)
+    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir,
+                                    progress=progress)
     train_shapes, val_shapes = split_validation(shapes, config.val_fraction)
     common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
     train_config = pairs_lib.PairConfig(train=True, seed=config.seed, unseen=config.unseen, **common)
@@ -684,7 +685,7 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     if config.batch_size % n_dev:
         raise ValueError(f"batch_size {config.batch_size} is not divisible by the {n_dev} devices")
 
-    train_ds, val_ds = make_datasets(config, prepared_dir)
+    train_ds, val_ds = make_datasets(config, prepared_dir, progress and is_primary())
     steps_per_epoch = len(train_ds) // config.batch_size
     if steps_per_epoch == 0:
         raise ValueError(f"{len(train_ds)} training pairs are fewer than one batch of {config.batch_size}")

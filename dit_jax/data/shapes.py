@@ -234,8 +234,10 @@ def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_
         absl_logger.setLevel(level)
 
 
-def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None):
+def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None,
+            progress: bool = True):
     """:func:`builder`'s builder, prepared: once per ``data_dir``, however many processes ask at once.
+    ``progress=False`` hides TFDS's progress bars while it prepares (for logs written to files).
 
     TFDS writes into a temporary folder and renames it, so two processes preparing the same data at once
     (two trainings started together, every process of a multi-process run) both write, and the second
@@ -249,7 +251,14 @@ def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_
     with open(os.path.join(b.data_dir_root, f".{b.builder_config.name}.lock"), "a") as lock:
         _lock(lock)
         b = builder(source, n_points, data_dir)  # afresh: it sees what another process prepared meanwhile
-        b.download_and_prepare()
+        if progress:
+            b.download_and_prepare()
+        else:
+            tfds.display_progress_bar(False)
+            try:
+                b.download_and_prepare()
+            finally:
+                tfds.display_progress_bar(True)
     return b  # closing the file releases the lock
 
 
@@ -263,7 +272,7 @@ def _lock(file) -> None:
 
 
 def load_shapes(source: str | os.PathLike | None = None, split: str = "train", n_points: int = 1000,
-                data_dir: str | None = None) -> Shapes:
+                data_dir: str | None = None, progress: bool = True) -> Shapes:
     """One split of a shape collection as arrays, preparing it through TFDS the first time.
 
     Args:
@@ -271,13 +280,14 @@ def load_shapes(source: str | os.PathLike | None = None, split: str = "train", n
       split: "train" or "test" (the official split for ModelNet40).
       n_points: points kept per shape (the first ones, as the authors do).
       data_dir: where prepared data lives (default ``$DIT_JAX_DATA_DIR`` or ``~/.cache/dit_jax``).
+      progress: show TFDS's progress bars if it prepares the data now.
 
     Raises:
       DataError: one line naming the file or directory and the problem.
     """
     if split not in SPLITS:
         raise DataError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
-    b = prepare(source, n_points, data_dir)
+    b = prepare(source, n_points, data_dir, progress)
     data_source = b.as_data_source()[split]
     n = len(data_source)
     points = np.empty((n, n_points, 3), np.float32)

@@ -29,7 +29,7 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
                | ({"n_points": n_points} if n_points else {}))
     registrar = registration.load(checkpoint_dir, **changes)
     n_points = registrar.settings.n_points
-    test_shapes = shapes_lib.load_shapes(data_dir, "test",
+    test_shapes = shapes_lib.load_shapes(data_dir, "test", progress=progress,
                                          n_points=pairs_lib.shape_points(data_dir, n_points, [setting]))
     ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen, n_points=n_points))
     # Pairs spread over the whole split (every category), the same ones for every angle.

@@ -168,7 +168,7 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         registrar = registration.Registrar(loaded.params, loaded.config.replace(compute_dtype=compute_dtype),
                                            loaded.settings)
     n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
-    test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir,
+    test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir, progress=progress,
                                          n_points=pairs_lib.shape_points(data_dir, n_points, settings))
     os.makedirs(out_dir, exist_ok=True)
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
