@@ -397,7 +397,7 @@ def validation_batches(data_dir: str | None, settings, *, count: int = 24, n_poi
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress: bool = True):
     """(training pairs, validation pairs) from the training split of the chosen source: two
     :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
-    ``config.settings``."""
+    ``config.settings``. ``progress``: TFDS's progress bars if the shapes are prepared now."""
     settings = config.settings or (config.setting,)
     n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
     shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir,

@@ -236,7 +236,7 @@ def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_
 
 def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None,
             progress: bool = True):
-    """:func:`builder`'s builder, prepared: once per ``data_dir``, however many processes ask at once.
+    """:func:`builder`'s builder, prepared: once per ``data_dir``, however many processes ask at once;
     ``progress=False`` hides TFDS's progress bars while it prepares (for logs written to files).
 
     TFDS writes into a temporary folder and renames it, so two processes preparing the same data at once
