@@ -1,3 +1,4 @@
+import logging
 import re
 
 import h5py
@@ -123,12 +124,14 @@ def test_processes_preparing_the_same_data_at_once_all_get_it(tmp_path):
         np.testing.assert_array_equal(np.load(tmp_path / f"out{i}.npy"), first)
 
 
-def test_progress_false_prepares_without_tfds_bars_and_leaves_them_on(tmp_path, capfd):
-    """`--no-progress` logs stay free of TFDS's bars while data is prepared; later preparations show them."""
+def test_progress_false_prepares_without_tfds_bars_and_leaves_them_on(tmp_path, capfd, caplog):
+    """`--no-progress` logs stay free of TFDS's bars while data is prepared, and of its warnings about our
+    custom configs and the not yet prepared folder; later preparations show the bars."""
     points = np.random.default_rng(1).normal(size=(3, 32, 3)).astype(np.float32)
     source = _write_h5_dir(tmp_path / "modelnet", points, np.zeros((3, 1), np.uint8))
     quiet = shapes.load_shapes(source, "test", n_points=16, data_dir=str(tmp_path / "p"), progress=False)
     assert quiet.points.shape == (3, 16, 3)
     assert "%|" not in capfd.readouterr().err
+    assert not [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     shapes.load_shapes(source, "test", n_points=8, data_dir=str(tmp_path / "p"))  # another point count: prepared anew
     assert "%|" in capfd.readouterr().err

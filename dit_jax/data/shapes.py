@@ -20,6 +20,7 @@ Each shape keeps its first ``n_points`` points, as the authors' loader does.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import glob
 import hashlib
@@ -224,12 +225,19 @@ def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_
         source = str(check_h5_source(source, n_points))
     name = f"{'embedded' if source == EMBEDDED else 'h5'}_p{n_points}_{_fingerprint(source)}"
     config = ShapesConfig(name=name, source=source, n_points=n_points)
-    absl_logger = logging.getLogger("absl")
-    level = absl_logger.level
-    absl_logger.setLevel(logging.ERROR)  # TFDS warns about every custom config, which all of ours are
-    try:
+    with _tfds_warnings_hidden():  # TFDS warns about every custom config, which all of ours are
         return PointCloudShapes(config=config, data_dir=os.path.join(data_dir or DEFAULT_DATA_DIR, "tfds"),
                                 file_format="array_record")
+
+
+@contextlib.contextmanager
+def _tfds_warnings_hidden():
+    """TFDS's warnings (through absl) hidden, its errors kept."""
+    absl_logger = logging.getLogger("absl")
+    level = absl_logger.level
+    absl_logger.setLevel(logging.ERROR)
+    try:
+        yield
     finally:
         absl_logger.setLevel(level)
 
@@ -245,7 +253,9 @@ def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_
     the lock, then find the data prepared and read it.
     """
     b = builder(source, n_points, data_dir)
-    if b.is_prepared():
+    with _tfds_warnings_hidden():  # before the first preparation TFDS warns that the folder holds no data yet
+        prepared = b.is_prepared()
+    if prepared:
         return b
     os.makedirs(b.data_dir_root, exist_ok=True)
     with open(os.path.join(b.data_dir_root, f".{b.builder_config.name}.lock"), "a") as lock:
