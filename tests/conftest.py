@@ -118,6 +118,35 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
+def shipped():
+    """(params, DITConfig) of the shipped weights, for tests that compare two compiled programs' registrations:
+    trained weights on pairs they register keep GMCCE's inlier sets clear of its thresholds, where untrained
+    ones keep one or two matches that the last bits of either program decide (1.5 apart in rotation)."""
+    from dit_jax import checkpoint, registration
+
+    return checkpoint.restore(registration.shipped_weights())
+
+
+def shared_point_pairs(seed: int, n: int, m: int, batch: int, turn_deg: float = 30.0):
+    """Pairs the shipped network registers to a hundredth of a degree: ``src`` (batch, n, 3) points of a bumpy
+    sphere, ``tgt`` (batch, m, 3) m of them turned by ``turn_deg`` about a random axis and moved, float32; and
+    each pair's turn (batch, 3, 3) float64. GMCCE keeps half of the matches or more on them."""
+    from dit_jax import geometry
+
+    rng = np.random.default_rng(seed)
+    src, tgt, turns = [], [], []
+    for _ in range(batch):
+        directions = rng.normal(size=(n, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        points = directions * (1.0 + 0.2 * np.sin(3 * directions[:, :1]) * np.cos(2 * directions[:, 1:2]))
+        turn = geometry.axis_angle_matrix(rng.normal(size=3), turn_deg)
+        src.append(points)
+        tgt.append(points[rng.permutation(n)[:m]] @ turn.T + 0.05)
+        turns.append(turn)
+    return np.stack(src).astype(np.float32), np.stack(tgt).astype(np.float32), np.stack(turns)
+
+
+@pytest.fixture(scope="session")
 def prepared_dir() -> str:
     """Where the tests' TFDS preparations go: fresh per session (so preparation itself is tested), shared by
     the session's workers."""

@@ -4,8 +4,9 @@ printing what the page shows.
 
 A block may carry a directive, an HTML comment on the line before its fence:
 
-* ``<!-- test: cwd examples -->``: run in a fresh copy of ``examples/``; ``cwd work``: in a fresh empty folder
-  (else in the repository's root, as the pages' commands are written; what they write goes under ``$WORK``);
+Every block runs where the reader stands: the root of a clone. Each gets a fresh stand-in for it (the root's
+files linked, ``examples/`` copied), so what a command writes lands there and not in the repository.
+
 * ``<!-- test: args ... -->``: append these arguments to each command of the block (to keep a long job short:
   fewer steps, fewer pairs);
 * ``<!-- test: needs modelnet40 -->`` or ``needs dragon``: the data the block reads, through ``$MODELNET40`` or
@@ -120,14 +121,19 @@ def _environment(block: Block, work: pathlib.Path) -> dict:
     return env
 
 
-def _cwd(block: Block, tmp_path: pathlib.Path) -> pathlib.Path:
-    if block.directives.get("cwd") == "examples":
-        return pathlib.Path(shutil.copytree(ROOT / "examples", tmp_path / "examples"))
-    if block.directives.get("cwd") == "work":
-        work = tmp_path / "work"
-        work.mkdir()
-        return work
-    return ROOT  # the pages' commands run from a clone's root; what they write goes under $WORK
+#: Entries of the root a page's command may write into, or that a reader's clone does not have.
+_NOT_LINKED = {"examples", "runs", "site", ".git", ".venv"}
+
+
+def reader_root(folder: pathlib.Path) -> pathlib.Path:
+    """A fresh stand-in for the root of a clone, where the pages' readers stand: every top-level entry of the
+    repository linked, but ``examples/`` copied (commands write beside its files) and nothing that is built."""
+    folder.mkdir(parents=True)
+    for entry in ROOT.iterdir():
+        if entry.name not in _NOT_LINKED and not entry.name.endswith(".egg-info"):
+            (folder / entry.name).symlink_to(entry)
+    shutil.copytree(ROOT / "examples", folder / "examples")
+    return folder
 
 
 def _commands(block: Block) -> list[str]:
@@ -168,11 +174,7 @@ def test_every_python_block_runs_and_prints_what_the_page_shows(tmp_path):
     blocks = [b for b in BLOCKS if b.language == "python"]
     payload = []
     for k, block in enumerate(blocks):
-        folder = tmp_path / f"block{k}"
-        folder.mkdir()
-        cwd = shutil.copytree(ROOT / "examples", folder / "examples") if block.directives.get("cwd") == "examples" \
-            else folder
-        payload.append({"id": block.id, "code": block.code, "cwd": str(cwd)})
+        payload.append({"id": block.id, "code": block.code, "cwd": str(reader_root(tmp_path / f"block{k}"))})
     proc = subprocess.run([sys.executable, "-c", _DRIVER], input=json.dumps(payload), capture_output=True, text=True,
                           timeout=900, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -194,7 +196,7 @@ def test_every_command_runs_and_prints_what_the_page_shows(block, tmp_path):
     work = tmp_path / "job"
     work.mkdir()
     env = _environment(block, work)
-    cwd = _cwd(block, tmp_path)
+    cwd = reader_root(tmp_path / "root")
     printed = ""
     for command in _commands(block):
         if command.startswith("python3 -m venv"):
@@ -214,6 +216,8 @@ def test_the_pages_have_blocks_and_their_outputs():
     """The runner finds what it should: the README's set-up commands, the register example and its output."""
     readme = [b for b in BLOCKS if b.page == "README.md"]
     assert readme[0].code.startswith("python3 -m venv") and "ci" in readme[1].directives
+    # No hidden working folder: a block that needs another one says `cd` in its own text.
+    assert not any("cwd" in b.directives for b in BLOCKS)
     assert any(b.output and "trusted" in b.output for b in readme)
     assert same_output("a 1.000 deg, 2.50 s\n", "a 1.0004 deg, 9.99 s\n")[0]
     assert not same_output("a 1.000 deg\n", "a 1.1 deg\n")[0]
