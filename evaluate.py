@@ -17,7 +17,9 @@ Methods, from one run of the registration pipeline: the network alone (DIT), the
 ICP on sparse clouds, GICP on scans; --refine sets it, none drops the row) and the default pipeline
 (pipeline: DIT+ICP, then a registration by local features where its result is not trusted; --features off
 drops it); beside them the --baselines, each at the options tuned for the setting on validation pairs
-(docs/baselines_tuning.md).
+(docs/baselines_tuning.md). With --scans two more rows may be asked for: open3d_room_5cm, Open3D's tutorial
+recipe for rooms in metres as it stands, and kiss_matcher, the pipeline's feature candidate alone. A folder of
+3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans).
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
 worst pair) to --out.
@@ -48,7 +50,7 @@ def _inference_changes(args) -> dict:
 
 def main(argv=None) -> int:
     from dit_jax import compile_cache
-    from dit_jax.baselines import NAMES as BASELINES
+    from dit_jax.baselines import SCAN_BASELINES as BASELINES
     from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
@@ -98,6 +100,11 @@ def main(argv=None) -> int:
         if getattr(args, dest) != parser.get_default(dest):
             flag = "--" + dest.replace("_", "-")
             parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
+    from dit_jax.baselines import NAMES as TUNED_BASELINES
+
+    untuned = [name for name in args.baselines if name not in TUNED_BASELINES]
+    if untuned and not args.scans:
+        parser.error(f"--baselines {' '.join(untuned)}: only with --scans")
     chosen = []
     for name in args.settings:
         chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]

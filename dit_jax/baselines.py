@@ -12,6 +12,11 @@ in the unit sphere (as ModelNet40 and the embedded set are; evaluate.py scales r
   tuned :func:`dit_jax.icp.icp` schedule or by DIT's own refinement (:func:`dit_jax.icp.refine`), whichever
   scores better on validation pairs of that setting; their time includes both stages.
 
+``room_recipe`` is the other kind: Open3D's global-registration tutorial recipe for rooms in metres, in the
+clouds' own units, untuned (5 cm voxel, normals within 2 voxels, FPFH within 5, RANSAC on mutual matches with
+1,000,000 draws and inliers within 1.5 voxels, then point-to-plane ICP within 0.4 voxels over every point):
+what a 20-line script registers 3DMatch fragments with (:data:`RECIPES`).
+
 Every option is an :class:`Options` field. The defaults are tuned on validation pairs of training shapes
 (``dit-tune-baselines``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
 :func:`get` with ``setting=`` gives that setting's choice, without one the choice that scores best over all
@@ -217,6 +222,32 @@ def get(name: str, setting: str | None = None, options: Options | None = None
     ``setting`` (see :func:`tuned_options`)."""
     options = options or tuned_options(name, setting)
     return functools.partial(_METHODS[name], options=options)
+
+
+def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Open3D's tutorial recipe (module docs) on clouds in their own units, ``voxel`` in those units: (R, t)."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    options = Options(voxel=voxel, normal_radius=2 * voxel, feature_radius=5 * voxel, distance=1.5 * voxel,
+                      ransac_iterations=1_000_000, ransac_confidence=0.999)
+    rotation, translation = ransac_on_features(features(src, options), features(tgt, options), options)
+    start = np.eye(4)
+    start[:3, :3], start[:3, 3] = rotation, translation
+    source, target = _cloud(src), _cloud(tgt)
+    for cloud in (source, target):
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    result = reg.registration_icp(source, target, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane())
+    return _split(result.transformation)
+
+
+#: Baselines at a fixed recipe in the data's own units (metres), not tuned and not scaled into the unit sphere:
+#: ``{name: (src, tgt) -> (R, t)}``.
+RECIPES = {"open3d_room_5cm": room_recipe}
+#: The registration pipeline's feature candidate alone (:func:`dit_jax.feature_match.register`, as the
+#: pipeline calls it, unrefined): a row the real-scan evaluation can put beside the baselines.
+FEATURE_CANDIDATE = "kiss_matcher"
+#: Every name the real-scan evaluation takes as a baseline (:mod:`dit_jax.evaluators.scans`).
+SCAN_BASELINES = (*NAMES, *RECIPES, FEATURE_CANDIDATE)
 
 
 def available() -> bool:

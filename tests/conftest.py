@@ -170,6 +170,28 @@ def modelnet_train(prepared_dir, modelnet_test):
     return shapes.load_shapes(MODELNET_DIR, "train", n_points=1000, data_dir=prepared_dir)
 
 
+def write_3dmatch_scene(scene, world, rng, fragments=(0, 1, 3)):
+    """A 3DMatch scene: fragment k is ``world`` seen from pose k; one 3DMatch list with every pair and its
+    information matrix (``gt.info``). Returns the poses."""
+    from dit_jax import io
+
+    (scene / "3DMatch").mkdir(parents=True)
+    poses = {k: np.vstack([np.c_[random_rotation(rng), rng.normal(size=3)], [0, 0, 0, 1]]) for k in fragments}
+    for k, pose in poses.items():
+        io.write(scene / f"cloud_bin_{k}.ply", (world - pose[:3, 3]) @ pose[:3, :3])
+    log, info = "", ""
+    for i in fragments:
+        for j in fragments:
+            if j > i:
+                log += f"{i} {j} 60\n" + "".join(" ".join(f"{v:.17g}" for v in row) + "\n"
+                                                 for row in np.linalg.inv(poses[i]) @ poses[j])
+                sigma = np.diag([60.0, 60.0, 60.0, 8.0, 9.0, 10.0])
+                info += f"{i} {j} 60\n" + "".join(" ".join(f"{v:g}" for v in row) + "\n" for row in sigma)
+    (scene / "3DMatch" / "gt.log").write_text(log)
+    (scene / "3DMatch" / "gt.info").write_text(info)
+    return poses
+
+
 def write_scan_series(directory, poses, rng, n_points: int = 50):
     """A tiny turntable series: one random cloud seen in several frames, with a .conf of their poses."""
     cloud = rng.normal(size=(n_points, 3))

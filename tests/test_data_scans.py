@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from conftest import random_rotation, write_scan_series
+from conftest import SHARED, random_rotation, write_3dmatch_scene, write_scan_series
 from dit_jax.data import scans
 from dit_jax.data.shapes import DataError
 
@@ -153,3 +153,58 @@ def test_kitchen_fragments_truth_lays_the_overlap_on_itself():
     after = tree.query(_moved(sample, pair.rotation, pair.translation))[0]
     before = tree.query(sample)[0]
     assert np.mean(after < 0.03) > 0.5 > np.mean(before < 0.03), (np.mean(after < 0.03), np.mean(before < 0.03))
+
+
+THREEDMATCH = SHARED / "data" / "3dmatch"
+
+
+def test_a_folder_of_3dmatch_scenes_gives_one_set_per_list_with_the_benchmarks_error(tmp_path):
+    """Every scene's pairs in one set per list, named by scene; each carries its information matrix, and the
+    benchmark's error is 0 at the truth and sqrt(xi' Sigma xi / Sigma_00) off it (quaternion from scipy)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    world = rng.normal(size=(60, 3))
+    for name in ("kitchen", "office"):
+        write_3dmatch_scene(tmp_path / name, world, rng)
+    sets = scans.load_pair_sets(tmp_path)
+    assert list(sets) == ["3DMatch"] and sets["3DMatch"].kind == "gt.log"
+    pairs = sets["3DMatch"].pairs
+    assert [p.name for p in pairs[:3]] == ["kitchen/cloud_bin_1->cloud_bin_0", "kitchen/cloud_bin_3->cloud_bin_0",
+                                          "kitchen/cloud_bin_3->cloud_bin_1"]
+    assert [p.scene for p in pairs] == ["kitchen"] * 3 + ["office"] * 3
+    assert [p.consecutive for p in pairs[:3]] == [True, False, False]
+    pair = pairs[1]
+    np.testing.assert_allclose(pair.source @ pair.rotation.T + pair.translation, pair.target, atol=1e-9)
+    assert scans.benchmark_rmse(pair.rotation, pair.translation, pair) < 1e-9
+    turn = Rotation.from_rotvec([0.05, -0.02, 0.1]).as_matrix()
+    rotation, translation = pair.rotation @ turn, pair.translation + [0.1, 0.0, -0.05]
+    error = np.linalg.inv(np.vstack([np.c_[pair.rotation, pair.translation], [0, 0, 0, 1]])) @ \
+        np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]])
+    xi = np.concatenate([error[:3, 3], Rotation.from_matrix(error[:3, :3]).as_quat()[:3]])
+    expected = np.sqrt(xi @ pair.info @ xi / pair.info[0, 0])
+    assert scans.benchmark_rmse(rotation, translation, pair) == pytest.approx(expected, rel=1e-9)
+    # Near a half turn the quaternion's scalar part vanishes: the other branch gives the same error.
+    half = Rotation.from_rotvec([0.0, 0.0, np.pi - 1e-4]).as_matrix()
+    xi = np.concatenate([np.zeros(3), Rotation.from_matrix(half).as_quat()[:3]])
+    assert scans.benchmark_rmse(pair.rotation @ half, pair.translation, pair) == pytest.approx(
+        np.sqrt(xi @ pair.info @ xi / pair.info[0, 0]), rel=1e-6)
+    (tmp_path / "office" / "3DMatch" / "gt.info").write_text("0 1 60\n1 2 3\n")
+    with pytest.raises(DataError, match="gt.info: expected entries of seven lines"):
+        scans.load_pair_sets(tmp_path)
+
+
+def test_the_shared_3dmatch_scenes_hold_the_benchmarks_pairs():
+    """The three shared scenes: 339 3DMatch and 351 3DLoMatch pairs, each with its information matrix, the truth
+    at zero error."""
+    if not THREEDMATCH.exists():
+        pytest.skip(f"the 3DMatch scenes are not here ({THREEDMATCH}); they ship with ../shared")
+    sets = scans.load_pair_sets(THREEDMATCH)
+    assert {name: len(found.pairs) for name, found in sets.items()} == {"3DMatch": 339, "3DLoMatch": 351}
+    assert all(p.info is not None for found in sets.values() for p in found.pairs)
+    assert {p.scene for p in sets["3DMatch"].pairs} == {"home_md", "hotel3", "mit_lab"}
+    errors = np.array([scans.benchmark_rmse(p.rotation, p.translation, p) for p in sets["3DLoMatch"].pairs])
+    # One information matrix of the benchmark's own 3DLoMatch list is all zeros: no error, never registered.
+    assert [p.name for p, e in zip(sets["3DLoMatch"].pairs, errors) if np.isnan(e)] == [
+        "home_md/cloud_bin_25->cloud_bin_23"]
+    assert np.nanmax(errors) < 1e-6

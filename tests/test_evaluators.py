@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from dit_jax import checkpoint, configs, evaluators as evaluation, model, pipeline, registration
+from dit_jax.data import scans as scans_lib
 from dit_jax.evaluators import common, report, synthetic
+from dit_jax.evaluators import scans as scans_evaluator
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +121,36 @@ def test_evaluate_scans_reads_a_single_pair_with_its_benchmark_criterion(tiny_ch
     assert results["pair_set_info"]["pair"]["criterion"] == [5.0, 2.0]
 
 
+def test_evaluate_scans_scores_a_folder_of_3dmatch_scenes_as_the_benchmark_does(tiny_checkpoint, tmp_path):
+    """Scenes of 3DMatch lists: each row carries the benchmark's RMSE, its scene and whether its fragments are
+    consecutive; the summary's recall counts the non-consecutive pairs within 0.2 (pooled and per scene), the
+    pipeline's levels how often each was right; a seeded sample takes pairs from every scene."""
+    from conftest import write_3dmatch_scene
+    from dit_jax.data.scans import BENCHMARK_RMSE
+
+    rng = np.random.default_rng(5)
+    world = rng.normal(size=(300, 3)) * [2.0, 1.5, 1.0]
+    for scene in ("a", "b"):
+        write_3dmatch_scene(tmp_path / "scenes" / scene, world, rng)
+    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path / "scenes"), str(tmp_path / "out"),
+                                        progress=False, worst_pairs=False)
+    done = results["pair_sets"]["3DMatch"]
+    for method in ("DIT", "pipeline"):
+        rows, bench = done[method]["rows"], done[method]["summary"]["benchmark"]
+        assert [r["scene"] for r in rows] == ["a"] * 3 + ["b"] * 3
+        counted = [r for r in rows if not r["consecutive"]]
+        assert bench["counted"] == len(counted) == 4
+        assert bench["recall"] == pytest.approx(np.mean([r["rmse"] <= BENCHMARK_RMSE for r in counted]))
+        assert bench["scenes"]["a"]["counted"] == 2
+        assert bench["recall_scenes"] == pytest.approx(np.mean([bench["scenes"][s]["recall"] for s in "ab"]))
+    levels = done["pipeline"]["summary"]["levels"]
+    assert sum(v["pairs"] for v in levels.values()) == 6
+    assert sum(v["right"] for v in levels.values()) == done["pipeline"]["summary"]["registered"]
+    assert "registration recall (RMSE <= 0.2)" in results["table"] and "recall b" in results["table"]
+    sample = scans_evaluator.sample_pairs(scans_lib.load_pair_sets(tmp_path / "scenes")["3DMatch"], 4, seed=1)
+    assert len(sample) == 4 and {p.scene for p in sample} == {"a", "b"}
+
+
 def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, tmp_path, capsys):
     """--n-points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
     import evaluate
@@ -139,6 +171,9 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
         with pytest.raises(SystemExit):
             evaluate.main(argv + ["--out", str(tmp_path / "refused")])
         assert "does not apply" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # the room recipe and the feature candidate alone register scans only
+        evaluate.main(["--baselines", "open3d_room_5cm", "--out", str(tmp_path / "refused")])
+    assert "only with --scans" in capsys.readouterr().err
     assert not (tmp_path / "refused").exists()
 
 

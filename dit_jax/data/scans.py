@@ -14,7 +14,10 @@ rotation matrix of the unit quaternion (qx, qy, qz, qw), and the scans as PLY fi
 * a Stanford ``.conf`` (above): scan i with scan i + skip, for each skip;
 * 3DMatch / 3DLoMatch: fragments ``cloud_bin_<i>.ply`` and a ``gt.log`` (in the folder or in subfolders such
   as ``3DMatch/`` and ``3DLoMatch/``, one set each) whose entries ``i j n`` and a 4 x 4 matrix ``T`` move
-  fragment j onto fragment i (``p_i = T p_j``): j is the source;
+  fragment j onto fragment i (``p_i = T p_j``): j is the source. A ``gt.info`` beside it gives each pair's
+  information matrix, from which the benchmark's error is computed (:func:`benchmark_rmse`). A folder of
+  such scenes (``<scene>/cloud_bin_*.ply``, ``<scene>/3DMatch/gt.log``, ...) gives one set per list, every
+  scene's pairs in it, named ``<scene>/cloud_bin_j->cloud_bin_i``;
 * KITTI odometry: a ``poses.txt`` of 3 x 4 poses (one line of 12 numbers per scan, the scan's frame to the
   first's) and the scans beside it in name order: scan i with scan i + skip;
 * one pair: ``source.*`` and ``target.*`` with ``T_target_source.txt`` (``target ~ T @ source``).
@@ -50,6 +53,9 @@ class ScanPair(NamedTuple):
     target: np.ndarray  # (M, 3)
     rotation: np.ndarray  # (3, 3)
     translation: np.ndarray  # (3,)
+    info: np.ndarray | None = None  # (6, 6) the 3DMatch benchmark's information matrix, where it gives one
+    scene: str = ""  # the scene a benchmark's pair comes from ("" where the set has one)
+    consecutive: bool = False  # fragments next to each other in their scan: the 3DMatch benchmark skips them
 
 
 def quaternion_matrix(q) -> np.ndarray:
@@ -161,11 +167,67 @@ def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
     return entries
 
 
-def _pair(name: str, source: np.ndarray, target: np.ndarray, motion: np.ndarray) -> ScanPair:
-    return ScanPair(name, source, target, motion[:3, :3], motion[:3, 3])
+def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
+    """The entries of a 3DMatch ``gt.info``: ``{(i, j): Sigma (6, 6)}``, the information matrix of the pair
+    whose ``gt.log`` entry is ``i j``."""
+    lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
+    if len(lines) % 7:
+        raise DataError(f"{path}: expected entries of seven lines ('i j n', then six rows of a 6 x 6 matrix), "
+                        f"found {len(lines)} lines")
+    entries = {}
+    for k in range(0, len(lines), 7):
+        try:
+            i, j = int(lines[k][0]), int(lines[k][1])
+            matrix = np.array(lines[k + 1:k + 7], np.float64)
+        except (ValueError, IndexError):
+            raise DataError(f"{path}: entry {k // 7 + 1} is not 'i j n' and a 6 x 6 matrix") from None
+        if matrix.shape != (6, 6):
+            raise DataError(f"{path}: entry {k // 7 + 1} is not 'i j n' and a 6 x 6 matrix")
+        entries[(i, j)] = matrix
+    return entries
 
 
-def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path]) -> dict[str, PairSet]:
+#: The 3DMatch benchmark's registration threshold: an RMSE of the true correspondences of 0.2 m.
+BENCHMARK_RMSE = 0.2
+
+
+def benchmark_rmse(rotation: np.ndarray, translation: np.ndarray, pair: ScanPair) -> float:
+    """The 3DMatch benchmark's error of an estimate ``tgt ~ src @ R.T + t`` of ``pair`` (Choi et al., "Robust
+    Reconstruction of Indoor Scenes", CVPR 2015, as 3DMatch and PREDATOR score it): with ``E = inv(T_true)
+    T_est`` and ``xi`` its translation and the vector part of its rotation's unit quaternion, ``sqrt(xi' Sigma
+    xi / Sigma[0, 0])``, about the RMSE of the pair's true correspondences in the data's units. A pair is
+    registered at :data:`BENCHMARK_RMSE` or less. NaN where the pair has no information matrix, or an empty
+    one: 3DLoMatch's own ``gt.info`` holds one (home_md, fragments 23 and 25), which the benchmark's code counts
+    as not registered whatever the estimate, and so does :mod:`dit_jax.evaluators.scans`."""
+    if pair.info is None or not pair.info[0, 0] > 0:
+        return float("nan")
+    truth, estimate = np.eye(4), np.eye(4)
+    truth[:3, :3], truth[:3, 3] = pair.rotation, pair.translation
+    estimate[:3, :3], estimate[:3, 3] = rotation, translation
+    error = np.linalg.inv(truth) @ estimate
+    # The quaternion's vector part from the rotation's skew part: 2 w v = (R32 - R23, R13 - R31, R21 - R12),
+    # with w = sqrt(1 + trace) / 2 >= 0 (its sign does not change the quadratic form). Near a half turn w -> 0:
+    # take the largest diagonal's branch there.
+    r = error[:3, :3]
+    w2 = (1.0 + np.trace(r)) / 4.0
+    if w2 > 1e-6:
+        w = np.sqrt(w2)
+        vector = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (4.0 * w)
+    else:
+        k = int(np.argmax(np.diag(r)))
+        vector = np.empty(3)
+        vector[k] = np.sqrt(max(0.0, 1.0 + 2.0 * r[k, k] - np.trace(r))) / 2.0
+        for other in {0, 1, 2} - {k}:
+            vector[other] = (r[k, other] + r[other, k]) / (4.0 * vector[k])
+    xi = np.concatenate([error[:3, 3], vector])
+    return float(np.sqrt(max(0.0, xi @ pair.info @ xi / pair.info[0, 0])))
+
+
+def _pair(name: str, source: np.ndarray, target: np.ndarray, motion: np.ndarray, **fields) -> ScanPair:
+    return ScanPair(name, source, target, motion[:3, :3], motion[:3, 3], **fields)
+
+
+def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path], scene: str = "") -> dict[str, PairSet]:
     cache: dict[pathlib.Path, np.ndarray] = {}
 
     def fragment(index: int, log: pathlib.Path) -> np.ndarray:
@@ -178,12 +240,26 @@ def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path]) -> dict[str,
         raise DataError(f"{log}: lists fragment {index}, but no cloud_bin_{index}.* is in {directory}")
 
     sets = {}
+    prefix = f"{scene}/" if scene else ""
     for log in logs:
         name = log.parent.name if log.parent != directory else directory.name
-        pairs = [_pair(f"cloud_bin_{j}->cloud_bin_{i}", fragment(j, log), fragment(i, log), matrix)
+        info_file = log.with_name("gt.info")
+        info = read_gt_info(info_file) if info_file.exists() else {}
+        pairs = [_pair(f"{prefix}cloud_bin_{j}->cloud_bin_{i}", fragment(j, log), fragment(i, log), matrix,
+                       info=info.get((i, j)), scene=scene, consecutive=abs(j - i) <= 1)
                  for i, j, matrix in read_gt_log(log)]
         sets[name] = PairSet(pairs, CRITERIA["gt.log"], "gt.log")
     return sets
+
+
+def _scene_sets(directory: pathlib.Path, scenes: list[pathlib.Path]) -> dict[str, PairSet]:
+    """One set per list name (``3DMatch``, ``3DLoMatch``), every scene's pairs in it, scene by scene."""
+    merged: dict[str, list[ScanPair]] = {}
+    for scene in scenes:
+        logs = sorted(scene.glob("gt.log")) + sorted(scene.glob("*/gt.log"))
+        for name, found in _gt_log_sets(scene, logs, scene.name).items():
+            merged.setdefault(scene.name if name == scene.name else name, []).extend(found.pairs)
+    return {name: PairSet(pairs, CRITERIA["gt.log"], "gt.log") for name, pairs in merged.items()}
 
 
 def _kitti_set(poses_file: pathlib.Path, skips: Sequence[int]) -> dict[str, PairSet]:
@@ -217,8 +293,11 @@ def load_pair_sets(directory: str | os.PathLike, skips: Sequence[int] = (1, 2)) 
         series = load_scans(path)
         return {f"skip{k}": PairSet(scan_pairs(series, k), CRITERIA["conf"], "conf") for k in skips}
     logs = sorted(path.glob("gt.log")) + sorted(path.glob("*/gt.log"))
-    if logs:
+    if logs and any(path.glob("cloud_bin_*")):
         return _gt_log_sets(path, logs)
+    scenes = sorted({log.parents[1] for log in path.glob("*/*/gt.log")} | {log.parent for log in logs})
+    if scenes:
+        return _scene_sets(path, scenes)
     if (path / "poses.txt").exists():
         return _kitti_set(path / "poses.txt", skips)
     if (path / "T_target_source.txt").exists():

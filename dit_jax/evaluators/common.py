@@ -37,6 +37,8 @@ class Estimates:
       verdict: (P,) bool, the pipeline's own verdict (the pipeline row only, else None: the other rows'
         verdicts are scored from their agreement or fitness).
       candidate: (P,) str, which estimate the pipeline kept, "network" or "features" (the pipeline row only).
+      level: (P,) str, the verdict's level, "trusted", "unconfirmed" or "probably wrong" (the pipeline row
+        only).
     """
 
     rotation: np.ndarray
@@ -47,6 +49,7 @@ class Estimates:
     backward: np.ndarray | None = None
     verdict: np.ndarray | None = None
     candidate: np.ndarray | None = None
+    level: np.ndarray | None = None
 
     @classmethod
     def from_results(cls, results: Sequence, *, own_verdict: bool = False) -> "Estimates":
@@ -60,7 +63,8 @@ class Estimates:
                    agreement=None if np.isnan(agreement).all() else agreement,
                    backward=np.array([r.direction == "backward" for r in results]) if refined else None,
                    verdict=np.array([r.verdict for r in results]) if own_verdict else None,
-                   candidate=np.array([r.candidate for r in results]) if own_verdict else None)
+                   candidate=np.array([r.candidate for r in results]) if own_verdict else None,
+                   level=np.array([r.level for r in results]) if own_verdict else None)
 
 
 def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None) -> dict[str, Estimates]:

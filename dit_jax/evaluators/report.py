@@ -194,15 +194,45 @@ def scan_tables(results: dict) -> str:
             first = f"{s['registered']} of {s['pairs']} | " if criterion else ""
             lines.append(f"| {name} | {first}{s['rot_median']:.2f} | {within} | {s['trans_rel_median']:.4f} | "
                          f"{s['seconds_per_pair']:.2f} |")
+        if any("benchmark" in r["summary"] for r in methods.values()):
+            lines += ["", *benchmark_table(methods, criterion)]
         if METHOD_DIT_ICP in methods:
             lines += ["", refinement_line(methods[METHOD_DIT_ICP]["summary"]["refinement"])]
         for name, r in methods.items():
+            if r["summary"].get("levels"):
+                lines += ["", levels_line(name, r["summary"]["levels"])]
             if r["summary"].get("verdict"):
                 lines += ["", verdict_line(name, r["summary"]["verdict"])]
                 if any("candidate" in row for row in r["rows"]):
                     lines[-1] += candidate_sentence(sum(row.get("candidate") == "features" for row in r["rows"]))
         lines.append("")
     return "\n".join(lines)
+
+
+def benchmark_table(methods: dict, criterion) -> list[str]:
+    """The 3DMatch benchmark's table of one list (rows: methods; :func:`dit_jax.evaluators.scans.benchmark_summary`)."""
+    scenes = sorted({scene for r in methods.values() for scene in r["summary"].get("benchmark", {}).get("scenes", {})})
+    lines = ["| method | registration recall (RMSE <= 0.2) | mean over scenes | "
+             + " | ".join(f"recall {scene}" for scene in scenes)
+             + f" | within {criterion[0]:g} deg and {criterion[1]:g} | median RRE (deg) | median RTE | median s / pair |",
+             "|---|---|---|" + "---|" * len(scenes) + "---|---|---|---|"]
+    for name, r in methods.items():
+        b = r["summary"].get("benchmark")
+        if not b:
+            continue
+        share = lambda value: "-" if np.isnan(value) else f"{value:.1%}"
+        figure = lambda value, digits: "-" if np.isnan(value) else f"{value:.{digits}f}"
+        per_scene = " | ".join(share(b["scenes"][scene]["recall"]) if scene in b["scenes"] else "-" for scene in scenes)
+        lines.append(f"| {name} | {share(b['recall'])} of {b['counted']} | {share(b['recall_scenes'])} | {per_scene} | "
+                     f"{share(b['criterion_share'])} of {b['pairs']} | {figure(b['rre_median'], 2)} | "
+                     f"{figure(b['rte_median'], 3)} | {b['seconds_median']:.2f} |")
+    return lines
+
+
+def levels_line(name: str, levels: dict) -> str:
+    """How often each verdict level was right, in one sentence."""
+    parts = [f"{level} {v['pairs']} ({v['right']} right)" for level, v in levels.items() if v["pairs"]]
+    return f"{name}'s verdict levels: " + ", ".join(parts) + "."
 
 
 def plot_scan_success(results: dict, path: str) -> None:

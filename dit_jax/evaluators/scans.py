@@ -18,9 +18,18 @@ from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELI
 
 
 def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, seconds)`` of baseline ``name`` on one pair of scans in their own units (``tgt ~ src @ R.T + t``):
-    it gets every point, in the unit sphere it is tuned for (:func:`dit_jax.pipeline.normalise`)."""
+    """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.baselines.SCAN_BASELINES`) on one pair of scans in their own units
+    (``tgt ~ src @ R.T + t``): every point, in the unit sphere a tuned baseline is tuned for
+    (:func:`dit_jax.pipeline.normalise`), in the data's units for a recipe and the feature candidate."""
     started = time.perf_counter()
+    if name == baselines_lib.FEATURE_CANDIDATE:
+        from dit_jax import feature_match
+
+        match = feature_match.register(src, tgt)
+        return match.rotation, match.translation, time.perf_counter() - started
+    if name in baselines_lib.RECIPES:
+        rotation, translation = baselines_lib.RECIPES[name](src, tgt)
+        return rotation, translation, time.perf_counter() - started
     src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, tgt, "shared")
     rotation, translation = baselines_lib.get(name)(src_n, tgt_n)
     rotation = np.asarray(rotation, np.float64)
@@ -29,29 +38,83 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     return rotation, translation, time.perf_counter() - started
 
 
+def is_right(row: dict, criterion: tuple[float, float] | None) -> bool:
+    """Whether a row's estimate counts as right: within the data's ``criterion`` (degrees, distance), or within
+    5 degrees where the data give none."""
+    if criterion is None:
+        return row["rot_err"] <= 5.0
+    return row["rot_err"] <= criterion[0] and row["trans_err"] <= criterion[1]
+
+
+def benchmark_summary(rows: list[dict], criterion: tuple[float, float]) -> dict:
+    """The 3DMatch benchmark's figures of one method's rows (each with ``rmse``, ``consecutive``, ``scene``):
+
+    ``recall``: the share of non-consecutive pairs registered (RMSE at most
+    :data:`dit_jax.data.scans.BENCHMARK_RMSE`), pooled; ``recall_scenes``: its mean over the scenes, as the
+    benchmark averages; ``criterion_share``: the share of all pairs within ``criterion``; ``rre_median`` and
+    ``rte_median``: median rotation (deg) and translation errors of the pairs within it; ``seconds_median``;
+    and ``scenes``: each scene's own ``recall``, ``criterion_share`` and pair counts."""
+    from dit_jax.data.scans import BENCHMARK_RMSE
+
+    def figures(subset: list[dict]) -> dict:
+        counted = [r for r in subset if not r["consecutive"]]
+        right = [r for r in subset if is_right(r, criterion)]
+        return {"pairs": len(subset), "counted": len(counted),
+                "recall": float(np.mean([r["rmse"] <= BENCHMARK_RMSE for r in counted])) if counted else float("nan"),
+                "criterion_share": float(np.mean([is_right(r, criterion) for r in subset])),
+                "rre_median": float(np.median([r["rot_err"] for r in right])) if right else float("nan"),
+                "rte_median": float(np.median([r["trans_err"] for r in right])) if right else float("nan")}
+
+    scenes = {scene: figures([r for r in rows if r["scene"] == scene]) for scene in sorted({r["scene"] for r in rows})}
+    out = figures(rows) | {"seconds_median": float(np.median([r["seconds"] for r in rows])), "scenes": scenes}
+    recalls = [s["recall"] for s in scenes.values() if not np.isnan(s["recall"])]
+    out["recall_scenes"] = float(np.mean(recalls)) if recalls else float("nan")
+    return out
+
+
 def summarise_scans(rows: list[dict], criterion: tuple[float, float] | None = None) -> dict:
     """Median rotation error, shares within :data:`SCAN_THRESHOLDS`, median relative translation error and
     mean seconds of one method's rows (each with ``rot_err``, ``trans_err``, ``trans_err_rel``, ``seconds``);
     with a ``criterion`` (degrees, distance), also ``registered``: the pairs within both, as the data's
-    benchmark counts them."""
+    benchmark counts them; where the rows carry the 3DMatch benchmark's ``rmse``, ``benchmark``
+    (:func:`benchmark_summary`); where they carry the verdict's ``level``, ``levels``: for each level the pairs
+    given it and how many of them were right (:func:`is_right`)."""
     rot = np.array([r["rot_err"] for r in rows])
     out = {"pairs": len(rows), "rot_median": float(np.median(rot)), "rot_mean": float(np.mean(rot)),
            "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
            "seconds_per_pair": float(np.mean([r["seconds"] for r in rows]))}
     out.update({f"within_{t:g}": int(np.sum(rot <= t)) for t in SCAN_THRESHOLDS})
     if criterion is not None:
-        degrees, distance = criterion
-        out["registered"] = int(sum(r["rot_err"] <= degrees and r["trans_err"] <= distance for r in rows))
+        out["registered"] = int(sum(is_right(r, criterion) for r in rows))
+        if rows and "rmse" in rows[0]:
+            out["benchmark"] = benchmark_summary(rows, criterion)
+    if rows and "level" in rows[0]:
+        out["levels"] = {level: {"pairs": sum(r["level"] == level for r in rows),
+                                 "right": sum(r["level"] == level and is_right(r, criterion) for r in rows)}
+                         for level in pipeline.VERDICT_LEVELS}
     return out
+
+
+def sample_pairs(found, max_pairs: int | None, seed: int = 0) -> list:
+    """At most ``max_pairs`` pairs of a :class:`dit_jax.data.scans.PairSet`: a series' first ones, a seeded
+    sample of a benchmark's list (kept in the list's order)."""
+    if max_pairs is None or len(found.pairs) <= max_pairs:
+        return list(found.pairs)
+    if found.kind != "gt.log":
+        return list(found.pairs[:max_pairs])
+    chosen = np.sort(np.random.default_rng(seed).choice(len(found.pairs), max_pairs, replace=False))
+    return [found.pairs[k] for k in chosen]
 
 
 def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
                    baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
-                   inference: dict | None = None, worst_pairs: bool = True) -> dict:
+                   inference: dict | None = None, worst_pairs: bool = True, seed: int = 0) -> dict:
     """DIT (and baselines) on pairs of real scans with known poses (:mod:`dit_jax.data.scans`).
 
     Pairs: the pair sets of :func:`dit_jax.data.scans.load_pair_sets` (a series gives scan i with scan i +
-    ``skip`` for each skip: 1 adjacent, 2 every second one; a 3DMatch folder its gt.log lists). Writes
+    ``skip`` for each skip: 1 adjacent, 2 every second one; a 3DMatch folder its gt.log lists, a folder of
+    3DMatch scenes each list over every scene). ``max_pairs``: the first pairs of a series, a sample (seeded
+    by ``seed``) of a benchmark's list. Writes
     ``results.md``, ``results.json`` (every pair's errors, the verdicts), ``success_ratio.png`` and
     ``worst_<pair set>.png`` (each method's worst pair) to ``out_dir``. Methods: DIT, DIT+ICP and the pipeline
     (one run of the pipeline, :func:`dit_jax.evaluators.common.run_dit`; ``inference``: changes to the
@@ -66,7 +129,7 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
     loaded = scans_lib.load_pair_sets(scans_dir, skips)
     registrar = registration.load(checkpoint_dir, **(inference or {})) if checkpoint_dir is not None else None
-    pair_sets = {name: found.pairs[:max_pairs] for name, found in loaded.items()}
+    pair_sets = {name: sample_pairs(found, max_pairs, seed) for name, found in loaded.items()}
     bar = progress_bar(progress, sum(map(len, pair_sets.values())) * (len(baselines) + bool(registrar)),
                        "evaluate scans")
     results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
@@ -115,8 +178,13 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 if method == METHOD_DIT_ICP:
                     row["beats_truth"] = icp_lib.fits_better(pair.source, pair.target, (rotation, translation),
                                                              (pair.rotation, pair.translation))
+                if pair.info is not None:
+                    row.update(rmse=scans_lib.benchmark_rmse(rotation, translation, pair), scene=pair.scene,
+                               consecutive=pair.consecutive)
                 if est.candidate is not None:
                     row["candidate"] = str(est.candidate[k])
+                if est.level is not None:
+                    row["level"] = str(est.level[k])
                 if est.fitness is not None:
                     row["fitness"] = float(est.fitness[k])
                     verdict_settings = registrar.settings
