@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Re-measures every evaluation in docs/ with a model (default: the shipped weights), as the README quotes them:
 # ModelNet40 unseen (100 pairs per setting, and the peers' protocol), the seen split and the embedded set (50
-# per setting), the Stanford Dragon scans, the 3DMatch kitchen fragments, the LiDAR pair and the angle sweep. Baselines are taken from each directory's earlier
+# per setting), the Stanford Dragon scans, the 3DMatch scenes (40 pairs per list) and kitchen fragments, the LiDAR pair and the angle sweep. Baselines are taken from each directory's earlier
 # results.json where they were scored on the same pairs with the same options (evaluate.py --reuse), so after a
 # change of weights or thresholds only DIT, DIT+ICP and the pipeline run again.
 #
@@ -33,6 +33,8 @@ step() {  # step NAME ARGS...: one evaluate.py run, timed, logged to runs/remeas
 step unseen --data-dir "$data" --unseen --settings all --max-pairs 100 --baselines "${all[@]}" \
   --reuse docs/eval_modelnet40_unseen --out docs/eval_modelnet40_unseen
 step dragon --scans "$scans" --baselines "${all[@]}" --out docs/eval_stanford_dragon
+step rooms --scans "$shared/3dmatch" --max-pairs 40 --baselines open3d_room_5cm kiss_matcher fpfh_ransac_icp \
+  --out docs/eval_3dmatch
 step kitchen --scans "$shared/3dmatch_redkitchen" --baselines fpfh_ransac_icp --out docs/eval_3dmatch_redkitchen
 step lidar --scans "$shared/lidar_pair" --baselines fpfh_ransac_icp --out docs/eval_lidar_pair
 step seen --data-dir "$data" --settings all --max-pairs 50 --baselines "${all[@]}" \

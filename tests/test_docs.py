@@ -9,8 +9,8 @@ files linked, ``examples/`` copied), so what a command writes lands there and no
 
 * ``<!-- test: args ... -->``: append these arguments to each command of the block (to keep a long job short:
   fewer steps, fewer pairs);
-* ``<!-- test: needs modelnet40 -->`` or ``needs dragon``: the data the block reads, through ``$MODELNET40`` or
-  ``$SCANS`` (skipped, with the reason, where ``../shared`` lacks it);
+* ``<!-- test: needs modelnet40 -->``, ``needs dragon`` or ``needs 3dmatch``: the data the block reads, through
+  ``$MODELNET40``, ``$SCANS`` or ``$THREEDMATCH`` (skipped, with the reason, where ``../shared`` lacks it);
 * ``<!-- test: ci -->``: the README's test command, which ``.ci/run`` must run as written.
 
 A fenced ``text`` block right after a block is the output it prints: compared line by line, numbers within
@@ -31,7 +31,9 @@ import sys
 
 import pytest
 
-from conftest import DRAGON_DIR, MODELNET_DIR
+from conftest import DRAGON_DIR, MODELNET_DIR, SHARED
+
+THREEDMATCH_DIR = SHARED / "data" / "3dmatch"
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PAGES = ("README.md", "docs/usage.md")
@@ -118,6 +120,10 @@ def _environment(block: Block, work: pathlib.Path) -> dict:
         for angle in (0, 24):
             (scans / f"dragonStandRight_{angle}.ply").symlink_to(DRAGON_DIR / f"dragonStandRight_{angle}.ply")
         env["SCANS"] = str(scans)
+    if "3dmatch" in needs:
+        if not THREEDMATCH_DIR.exists():
+            pytest.skip(f"the 3DMatch scenes are not here ({THREEDMATCH_DIR}); they ship with ../shared")
+        env["THREEDMATCH"] = str(THREEDMATCH_DIR)
     return env
 
 

@@ -13,6 +13,9 @@ Tables:
   unseen categories per setting -- with DIT alone, DIT+ICP (the default) and the best baseline, and seconds
   per pair.
 * ``results`` (docs/results.md): the same per evaluation directory, with every setting and pair set.
+* ``rooms`` (docs/results.md): the 3DMatch benchmark's figures of the room scenes (``eval_3dmatch``), per list:
+  registration recall (pooled and per scene), the share within 15 degrees and 0.3 m, median errors and
+  seconds, and how often each level of the pipeline's verdict was right.
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
 * ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
   was right, per setting and pair set, for DIT alone and DIT+ICP.
@@ -38,6 +41,7 @@ NETWORK = common.PIPELINE_METHODS
 #: The evaluation directories in docs/ the tables read, in the order they are shown, with a reader's name.
 SOURCES = (
     ("eval_stanford_dragon", "Stanford Dragon range scans (object)"),
+    ("eval_3dmatch", "3DMatch test scenes (rooms)"),
     ("eval_3dmatch_redkitchen", "3DMatch kitchen fragments (room)"),
     ("eval_lidar_pair", "LiDAR pair (street)"),
     ("eval_modelnet40_unseen", "ModelNet40, unseen categories"),
@@ -45,10 +49,12 @@ SOURCES = (
     ("eval_embedded", "embedded furniture set"),
 )
 #: Where each table lives.
-PAGES = {"expect": ROOT / "README.md", "results": DOCS / "results.md", "levels": DOCS / "verdict.md",
-         "bands": DOCS / "verdict.md"}
+PAGES = {"expect": ROOT / "README.md", "results": DOCS / "results.md", "rooms": DOCS / "results.md",
+         "levels": DOCS / "verdict.md", "bands": DOCS / "verdict.md"}
 #: The README's table: the real sets and one synthetic directory.
-EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch_redkitchen", "eval_lidar_pair", "eval_modelnet40_unseen")
+EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "eval_modelnet40_unseen")
+#: The rooms table's source: the 3DMatch benchmark's scenes.
+ROOMS_SOURCE = "eval_3dmatch"
 
 
 def _load(name: str) -> dict | None:
@@ -228,6 +234,25 @@ def levels_table() -> list[str]:
     return lines
 
 
+def rooms_table() -> list[str]:
+    """The benchmark's figures per list and method (:func:`dit_jax.evaluators.scans.benchmark_summary`), and
+    the pipeline's levels with how often each was right."""
+    from dit_jax.evaluators import report
+
+    results = _load(ROOMS_SOURCE)
+    if results is None:
+        return ["(no 3DMatch evaluation in docs/eval_3dmatch yet)"]
+    lines = []
+    for set_name, methods in _scan_sets(results).items():
+        info = results["pair_set_info"][set_name]
+        lines += [f"**{set_name}** ({info['pairs']} pairs, about {info['angle']:.0f} deg apart on average)", "",
+                  *report.benchmark_table(methods, info["criterion"]), ""]
+        for method, r in methods.items():
+            if r["summary"].get("levels"):
+                lines += [report.levels_line(method, r["summary"]["levels"]), ""]
+    return lines[:-1]
+
+
 def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
     """The agreement bands the weights carry (as recorded with ``source``'s results): per band of agreement,
     how many validation results fell in it and the share of them within 5 degrees."""
@@ -249,7 +274,8 @@ def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
     return lines
 
 
-TABLES = {"expect": expect_table, "results": results_tables, "levels": levels_table, "bands": bands_table}
+TABLES = {"expect": expect_table, "results": results_tables, "rooms": rooms_table, "levels": levels_table,
+          "bands": bands_table}
 
 
 def _replace(text: str, name: str, table: list[str]) -> str:
