@@ -7,7 +7,7 @@ can be passed to ``jax.jit`` as a static argument. Presets:
 * :func:`cpu` -- a narrower, shallower network that trains in reasonable time on a laptop CPU.
 * :func:`tiny` -- the smallest sensible network, for tests.
 
-GMCCE thresholds per data setting (SPEC.md section 9) are in :data:`GMCCE_THRESHOLDS`.
+GMCCE thresholds per data setting (docs/network.md, section 9) are in :data:`GMCCE_THRESHOLDS`.
 """
 
 from __future__ import annotations

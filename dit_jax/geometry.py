@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: Added to every squared distance by the authors' nearest-neighbour search (SPEC.md section 1).
+#: Added to every squared distance by the authors' nearest-neighbour search (docs/network.md, section 1).
 KNN_EPS = 1e-7
-#: Added to the weight sum by the authors' Procrustes (SPEC.md section 8).
+#: Added to the weight sum by the authors' Procrustes (docs/network.md, section 8).
 PROCRUSTES_EPS = 1e-7
 
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -37,7 +37,7 @@ def pairwise_sq_dist(x: jax.Array, y: jax.Array) -> jax.Array:
 def knn(points: jax.Array, k: int) -> jax.Array:
     """Indices of the ``k`` nearest neighbours of every point within its own cloud.
 
-    As in the authors' code (SPEC.md section 1): squared distances plus 1e-7, ascending, so the point itself
+    As in the authors' code (docs/network.md, section 1): squared distances plus 1e-7, ascending, so the point itself
     is its own first neighbour. Ties go to the lower index.
 
     Args:
@@ -181,8 +181,8 @@ def weighted_procrustes(src: jax.Array, tgt: jax.Array, weights: jax.Array):
     """The rigid motion that best maps weighted ``src`` onto ``tgt`` (Kabsch, reflection-safe).
 
     Minimises ``sum_i w_i |R src_i + t - tgt_i|^2`` over rotations R (det +1) and translations t, as in
-    SPEC.md section 8: weights normalised by ``sum |w| + 1e-7``, cross-covariance of the centred clouds, SVD,
-    and a sign flip of the last singular direction when the SVD would give a reflection.
+    docs/network.md, section 8: weights normalised by ``sum |w| + 1e-7``, cross-covariance of the centred
+    clouds, SVD, and a sign flip of the last singular direction when the SVD would give a reflection.
 
     Computed in float64 when ``jax_enable_x64`` is on (like the authors), otherwise in float32 with
     highest-precision matmuls and centred (two-pass) moments, which keeps R within about 1e-6 of float64.

@@ -1,4 +1,4 @@
-"""GMCCE: geometric-matching correspondence confidence (paper section 3.4, Algorithm 1; SPEC.md section 9).
+"""GMCCE: geometric-matching correspondence confidence (paper section 3.4, Algorithm 1; docs/network.md, section 9).
 
 A correspondence x_i -> y_i is trusted when the triangles x_i forms with its neighbours keep their side
 lengths in the target: rigid motions preserve them, wrong matches do not. Acts on one pair of clouds.
@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from dit_jax import geometry
 
-#: Added to the target's squared side lengths (SPEC.md section 9 step 3).
+#: Added to the target's squared side lengths (docs/network.md, section 9 step 3).
 SIDE_EPS = 1e-6
 #: Inside the square root of the triangle errors (step 5).
 ERROR_EPS = 1e-6

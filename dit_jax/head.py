@@ -1,4 +1,4 @@
-"""The head: feature similarity, correspondences, their weights and the pose (SPEC.md sections 6-8).
+"""The head: feature similarity, correspondences, their weights and the pose (docs/network.md, sections 6-8).
 
 Two modes, as in the authors' code:
 

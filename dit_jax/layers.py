@@ -222,7 +222,7 @@ def layer_norm(name: str, eps: float = 1e-5) -> nn.LayerNorm:
 
 
 class AnnotatedLayerNorm(nn.Module):
-    """LN* of the authors' PFT (SPEC.md section 4): ``a_2 (x - mean) / (std + eps) + b_2``.
+    """LN* of the authors' PFT (docs/network.md, section 4): ``a_2 (x - mean) / (std + eps) + b_2``.
 
     ``std`` is the unbiased (n - 1) standard deviation and ``eps`` (1e-6) is added to it, not to the
     variance: both differ from a standard LayerNorm and both matter for matching their numbers.

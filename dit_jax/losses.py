@@ -1,4 +1,4 @@
-"""The paper's training objective (paper section 3.5; SPEC.md section 11).
+"""The paper's training objective (paper section 3.5; docs/network.md, section 11).
 
 Per iteration i, weighted by ``discount ** i``:
 

@@ -2,7 +2,7 @@
 
 * :func:`rotation_error_deg`, :func:`translation_error`: isotropic errors (angle of R_gt^T R, |t - t_gt|).
 * :func:`matrix_to_euler_zyx`: Euler angles as scipy's ``as_euler('zyx', degrees=True)``, the authors'
-  convention (SPEC.md section 13).
+  convention (docs/network.md, section 13).
 * :func:`summarise`: the authors' table metrics (RMSE and MAE of Euler angles and of translation components),
   isotropic means, RPM-Net's Chamfer distance and success ratios over a sweep of thresholds.
 * :func:`surface_error`, :func:`symmetry_tolerance`, :func:`within_up_to_symmetry`: errors that a symmetry of

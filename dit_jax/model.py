@@ -1,4 +1,4 @@
-"""DIT: PSE, PFT and the head composed, and the iterative registration (SPEC.md sections 4-10).
+"""DIT: PSE, PFT and the head composed, and the iterative registration (docs/network.md, sections 4-10).
 
 The network is a Flax Linen module, :class:`DIT`, acting on one pair of clouds; everything a user calls is a
 pure function over explicit ``params``:
@@ -176,7 +176,7 @@ def _check_inputs(src: jax.Array, tgt: jax.Array, config: DITConfig) -> None:
 
 def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
                   gmcce_threshold: jax.Array | None = None):
-    """The iterative registration of one pair (SPEC.md section 10).
+    """The iterative registration of one pair (docs/network.md, section 10).
 
     Computed once, not per iteration: the target's kNN graph, PSE, positional encoding and encoder memory
     (the target does not move) and the source's kNN graph (moving it rigidly keeps its distances). All
@@ -244,7 +244,7 @@ def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
     """Estimates the rigid motion mapping each source cloud onto its target.
 
     ``n_iters`` iterations: the first in soft mode, the rest in GMCCE mode; each re-runs the network on the
-    moved source and composes its increment (SPEC.md section 10). Jitted with ``config`` static; it also
+    moved source and composes its increment (docs/network.md, section 10). Jitted with ``config`` static; it also
     nests inside a caller's ``jax.jit`` or ``jax.vmap``. The pairs of a batch are vmapped on accelerators and
     mapped one after the other (``lax.map``) on CPU and for clouds above about 2048 points, where
     that is faster and keeps memory at one pair's; the results are the same either way.
@@ -317,7 +317,7 @@ def _soft_pose(src, tgt, scores, temperature, differentiable: bool):
 
 def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_iters: int, *,
            differentiable: bool = False, dropout_key: jax.Array | None = None) -> Iterations:
-    """The training-time iterations of one pair (SPEC.md sections 10-11): soft mode, both directions.
+    """The training-time iterations of one pair (docs/network.md, sections 10-11): soft mode, both directions.
 
     Each iteration runs the network on the moved source and estimates source-to-target and
     target-to-source motions (the latter for the cycle loss). The source moves by the detached estimate, so

@@ -1,4 +1,4 @@
-"""PFT, the Point Feature Transformer (paper section 3.3; SPEC.md sections 3-5).
+"""PFT, the Point Feature Transformer (paper section 3.3; docs/network.md, sections 3-5).
 
 Positional encoding of the coordinates, a deep encoder/decoder Transformer that lets each cloud attend to the
 other, and squeeze-and-excitation. Everything acts on one pair of clouds, ``(N, E)`` and ``(M, E)`` features.

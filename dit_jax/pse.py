@@ -1,4 +1,4 @@
-"""PSE, the Point cloud Structure Extractor (paper section 3.2; SPEC.md section 2).
+"""PSE, the Point cloud Structure Extractor (paper section 3.2; docs/network.md, section 2).
 
 Eight token-transformer layers. Each reads the LFI (local feature integration) of the previous layer's tokens
 -- every point's k nearest neighbours' features concatenated, nearest first -- and attends over all points of
@@ -35,7 +35,7 @@ def local_feature_integration(features: jax.Array, knn_idx: jax.Array) -> jax.Ar
 class TokenTransformer(nn.Module):
     """One PSE layer: attention over the cloud's points from the LFI input to a T-wide token.
 
-    Follows the authors' token transformer (SPEC.md section 2): the attention scale uses the input width D,
+    Follows the authors' token transformer (docs/network.md, section 2): the attention scale uses the input width D,
     the residual around attention adds the value projection (the input is k T wide, the token T wide), and the
     feed-forward residual starts from the normalised output.
     """

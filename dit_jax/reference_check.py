@@ -2,8 +2,8 @@
 
     python -m dit_jax.reference_check FILE.npz [--json] [--x64 | --bfloat16] [--precision P]
 
-The file (format: end of SPEC.md) holds the authors' config, their weights under ``param/*``, one input pair and
-the activations their code produced. This converts the weights with the file's config, runs dit-jax on the pair
+The file (its format: docs/network.md, "The reference file") holds the authors' config, their weights under
+``param/*``, one input pair and the activations their code produced. This converts the weights with the file's config, runs dit-jax on the pair
 and compares every activation. It passes (exit 0) only when:
 
 * every feature activation, the temperature, the soft weights and the scores are within 1e-4 (absolute);
@@ -171,7 +171,7 @@ def format_table(checks: list[Check], unchecked: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dit_jax.reference_check",
                                      description="Compare dit-jax with the authors' recorded activations.")
-    parser.add_argument("file", help="reference .npz (see SPEC.md)")
+    parser.add_argument("file", help="reference .npz (format: docs/network.md)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     parser.add_argument("--x64", action="store_true", help="run dit-jax in float64 instead of float32")
     parser.add_argument("--bfloat16", action="store_true",

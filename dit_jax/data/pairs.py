@@ -1,4 +1,4 @@
-"""Registration pairs made from shapes as the authors make them (SPEC.md section 12), with random access.
+"""Registration pairs made from shapes as the authors make them (docs/network.md, section 12), with random access.
 
 For shape X (its first P points, P = 1000 by default):
 
@@ -63,11 +63,11 @@ SETTINGS: Mapping[str, Setting] = {
     "scan_low_noise": Setting(0.001, "scan", True),
     "scan_high_noise": Setting(0.05, "scan", True),
 }
-#: The settings of the paper (SPEC.md section 12).
+#: The settings of the paper (docs/network.md, section 12).
 AUTHORS_SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
 VARIANTS = ("authors", "peers")
 NOISE_STD = 0.01
-#: Distance under which a source point's true counterpart counts as matched (SPEC.md section 11).
+#: Distance under which a source point's true counterpart counts as matched (docs/network.md, section 11).
 CORRESPONDENCE_RADIUS = 0.04
 #: Scan-like views: the camera's distance from the shape's centre (radii), Katz's gamma, the largest angle
 #: between the two viewpoints (degrees) and the share of the shape's points each view keeps.
@@ -87,7 +87,8 @@ class PairConfig:
       setting: one of :data:`SETTINGS`.
       train: training pairs (fresh each epoch) rather than fixed test pairs.
       unseen: split by category: labels 0-19 for training, 20-39 for testing.
-      variant: "authors" (SPEC.md) or "peers" (angles in [0, 45], RPM-Net plane crop keeping 70 %).
+      variant: "authors" (docs/network.md, section 12) or "peers" (angles in [0, 45], RPM-Net plane crop
+        keeping 70 %).
       n_points: points taken from each shape (its first ones); with independent sampling, the most points
         each cloud takes (see the module docs).
       partial_points: points each cloud keeps in the authors' partial settings (default: 80 % of n_points,
