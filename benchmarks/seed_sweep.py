@@ -14,6 +14,8 @@ without TFDS (a bare accelerator) the embedded set is read straight from its npz
 import argparse
 import dataclasses
 import json
+import os
+import sys
 import time
 
 
@@ -33,7 +35,8 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="write every curve here")
     args = parser.parse_args()
 
-    from dit_jax.data import packed
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tools"))
+    import packed
 
     no_tfds = packed.allow_without_tfds()
     import jax

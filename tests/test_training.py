@@ -155,7 +155,7 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
 def test_a_lease_brings_its_compilation_cache_back_within_the_tools_file_limit(tmp_path):
     """device_stage's xla_cache.tar keeps the largest entries (the train steps) that fit the limit, and the
     next lease's --cache-from unpacks them where the persistent cache looks."""
-    from dit_jax.release import device_stage
+    import device_stage
 
     cache = tmp_path / "cache"
     cache.mkdir()
@@ -171,10 +171,10 @@ def test_a_lease_brings_its_compilation_cache_back_within_the_tools_file_limit(t
 def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run):
     """validate_at_start=False (tiny_run's): no step-0 validation (what a short GPU lease cannot afford to
     compile), the later ones still run. A run stopped before any validation still leaves weights:
-    dit_jax.release.device_stage then bundles its latest checkpoints, and export_params reads them."""
+    tools/device_stage.py then bundles its latest checkpoints, and export_params reads them."""
     import tarfile
 
-    from dit_jax.release import device_stage
+    import device_stage
 
     records = [json.loads(line) for line in (tiny_run.workdir / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["split"] == "val"] == [6, 12]

@@ -7,7 +7,7 @@ single sampling pattern is learned; validation thins the held-out shapes' pairs 
 train steps).
 
 As run then (``dit_jax.release.ship_weights`` recorded it; the training shapes packed here with
-``python -m dit_jax.release.device_stage pack``, docs/training.md):
+``python -m dit_jax.release.device_stage pack``, docs/training.md; the tool is now ``python tools/device_stage.py``):
 
     python -m dit_jax.release.device_stage run --packed runs/device_data/mn40_train.npz --out $OUT \
         --seconds 530 --steps 4500 --validations 1 --ckpt-every 250 --run stage7 -- \

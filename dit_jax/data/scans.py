@@ -5,7 +5,7 @@ The Stanford 3D Scanning Repository's layout (e.g. the Dragon's turntable series
 rotation matrix of the unit quaternion (qx, qy, qz, qw), and the scans as PLY files beside it. ``camera`` and
 ``mesh`` lines are not scans and are skipped.
 
-    scans = load_scans("../shared/data/stanford_dragon_stand")     # in the .conf's order
+    scans = load_scans("stanford_dragon_stand")                    # scans and their .conf, in its order
     for pair in scan_pairs(scans, skip=1):                         # adjacent scans, cyclically
         pair.source, pair.target, pair.rotation, pair.translation  # tgt ~ src @ R.T + t
 

@@ -2,7 +2,7 @@
 test pairs) through the registration pipeline, and recorded in the checkpoint's
 :class:`~dit_jax.pipeline.InferenceSettings`.
 
-    dit-calibrate runs/mix/model --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
+    dit-calibrate runs/mix/model --data-dir /data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
     dit-calibrate dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
     dit-calibrate dit_jax/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
 

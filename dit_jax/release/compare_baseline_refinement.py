@@ -6,7 +6,7 @@ several ICP runs. This asks whether the baselines would be stronger with DIT's r
 estimate (tuned options per setting) is refined both ways and scored as the tuning scores (success,
 share within 5 degrees and 0.05, median rotation error). Validation pairs of training shapes only.
 
-    python python -m dit_jax.release.compare_baseline_refinement --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
+    python -m dit_jax.release.compare_baseline_refinement --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
 
 Prints a markdown table. ``--write`` also makes it the last tuning stage: per setting, each of
 ``fpfh_ransac_icp`` and ``fgr_icp`` keeps whichever refinement scores better there (ties keep the single
@@ -49,7 +49,7 @@ def main() -> None:
     tuned_json = json.loads(TUNED_PATH.read_text())
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").
     single = tuned_json.get("refinement", {}).get("single_icp_method", {})
-    command = ("python python -m dit_jax.release.compare_baseline_refinement " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
+    command = ("python -m dit_jax.release.compare_baseline_refinement " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
                + ("--unseen " if args.unseen else "") + f"--pairs {args.pairs}" + (" --write" if args.write else ""))
     lines = [f"{datetime.date.today().isoformat()}: `{command}` (validation pairs of training shapes)", "",
              "success % / within 5 deg, 0.05 % / median deg; the better score (success + within 5) in bold", "",

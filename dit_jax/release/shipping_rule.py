@@ -1,6 +1,6 @@
 """The shipping rule: whether a candidate's weights may replace the shipped ones.
 
-    python -m dit_jax.release.shipping_rule runs/stage/model --data-dir ../shared/data/modelnet40_ply_hdf5_1024 \
+    python -m dit_jax.release.shipping_rule runs/stage/model --data-dir /data/modelnet40_ply_hdf5_1024 \
         --pairs 32 --out runs/stage/rule.json
 
 Both checkpoints register the same held-out validation pairs (the training split's held-out shapes,

@@ -1,7 +1,7 @@
 """Tunes the classical baselines (and DIT's ICP refinement) on validation pairs of training shapes, never on
 test pairs, and writes the choice that evaluate.py and the API use by default.
 
-    python -m dit_jax.release.tune_baselines --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen
+    python -m dit_jax.release.tune_baselines --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
 
 Validation pairs: the training split's held-out shapes (categories 0-19 with ``--unseen``), ``--pairs`` per
 setting, every setting of :data:`dit_jax.data.pairs.SETTINGS`. Each configuration is scored per setting by

@@ -1,14 +1,15 @@
 """One training stage on a lent GPU machine inside a fixed wall-clock budget, several runs side by side.
 
-Here, where the data is, pack the training shapes once (the machine there has no ../shared and no TFDS)::
+A development tool, not part of the package. Here, where the data is, pack the training shapes once (the
+machine there has neither the data folder nor TFDS)::
 
-    python -m dit_jax.release.device_stage pack --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen \
+    python tools/device_stage.py pack --data-dir $MODELNET40 --unseen \
         --out runs/device_data/mn40_train.npz
 
 There (the device tool carries runs/device_data), from the repository root, either with ``--steps N`` or
 with ``--seconds`` alone (then the recipe is timed first, at the cost of compiling it twice)::
 
-    PYTHONPATH=. JAX_DEFAULT_MATMUL_PRECISION=highest python -m dit_jax.release.device_stage run \
+    PYTHONPATH=. JAX_DEFAULT_MATMUL_PRECISION=highest python tools/device_stage.py run \
         --packed runs/device_data/mn40_train.npz --out $OUT --seconds 540 \
         --run corr --run nocorr:correspondence_weight=0.0 -- <train.py arguments shared by the runs>
 
@@ -22,7 +23,7 @@ skips the validation before the first step, whose compiling ate most of a 15-min
 ``dit_jax.training.export_params`` read) and a log, and ``xla_cache.tar``: the persistent compilation cache,
 which the next lease carries back in (``--cache-from``) so that programs of the same shapes load instead of
 compiling. Each run is ``python train.py``'s ``training.train``
-with the given arguments; the data are the packed shapes (:mod:`dit_jax.data.packed`), recorded under the
+with the given arguments; the data are the packed shapes (``tools/packed.py``), recorded under the
 directory they were packed from.
 """
 
@@ -38,13 +39,13 @@ import sys
 import tarfile
 import time
 
-#: The repository root: release steps run from it (``python -m dit_jax.release.device_stage``), where train.py is.
+#: The repository root: the tool runs from it (``python tools/device_stage.py``), where train.py is.
 ROOT = os.getcwd()
 
 
 def _use_packed(path: str) -> None:
     """Points dit_jax's shape loading at the packed file."""
-    from dit_jax.data import packed
+    import packed
 
     packed.allow_without_tfds()
     from dit_jax.data import shapes as shapes_lib
@@ -88,7 +89,7 @@ def _seconds_per_step(workdir: str) -> tuple[float, float]:
 
 
 def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "dit_jax.release.device_stage", "worker", "--packed", args.packed, "--compile-cache",
+    cmd = [sys.executable, os.path.abspath(__file__), "worker", "--packed", args.packed, "--compile-cache",
            args.compile_cache, "--workdir", os.path.join(args.workdir, name), "--", *train_args]
     log = open(os.path.join(log_dir, f"{name}.log"), "w")
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1")
@@ -225,7 +226,7 @@ def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) ->
 
 
 def pack(args) -> int:
-    from dit_jax.data import packed
+    import packed
 
     print(packed.pack(args.data_dir, args.out, labels=range(20) if args.unseen else None))
     return 0

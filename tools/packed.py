@@ -1,11 +1,12 @@
-"""Shapes packed into one file, for a machine that has neither the data directory nor TFDS (a lent GPU).
+"""Shapes packed into one file, for a machine that has neither the data directory nor TFDS (a lent GPU): a
+development tool beside tools/device_stage.py, not part of the package.
 
 :func:`pack` writes one split of a ModelNet40 h5 directory, keeping only the shapes a run can use (with
 ``unseen``, categories 0-19) and the row count of the whole split, so that
 :func:`dit_jax.training.split_validation` draws the same validation shapes there as here. Points travel as
 int16 (resolution 1/32767 of the unit sphere, 3e-5), half the size of float32::
 
-    pack("../shared/data/modelnet40_ply_hdf5_1024", "runs/device_data/mn40_train.npz", labels=range(20))
+    pack("/data/modelnet40_ply_hdf5_1024", "runs/device_data/mn40_train.npz", labels=range(20))
     shapes = load("runs/device_data/mn40_train.npz")     # Shapes, unused rows zero, their labels kept
 
 :func:`allow_without_tfds` lets :mod:`dit_jax.data.shapes` import where ``tensorflow_datasets`` is missing

@@ -1,4 +1,4 @@
-"""Packed shapes (dit_jax.data.packed): what a lent GPU trains on must be the shapes, split and validation
+"""Packed shapes (tools/packed.py): what a lent GPU trains on must be the shapes, split and validation
 pairs a run here would use."""
 
 import subprocess
@@ -9,7 +9,8 @@ import pytest
 
 from conftest import ROOT
 from dit_jax import training
-from dit_jax.data import packed, shapes
+from dit_jax.data import shapes
+import packed
 from test_data_shapes import _write_h5_dir
 
 
@@ -53,9 +54,9 @@ def test_points_beyond_the_unit_cube_are_refused(tmp_path):
 def test_shapes_module_imports_without_tfds(tmp_path):
     """The lent GPU machine has no tensorflow_datasets; the data modules must still import there."""
     (tmp_path / "tensorflow_datasets.py").write_text("raise ImportError('not installed here')\n")
-    code = ("from dit_jax.data import packed; assert packed.allow_without_tfds(); "
+    code = ("import packed; assert packed.allow_without_tfds(); "
             "from dit_jax.data import pairs, shapes; from dit_jax import training; print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                         env={"PYTHONPATH": f"{tmp_path}:{ROOT}", "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"})
+                         env={"PYTHONPATH": f"{tmp_path}:{ROOT}:{ROOT / 'tools'}", "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"})
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "ok"
