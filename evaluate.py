@@ -28,23 +28,47 @@ worst pair) to --out.
 import argparse
 import sys
 
-
 # What each mode leaves out, so that a flag given with it is refused rather than silently ignored.
 _IGNORED_BY = {
-    "--scans": ("angle_sweep", "data_dir", "settings", "unseen", "variant", "gmcce_threshold", "batch_size",
-                "bfloat16", "reuse", "no_verdict"),
-    "--angle-sweep": ("skips", "variant", "iters", "gmcce_threshold", "baselines", "batch_size", "bfloat16",
-                      "reuse", "no_verdict", "best_direction", "no_dit"),
+    "--scans": (
+        "angle_sweep",
+        "data_dir",
+        "settings",
+        "unseen",
+        "variant",
+        "gmcce_threshold",
+        "batch_size",
+        "bfloat16",
+        "reuse",
+        "no_verdict",
+    ),
+    "--angle-sweep": (
+        "skips",
+        "variant",
+        "iters",
+        "gmcce_threshold",
+        "baselines",
+        "batch_size",
+        "bfloat16",
+        "reuse",
+        "no_verdict",
+        "best_direction",
+        "no_dit",
+    ),
 }
 
 
 def _inference_changes(args) -> dict:
     """The changes to the checkpoint's inference settings (:class:`dit_jax.pipeline.InferenceSettings`) that
     evaluate.py's flags ask for."""
-    changes = {"n_points": args.n_points, "n_iters": args.iters, "refine": args.refine,
-               "feature_candidate": args.features,
-               "best_direction": None if args.best_direction is None else args.best_direction == "on",
-               "verdict_rule": "fitness" if args.no_verdict else None}
+    changes = {
+        "n_points": args.n_points,
+        "n_iters": args.iters,
+        "refine": args.refine,
+        "feature_candidate": args.features,
+        "best_direction": None if args.best_direction is None else args.best_direction == "on",
+        "verdict_rule": "fitness" if args.no_verdict else None,
+    }
     return {name: value for name, value in changes.items() if value is not None}
 
 
@@ -54,44 +78,84 @@ def main(argv=None) -> int:
     from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
-    parser.add_argument("--checkpoint", default=None,
-                        help="a model checkpoint directory (default: the weights that ship with dit-jax)")
+    parser.add_argument(
+        "--checkpoint", default=None, help="a model checkpoint directory (default: the weights that ship with dit-jax)"
+    )
     parser.add_argument("--no-dit", action="store_true", help="evaluate the baselines alone")
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--settings", nargs="+", default=["clean"], choices=tuple(SETTINGS) + ("authors", "all"))
-    parser.add_argument("--scans", default=None, metavar="DIR",
-                        help="evaluate on real scans with known poses instead of shapes: a Stanford .conf, "
-                             "3DMatch gt.log lists, a KITTI poses.txt or T_target_source.txt")
-    parser.add_argument("--angle-sweep", action="store_true",
-                        help="DIT's error against rotation angles 0-180 degrees on the first --settings setting "
-                             "(default independent_clean) instead of the tables")
-    parser.add_argument("--skips", nargs="+", type=int, default=[1, 2],
-                        help="with --scans of a series: pair scan i with scan i + SKIP (default: 1 2)")
+    parser.add_argument(
+        "--scans",
+        default=None,
+        metavar="DIR",
+        help="evaluate on real scans with known poses instead of shapes: a Stanford .conf, "
+        "3DMatch gt.log lists, a KITTI poses.txt or T_target_source.txt",
+    )
+    parser.add_argument(
+        "--angle-sweep",
+        action="store_true",
+        help="DIT's error against rotation angles 0-180 degrees on the first --settings setting "
+        "(default independent_clean) instead of the tables",
+    )
+    parser.add_argument(
+        "--skips",
+        nargs="+",
+        type=int,
+        default=[1, 2],
+        help="with --scans of a series: pair scan i with scan i + SKIP (default: 1 2)",
+    )
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
-    parser.add_argument("--n-points", type=int, default=None,
-                        help="default: the checkpoint's inference point count, else its training one, else 1000")
+    parser.add_argument(
+        "--n-points",
+        type=int,
+        default=None,
+        help="default: the checkpoint's inference point count, else its training one, else 1000",
+    )
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
     parser.add_argument("--iters", type=int, default=None, help="default: the model's")
-    parser.add_argument("--gmcce-threshold", default=None, metavar="TAU|authors",
-                        help="default: the model's own inference settings, the same for every input; 'authors': "
-                             "the authors' threshold per setting; or a number")
+    parser.add_argument(
+        "--gmcce-threshold",
+        default=None,
+        metavar="TAU|authors",
+        help="default: the model's own inference settings, the same for every input; 'authors': "
+        "the authors' threshold per setting; or a number",
+    )
     parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
-    parser.add_argument("--refine", choices=["auto", "icp", "gicp", "none"], default=None,
-                        help="the DIT+ICP row's refinement (default: the checkpoint's); none drops the row")
-    parser.add_argument("--features", choices=["auto", "on", "off"], default=None,
-                        help="the pipeline row: the second candidate by local features where DIT+ICP is not "
-                             "trusted (default: the checkpoint's)")
+    parser.add_argument(
+        "--refine",
+        choices=["auto", "icp", "gicp", "none"],
+        default=None,
+        help="the DIT+ICP row's refinement (default: the checkpoint's); none drops the row",
+    )
+    parser.add_argument(
+        "--features",
+        choices=["auto", "on", "off"],
+        default=None,
+        help="the pipeline row: the second candidate by local features where DIT+ICP is not "
+        "trusted (default: the checkpoint's)",
+    )
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
-    parser.add_argument("--reuse", default=None, metavar="DIR",
-                        help="take baselines scored on the same pairs from an earlier --out instead of rerunning them")
-    parser.add_argument("--no-verdict", action="store_true",
-                        help="skip the agreement verdict's second registration (target onto source) of every pair")
-    parser.add_argument("--best-direction", choices=["on", "off"], default=None,
-                        help="DIT+ICP keeps the better fitting of its two directions (source onto target, target "
-                             "onto source), as dit-register --best-direction; default: the checkpoint's")
+    parser.add_argument(
+        "--reuse",
+        default=None,
+        metavar="DIR",
+        help="take baselines scored on the same pairs from an earlier --out instead of rerunning them",
+    )
+    parser.add_argument(
+        "--no-verdict",
+        action="store_true",
+        help="skip the agreement verdict's second registration (target onto source) of every pair",
+    )
+    parser.add_argument(
+        "--best-direction",
+        choices=["on", "off"],
+        default=None,
+        help="DIT+ICP keeps the better fitting of its two directions (source onto target, target "
+        "onto source), as dit-register --best-direction; default: the checkpoint's",
+    )
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -125,26 +189,50 @@ def main(argv=None) -> int:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
         if args.angle_sweep:
             setting = settings[0] if args.settings != ["clean"] else "independent_clean"
-            results = evaluators.angle_sweep(checkpoint, args.out, data_dir=args.data_dir, setting=setting,
-                                             unseen=args.unseen, pairs_per_angle=args.max_pairs or 24,
-                                             n_points=args.n_points, progress=not args.no_progress,
-                                             refine=args.refine != "none")
+            results = evaluators.angle_sweep(
+                checkpoint,
+                args.out,
+                data_dir=args.data_dir,
+                setting=setting,
+                unseen=args.unseen,
+                pairs_per_angle=args.max_pairs or 24,
+                n_points=args.n_points,
+                progress=not args.no_progress,
+                refine=args.refine != "none",
+            )
             print(results["table"])
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
             return 0
         if args.scans:
-            results = evaluators.evaluate_scans(checkpoint, args.scans, args.out, skips=args.skips,
-                                                baselines=args.baselines, max_pairs=args.max_pairs,
-                                                progress=not args.no_progress, inference=inference)
+            results = evaluators.evaluate_scans(
+                checkpoint,
+                args.scans,
+                args.out,
+                skips=args.skips,
+                baselines=args.baselines,
+                max_pairs=args.max_pairs,
+                progress=not args.no_progress,
+                inference=inference,
+            )
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json, success_ratio.png")
             return 0
-        results = evaluators.evaluate(checkpoint, args.out, data_dir=args.data_dir, settings=settings,
-                                      unseen=args.unseen, variant=args.variant, max_pairs=args.max_pairs,
-                                      baselines=args.baselines, inference=inference,
-                                      gmcce_threshold=args.gmcce_threshold, batch_size=args.batch_size,
-                                      compute_dtype="bfloat16" if args.bfloat16 else "float32",
-                                      progress=not args.no_progress, reuse=args.reuse)
+        results = evaluators.evaluate(
+            checkpoint,
+            args.out,
+            data_dir=args.data_dir,
+            settings=settings,
+            unseen=args.unseen,
+            variant=args.variant,
+            max_pairs=args.max_pairs,
+            baselines=args.baselines,
+            inference=inference,
+            gmcce_threshold=args.gmcce_threshold,
+            batch_size=args.batch_size,
+            compute_dtype="bfloat16" if args.bfloat16 else "float32",
+            progress=not args.no_progress,
+            reuse=args.reuse,
+        )
     except (CheckpointError, DataError, ImportError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

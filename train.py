@@ -31,23 +31,43 @@ def _define_flags() -> flags.FlagValues:
     """train.py's flags, defined afresh for each parse: the recipe's ``--config.FIELD`` flags depend on the
     recipe file and are read from ``sys.argv`` when it loads."""
     values = flags.FlagValues()
-    config_flags.DEFINE_config_file("config", os.path.join(CONFIGS, "quick.py"), "a recipe file (its get_config())",
-                                    flag_values=values, lock_config=True)
+    config_flags.DEFINE_config_file(
+        "config",
+        os.path.join(CONFIGS, "quick.py"),
+        "a recipe file (its get_config())",
+        flag_values=values,
+        lock_config=True,
+    )
     flags.DEFINE_string("workdir", None, "default: runs/<recipe>-<setting>, or runs/<recipe>-mix", flag_values=values)
-    flags.DEFINE_bool("resume", False, "continue the run in --workdir, with the config saved there (unless "
-                      "--config is given)", flag_values=values)
+    flags.DEFINE_bool(
+        "resume",
+        False,
+        "continue the run in --workdir, with the config saved there (unless --config is given)",
+        flag_values=values,
+    )
     flags.DEFINE_string("prepared-dir", None, "where TFDS keeps prepared data", flag_values=values)
-    flags.DEFINE_bool("distributed", False, "join a multi-process run (one process per host or per GPU)",
-                      flag_values=values)
-    flags.DEFINE_string("coordinator", None, "with --distributed: process 0's address HOST:PORT (default: "
-                        "$JAX_COORDINATOR_ADDRESS or the cluster's)", flag_values=values)
-    flags.DEFINE_integer("num-processes", None, "with --distributed (default: $JAX_NUM_PROCESSES or the "
-                         "cluster's)", flag_values=values)
-    flags.DEFINE_integer("process-id", None, "with --distributed (default: $JAX_PROCESS_ID or the cluster's)",
-                         flag_values=values)
+    flags.DEFINE_bool(
+        "distributed", False, "join a multi-process run (one process per host or per GPU)", flag_values=values
+    )
+    flags.DEFINE_string(
+        "coordinator",
+        None,
+        "with --distributed: process 0's address HOST:PORT (default: $JAX_COORDINATOR_ADDRESS or the cluster's)",
+        flag_values=values,
+    )
+    flags.DEFINE_integer(
+        "num-processes", None, "with --distributed (default: $JAX_NUM_PROCESSES or the cluster's)", flag_values=values
+    )
+    flags.DEFINE_integer(
+        "process-id", None, "with --distributed (default: $JAX_PROCESS_ID or the cluster's)", flag_values=values
+    )
     flags.DEFINE_bool("no-progress", False, "no progress bar", flag_values=values)
-    flags.DEFINE_string("compile-cache", None, "keep compiled XLA programs here (default: "
-                        "$DIT_JAX_COMPILE_CACHE, else ~/.cache/dit-jax/xla)", flag_values=values)
+    flags.DEFINE_string(
+        "compile-cache",
+        None,
+        "keep compiled XLA programs here (default: $DIT_JAX_COMPILE_CACHE, else ~/.cache/dit-jax/xla)",
+        flag_values=values,
+    )
     flags.DEFINE_bool("no-compile-cache", False, "compile afresh every run", flag_values=values)
     return values
 
@@ -88,9 +108,22 @@ def parse(argv=None):
         config = dataclasses.replace(config, init_from=os.path.abspath(config.init_from))
     recipe = os.path.splitext(os.path.basename(config_flags.get_config_filename(FLAGS["config"])))[0]
     workdir = workdir or f"runs/{recipe}-{'mix' if config.settings else config.setting}"
-    options = types.SimpleNamespace(**{name.replace("-", "_"): FLAGS[name].value for name in (
-        "resume", "prepared-dir", "distributed", "coordinator", "num-processes", "process-id", "no-progress",
-        "compile-cache", "no-compile-cache")})
+    options = types.SimpleNamespace(
+        **{
+            name.replace("-", "_"): FLAGS[name].value
+            for name in (
+                "resume",
+                "prepared-dir",
+                "distributed",
+                "coordinator",
+                "num-processes",
+                "process-id",
+                "no-progress",
+                "compile-cache",
+                "no-compile-cache",
+            )
+        }
+    )
     return options, config, workdir
 
 
@@ -105,8 +138,9 @@ def main(argv=None) -> int:
     from dit_jax.data.shapes import DataError
 
     try:
-        result = training.train(config, workdir, resume=args.resume, prepared_dir=args.prepared_dir,
-                                 progress=not args.no_progress)
+        result = training.train(
+            config, workdir, resume=args.resume, prepared_dir=args.prepared_dir, progress=not args.no_progress
+        )
     except (DataError, training.TrainCheckpointError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

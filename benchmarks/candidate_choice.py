@@ -44,8 +44,10 @@ def main() -> None:
                 else:
                     scale = float(np.linalg.norm(pair.target - pair.target.mean(axis=0), axis=1).max())
                     own = icp.refine(pair.source, pair.target, match.rotation, match.translation, scale=scale)
-                errors = [geometry.rotation_angle_deg(np.asarray(r).T @ pair.rotation)
-                          for r in (result.rotation, own.rotation)]
+                errors = [
+                    geometry.rotation_angle_deg(np.asarray(r).T @ pair.rotation)
+                    for r in (result.rotation, own.rotation)
+                ]
                 if abs(errors[0] - errors[1]) <= DIFFERENT_DEG:
                     continue
                 differ += 1
@@ -56,17 +58,27 @@ def main() -> None:
                 by_overlap = int(shares[1] > shares[0])
                 right_by_fit += by_fit == right
                 right_by_overlap += by_overlap == right
-            record = {"benchmark": "candidate_choice", "date": datetime.date.today().isoformat(),
-                      "data": os.path.basename(os.path.normpath(folder)), "set": set_name,
-                      "pairs": len(found.pairs), "candidates_differ": differ,
-                      "trimmed_fit_right": right_by_fit, "overlap_right": right_by_overlap}
+            record = {
+                "benchmark": "candidate_choice",
+                "date": datetime.date.today().isoformat(),
+                "data": os.path.basename(os.path.normpath(folder)),
+                "set": set_name,
+                "pairs": len(found.pairs),
+                "candidates_differ": differ,
+                "trimmed_fit_right": right_by_fit,
+                "overlap_right": right_by_overlap,
+            }
             print(json.dumps(record), flush=True)
             records.append(record)
-    print(f"\n| data | pairs | candidates more than {DIFFERENT_DEG:g} deg apart | the trimmed fit keeps the right one "
-          "| the overlap keeps the right one |\n|---|---|---|---|---|")
+    print(
+        f"\n| data | pairs | candidates more than {DIFFERENT_DEG:g} deg apart | the trimmed fit keeps the right one "
+        "| the overlap keeps the right one |\n|---|---|---|---|---|"
+    )
     for r in records:
-        print(f"| {r['data']} {r['set']} | {r['pairs']} | {r['candidates_differ']} | {r['trimmed_fit_right']} | "
-              f"{r['overlap_right']} |")
+        print(
+            f"| {r['data']} {r['set']} | {r['pairs']} | {r['candidates_differ']} | {r['trimmed_fit_right']} | "
+            f"{r['overlap_right']} |"
+        )
 
 
 if __name__ == "__main__":

@@ -47,7 +47,9 @@ def main():
                 ds.batch(np.arange(i * bs, (i + 1) * bs), epoch=0)
             out[f"pairs_per_second_{setting}"] = n_batches * bs / (time.perf_counter() - t0)
 
-        config = dataclasses.replace(training.load_config("configs/tiny.py"), n_points=1000, batch_size=bs, data_dir=args.data_dir)
+        config = dataclasses.replace(
+            training.load_config("configs/tiny.py"), n_points=1000, batch_size=bs, data_dir=args.data_dir
+        )
         optimizer = training.make_optimizer(config, 1000)
         mesh = training.make_mesh()
         state = training.replicate(training.init_state(config, optimizer), mesh)

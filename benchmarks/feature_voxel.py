@@ -21,8 +21,9 @@ import numpy as np
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scans", nargs="+", help="folders of scans with known poses")
-    parser.add_argument("--voxels", nargs="+", type=float, default=[2.0, 3.0, 4.0, 8.0],
-                        help="voxels in point spacings")
+    parser.add_argument(
+        "--voxels", nargs="+", type=float, default=[2.0, 3.0, 4.0, 8.0], help="voxels in point spacings"
+    )
     args = parser.parse_args()
 
     from dit_jax import feature_match, geometry, icp
@@ -39,17 +40,27 @@ def main() -> None:
                     started = time.perf_counter()
                     match = feature_match.register(pair.source, pair.target, spacing=spacing, voxel_spacings=voxel)
                     seconds.append(time.perf_counter() - started)
-                    right += (geometry.rotation_angle_deg(match.rotation.T @ pair.rotation) <= degrees
-                              and np.linalg.norm(match.translation - pair.translation) <= distance)
-                record = {"benchmark": "feature_voxel", "date": datetime.date.today().isoformat(),
-                          "data": os.path.basename(os.path.normpath(folder)), "set": set_name,
-                          "pairs": len(found.pairs), "voxel_spacings": voxel, "right": int(right),
-                          "median_s": float(np.median(seconds))}
+                    right += (
+                        geometry.rotation_angle_deg(match.rotation.T @ pair.rotation) <= degrees
+                        and np.linalg.norm(match.translation - pair.translation) <= distance
+                    )
+                record = {
+                    "benchmark": "feature_voxel",
+                    "date": datetime.date.today().isoformat(),
+                    "data": os.path.basename(os.path.normpath(folder)),
+                    "set": set_name,
+                    "pairs": len(found.pairs),
+                    "voxel_spacings": voxel,
+                    "right": int(right),
+                    "median_s": float(np.median(seconds)),
+                }
                 print(json.dumps(record), flush=True)
                 records.append(record)
     print("\n| data | pairs | voxel (spacings) | right | s / pair (median) |\n|---|---|---|---|---|")
     for r in records:
-        print(f"| {r['data']} {r['set']} | {r['pairs']} | {r['voxel_spacings']:g} | {r['right']} | {r['median_s']:.2f} |")
+        print(
+            f"| {r['data']} {r['set']} | {r['pairs']} | {r['voxel_spacings']:g} | {r['right']} | {r['median_s']:.2f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -37,18 +37,25 @@ def _generalized_icp(src, tgt, rotation, translation, distances):
     motion[:3, :3], motion[:3, 3] = rotation, translation
     for distance in distances:
         motion = registration_lib.registration_generalized_icp(
-            cloud(src), cloud(tgt), distance, motion, registration_lib.TransformationEstimationForGeneralizedICP(),
-            registration_lib.ICPConvergenceCriteria(1e-9, 1e-9, 60)).transformation
+            cloud(src),
+            cloud(tgt),
+            distance,
+            motion,
+            registration_lib.TransformationEstimationForGeneralizedICP(),
+            registration_lib.ICPConvergenceCriteria(1e-9, 1e-9, 60),
+        ).transformation
     return motion[:3, :3]
 
 
 #: The local objectives ``--compare`` starts at the truth: name -> (src, tgt, R, t) -> rotation (3, 3).
 OBJECTIVES = {
     "refinement (shipped)": lambda s, g, r, t: icp.refine(s, g, r, t).rotation,
-    "point-to-plane 0.1/0.05": lambda s, g, r, t: icp.icp(s, g, r, t, distances=(0.1, 0.05),
-                                                           method="point_to_plane").rotation,
-    "point-to-plane 0.1/0.05/0.02": lambda s, g, r, t: icp.icp(s, g, r, t, distances=(0.1, 0.05, 0.02),
-                                                                method="point_to_plane").rotation,
+    "point-to-plane 0.1/0.05": lambda s, g, r, t: (
+        icp.icp(s, g, r, t, distances=(0.1, 0.05), method="point_to_plane").rotation
+    ),
+    "point-to-plane 0.1/0.05/0.02": lambda s, g, r, t: (
+        icp.icp(s, g, r, t, distances=(0.1, 0.05, 0.02), method="point_to_plane").rotation
+    ),
     "generalized ICP 0.1/0.05 (Open3D)": lambda s, g, r, t: _generalized_icp(s, g, r, t, (0.1, 0.05)),
     "generalized ICP 0.1 (Open3D)": lambda s, g, r, t: _generalized_icp(s, g, r, t, (0.1,)),
 }
@@ -58,20 +65,25 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data-dir", required=True, help="ModelNet40 in the h5 layout")
     parser.add_argument("--pairs", type=int, default=100, help="the first pairs of each setting")
-    parser.add_argument("--compare", action="store_true",
-                        help="also start point-to-plane and generalized ICP at the truth (needs Open3D)")
+    parser.add_argument(
+        "--compare",
+        action="store_true",
+        help="also start point-to-plane and generalized ICP at the truth (needs Open3D)",
+    )
     args = parser.parse_args()
     n_points = registration.load().settings.n_points
     settings = list(pairs_lib.SETTINGS)
-    shapes = shapes_lib.load_shapes(args.data_dir, "test",
-                                    n_points=pairs_lib.shape_points(args.data_dir, n_points, settings))
+    shapes = shapes_lib.load_shapes(
+        args.data_dir, "test", n_points=pairs_lib.shape_points(args.data_dir, n_points, settings)
+    )
     objectives = OBJECTIVES if args.compare else {"refinement (shipped)": OBJECTIVES["refinement (shipped)"]}
-    print(f"{datetime.date.today().isoformat()}: `python benchmarks/icp_from_truth.py --data-dir {args.data_dir} "
-          f"--pairs {args.pairs}{' --compare' if args.compare else ''}` (unseen categories, {n_points} points)\n")
+    print(
+        f"{datetime.date.today().isoformat()}: `python benchmarks/icp_from_truth.py --data-dir {args.data_dir} "
+        f"--pairs {args.pairs}{' --compare' if args.compare else ''}` (unseen categories, {n_points} points)\n"
+    )
     errors = {name: {} for name in objectives}
     for setting in settings:
-        dataset = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting=setting, unseen=True,
-                                                                       n_points=n_points))
+        dataset = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting=setting, unseen=True, n_points=n_points))
         for name, run in objectives.items():
             found = []
             for n in range(min(args.pairs, len(dataset))):
@@ -82,21 +94,33 @@ def main() -> None:
             errors[name][setting] = np.asarray(found)
     print("| setting | median deg | mean deg | worst deg | more than 1 deg off |\n|---|---|---|---|---|")
     for setting, found in errors["refinement (shipped)"].items():
-        print(f"| {setting} | {np.median(found):.3f} | {found.mean():.3f} | {found.max():.2f} | "
-              f"{int(np.sum(found > 1.0))} of {len(found)} |")
+        print(
+            f"| {setting} | {np.median(found):.3f} | {found.mean():.3f} | {found.max():.2f} | "
+            f"{int(np.sum(found > 1.0))} of {len(found)} |"
+        )
     if args.compare:
         print("\nStarted at the truth, pairs each objective leaves by more than 1 degree (median error, deg):\n")
         print("| setting | " + " | ".join(objectives) + " |\n|---|" + "---|" * len(objectives))
         for setting in settings:
-            cells = [f"{int(np.sum(errors[name][setting] > 1.0))} ({np.median(errors[name][setting]):.2f})"
-                     for name in objectives]
+            cells = [
+                f"{int(np.sum(errors[name][setting] > 1.0))} ({np.median(errors[name][setting]):.2f})"
+                for name in objectives
+            ]
             print(f"| {setting} | " + " | ".join(cells) + " |")
-    print(json.dumps({"benchmark": "icp_from_truth", "date": datetime.date.today().isoformat(),
-                      "pairs": args.pairs, "n_points": n_points,
-                      "more_than_1_deg": {name: {s: int(np.sum(e > 1.0)) for s, e in per.items()}
-                                          for name, per in errors.items()},
-                      "median_deg": {name: {s: float(np.median(e)) for s, e in per.items()}
-                                     for name, per in errors.items()}}))
+    print(
+        json.dumps(
+            {
+                "benchmark": "icp_from_truth",
+                "date": datetime.date.today().isoformat(),
+                "pairs": args.pairs,
+                "n_points": n_points,
+                "more_than_1_deg": {
+                    name: {s: int(np.sum(e > 1.0)) for s, e in per.items()} for name, per in errors.items()
+                },
+                "median_deg": {name: {s: float(np.median(e)) for s, e in per.items()} for name, per in errors.items()},
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

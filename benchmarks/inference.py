@@ -65,7 +65,7 @@ def matmul_peak(size: int = 2048, repeats: int = 5, precision: str = "highest") 
         t0 = time.perf_counter()
         f(a, b).block_until_ready()
         best = min(best, time.perf_counter() - t0)
-    return 2 * size ** 3 / best / 1e9
+    return 2 * size**3 / best / 1e9
 
 
 def _inputs(batch: int, n_points: int, seed: int = 0):
@@ -107,11 +107,16 @@ def register_flops(params, config, src, tgt) -> float:
     total += _flops(lambda x: geometry.knn(x, config.k), src)
     total += config.n_iters * _flops(
         lambda p, x, e, kn: model.features(p, x, tgt, config, tgt_embedding=e, src_knn=kn)[1].scores,
-        params, src, emb, knn)
+        params,
+        src,
+        emb,
+        knn,
+    )
     for use_gmcce, times in ((False, 1), (True, config.n_iters - 1)):
         if times:
-            total += times * _flops(lambda s_, t_: head(src, tgt, s_, t_, config, use_gmcce).rotation,
-                                    feats.scores, feats.temperature)
+            total += times * _flops(
+                lambda s_, t_: head(src, tgt, s_, t_, config, use_gmcce).rotation, feats.scores, feats.temperature
+            )
     return total
 
 
@@ -137,9 +142,16 @@ def time_register(config, batch: int, n_points: int, repeats: int, count_flops: 
     seconds = statistics.median(times)
     flops = batch * register_flops(params, config, src[0], tgt[0]) if count_flops else float("nan")
     return {
-        "batch": batch, "n_points": n_points, "n_iters": config.n_iters, "compile_s": compile_s,
-        "times_s": times, "seconds_per_call": seconds, "seconds_per_pair": seconds / batch,
-        "pairs_per_s": batch / seconds, "flops_per_call": flops, "gflops_per_s": flops / seconds / 1e9,
+        "batch": batch,
+        "n_points": n_points,
+        "n_iters": config.n_iters,
+        "compile_s": compile_s,
+        "times_s": times,
+        "seconds_per_call": seconds,
+        "seconds_per_pair": seconds / batch,
+        "pairs_per_s": batch / seconds,
+        "flops_per_call": flops,
+        "gflops_per_s": flops / seconds / 1e9,
         "xla_temp_bytes": getattr(memory, "temp_size_in_bytes", None),
         "xla_argument_bytes": getattr(memory, "argument_size_in_bytes", None),
     }
@@ -178,31 +190,51 @@ def _config(args, n_iters: int):
 def _child(args) -> None:
     """Runs one (points, iterations, batch) in this (fresh) process and prints its record with its peak
     memory. FLOPs only for batch 1 (the parent scales them)."""
-    record = time_register(_config(args, args.child_iters), args.child_batch, args.child, repeats=args.repeats,
-                           count_flops=args.child_flops)
+    record = time_register(
+        _config(args, args.child_iters),
+        args.child_batch,
+        args.child,
+        repeats=args.repeats,
+        count_flops=args.child_flops,
+    )
     record.update(peak_memory())
     print("RECORD " + json.dumps(record))
 
 
 def _run_child(args, n_points: int, n_iters: int, batch: int = 1, flops: bool = False, repeats: int = 1) -> dict:
-    cmd = [sys.executable, __file__, "--child", str(n_points), "--child-iters", str(n_iters), "--child-batch",
-           str(batch), "--config", args.config, "--dtype", args.dtype, "--precision", args.precision,
-           "--repeats", str(repeats)] + (["--child-flops"] if flops else [])
+    cmd = [
+        sys.executable,
+        __file__,
+        "--child",
+        str(n_points),
+        "--child-iters",
+        str(n_iters),
+        "--child-batch",
+        str(batch),
+        "--config",
+        args.config,
+        "--dtype",
+        args.dtype,
+        "--precision",
+        args.precision,
+        "--repeats",
+        str(repeats),
+    ] + (["--child-flops"] if flops else [])
     proc = subprocess.run(cmd, capture_output=True, text=True)
     for line in proc.stdout.splitlines():
         if line.startswith("RECORD "):
-            return json.loads(line[len("RECORD "):])
+            return json.loads(line[len("RECORD ") :])
     tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
     return {"n_points": n_points, "n_iters": n_iters, "batch": batch, "error": " / ".join(tail)}
 
 
 def _peak_gb(record: dict) -> float | None:
     value = record.get("peak_device_bytes") or record.get("peak_rss_bytes")
-    return None if value is None else value / 2 ** 30
+    return None if value is None else value / 2**30
 
 
 def _gb(n: float | None) -> str:
-    return "-" if n is None else f"{n / 2 ** 30:.2f}"
+    return "-" if n is None else f"{n / 2**30:.2f}"
 
 
 def main() -> None:
@@ -230,21 +262,31 @@ def main() -> None:
 
     jax = _setup_jax()
     device = jax.devices()[0]
-    report = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
-              "cpus": os.cpu_count(), "jax": jax.__version__, "device": device.device_kind,
-              "platform": device.platform, "config": args.config, "dtype": args.dtype,
-              "precision": args.precision}
-    report["matmul_peak_gflops"] = max(matmul_peak(2048, precision=args.precision),
-                                       matmul_peak(4096, repeats=3, precision=args.precision))
-    print(f"{device.device_kind}: matmul peak {report['matmul_peak_gflops']:.0f} GFLOP/s ({args.precision})",
-          flush=True)
+    report = {
+        "date": datetime.date.today().isoformat(),
+        "machine": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "device": device.device_kind,
+        "platform": device.platform,
+        "config": args.config,
+        "dtype": args.dtype,
+        "precision": args.precision,
+    }
+    report["matmul_peak_gflops"] = max(
+        matmul_peak(2048, precision=args.precision), matmul_peak(4096, repeats=3, precision=args.precision)
+    )
+    print(
+        f"{device.device_kind}: matmul peak {report['matmul_peak_gflops']:.0f} GFLOP/s ({args.precision})", flush=True
+    )
     report["runs"] = []
     if not args.skip_batches:
         for n_iters in args.iters:
             per_pair_flops = None
             for batch in sorted(args.batches):
-                record = _run_child(args, args.n_points, n_iters, batch, flops=per_pair_flops is None,
-                                    repeats=args.repeats)
+                record = _run_child(
+                    args, args.n_points, n_iters, batch, flops=per_pair_flops is None, repeats=args.repeats
+                )
                 if "error" not in record:
                     if per_pair_flops is None:
                         per_pair_flops = record["flops_per_call"] / batch
@@ -260,9 +302,12 @@ def main() -> None:
 
     peak = report["matmul_peak_gflops"]
     authors = args.config == "paper" and args.n_points == 1000
-    lines = [f"Date {report['date']}; {report['device']} ({report['platform']}, {report['cpus']} CPUs); JAX "
-             f"{report['jax']}; config `{args.config}`, {args.dtype}, precision \"{args.precision}\". Matmul peak "
-             f"probe: {peak:.0f} GFLOP/s.", ""]
+    lines = [
+        f"Date {report['date']}; {report['device']} ({report['platform']}, {report['cpus']} CPUs); JAX "
+        f'{report["jax"]}; config `{args.config}`, {args.dtype}, precision "{args.precision}". Matmul peak '
+        f"probe: {peak:.0f} GFLOP/s.",
+        "",
+    ]
     if report["runs"]:
         header = "| points | iterations | batch | s / pair | pairs / s | peak memory GB | GFLOP / call | GFLOP/s | % of peak |"
         rule = "|---|---|---|---|---|---|---|---|---|"
@@ -274,9 +319,11 @@ def main() -> None:
             if "error" in r:
                 lines.append(f"| {r['n_points']} | {r['n_iters']} | {r['batch']} | failed: {r['error'][:80]} |")
                 continue
-            row = (f"| {r['n_points']} | {r['n_iters']} | {r['batch']} | {r['seconds_per_pair']:.4f} | "
-                   f"{r['pairs_per_s']:.2f} | {_peak_gb(r):.2f} | {r['flops_per_call'] / 1e9:.1f} | "
-                   f"{r['gflops_per_s']:.0f} | {100 * r['gflops_per_s'] / peak:.0f} % |")
+            row = (
+                f"| {r['n_points']} | {r['n_iters']} | {r['batch']} | {r['seconds_per_pair']:.4f} | "
+                f"{r['pairs_per_s']:.2f} | {_peak_gb(r):.2f} | {r['flops_per_call'] / 1e9:.1f} | "
+                f"{r['gflops_per_s']:.0f} | {100 * r['gflops_per_s'] / peak:.0f} % |"
+            )
             if authors:
                 theirs = AUTHORS_H100_S_PER_PAIR.get((r["n_iters"], r["batch"]))
                 row += f" {theirs if theirs is not None else '-'} |"
@@ -285,14 +332,18 @@ def main() -> None:
             lines.append(f"\nThe authors' peak memory at batch 1: {AUTHORS_H100_PEAK_GB_BATCH_1} GB (H100).")
         lines.append("")
     if report["scaling"]:
-        lines += ["| points | iterations | s / pair | compile s | peak memory GB | XLA temp buffers GB |",
-                  "|---|---|---|---|---|---|"]
+        lines += [
+            "| points | iterations | s / pair | compile s | peak memory GB | XLA temp buffers GB |",
+            "|---|---|---|---|---|---|",
+        ]
         for r in report["scaling"]:
             if "error" in r:
                 lines.append(f"| {r['n_points']} | {r['n_iters']} | failed: {r['error'][:80]} | | | |")
             else:
-                lines.append(f"| {r['n_points']} | {r['n_iters']} | {r['seconds_per_pair']:.2f} | "
-                             f"{r['compile_s']:.1f} | {_peak_gb(r):.2f} | {_gb(r['xla_temp_bytes'])} |")
+                lines.append(
+                    f"| {r['n_points']} | {r['n_iters']} | {r['seconds_per_pair']:.2f} | "
+                    f"{r['compile_s']:.1f} | {_peak_gb(r):.2f} | {_gb(r['xla_temp_bytes'])} |"
+                )
     print("\n".join(lines))
     if args.json:
         with open(args.json, "w") as f:

@@ -35,8 +35,11 @@ def best_seconds(fn, repeats: int) -> float:
 
 def write_ascii_stl(path: str, corners: np.ndarray, normals: np.ndarray) -> None:
     """An ASCII STL file of triangles ``corners`` (F, 3, 3) with ``normals`` (F, 3), indented as CAD tools do."""
-    facet = ("  facet normal {:e} {:e} {:e}\n    outer loop\n" + "      vertex {:e} {:e} {:e}\n" * 3
-             + "    endloop\n  endfacet\n")
+    facet = (
+        "  facet normal {:e} {:e} {:e}\n    outer loop\n"
+        + "      vertex {:e} {:e} {:e}\n" * 3
+        + "    endloop\n  endfacet\n"
+    )
     values = np.concatenate([normals, corners.reshape(-1, 9)], axis=1).tolist()
     with open(path, "w") as f:
         f.write("solid mesh\n" + "".join(facet.format(*row) for row in values) + "endsolid mesh\n")
@@ -64,9 +67,15 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         files = []
-        for name, binary in (("cloud.ply", True), ("cloud_ascii.ply", False), ("cloud.pcd", True),
-                             ("cloud_ascii.pcd", False), ("cloud.xyz", False), ("cloud.csv", False),
-                             ("cloud.npy", True)):
+        for name, binary in (
+            ("cloud.ply", True),
+            ("cloud_ascii.ply", False),
+            ("cloud.pcd", True),
+            ("cloud_ascii.pcd", False),
+            ("cloud.xyz", False),
+            ("cloud.csv", False),
+            ("cloud.npy", True),
+        ):
             io.write(os.path.join(folder, name), cloud, binary=binary)
             files.append((name, "ours"))
         o3d_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
@@ -78,8 +87,11 @@ def main() -> None:
         depth = 2.0 + 0.3 * np.sin(3 * u) * np.cos(2 * v)
         organized = np.stack([(u - 0.64) * depth, (v - 0.48) * depth, depth], axis=1)
         organized[np.random.default_rng(1).uniform(size=len(organized)) < 0.3] = np.nan
-        o3d.io.write_point_cloud(os.path.join(folder, "organized_compressed.pcd"),
-                                 o3d.geometry.PointCloud(o3d.utility.Vector3dVector(organized)), compressed=True)
+        o3d.io.write_point_cloud(
+            os.path.join(folder, "organized_compressed.pcd"),
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(organized)),
+            compressed=True,
+        )
         files.append(("organized_compressed.pcd", "Open3D"))
         try:
             import laspy
@@ -95,8 +107,11 @@ def main() -> None:
             path = os.path.join(folder, name)
             count = len(io.read(path, drop_nonfinite=True))
             ours = best_seconds(lambda: io.read(path, drop_nonfinite=True), args.repeats)
-            theirs = (best_seconds(lambda: o3d.io.read_point_cloud(path, remove_nan_points=True), args.repeats)
-                      if not name.endswith((".npy", ".csv", ".las")) else float("nan"))
+            theirs = (
+                best_seconds(lambda: o3d.io.read_point_cloud(path, remove_nan_points=True), args.repeats)
+                if not name.endswith((".npy", ".csv", ".las"))
+                else float("nan")
+            )
             rows.append((name, f"{count:,} points", writer, os.path.getsize(path), ours, theirs, moved(path)))
 
         sphere = o3d.geometry.TriangleMesh.create_sphere(1.0, resolution=args.sphere_resolution)
@@ -104,18 +119,31 @@ def main() -> None:
         for name in ("mesh.obj", "mesh.off", "mesh.stl", "mesh_ascii.stl", "mesh.ply", "mesh_ascii.ply"):
             path = os.path.join(folder, name)
             if name == "mesh_ascii.stl":  # Open3D writes binary STL only
-                write_ascii_stl(path, np.asarray(sphere.vertices)[np.asarray(sphere.triangles)],
-                                np.asarray(sphere.triangle_normals))
+                write_ascii_stl(
+                    path, np.asarray(sphere.vertices)[np.asarray(sphere.triangles)], np.asarray(sphere.triangle_normals)
+                )
             else:
                 o3d.io.write_triangle_mesh(path, sphere, write_ascii="ascii" in name)
             ours = best_seconds(lambda: io.read(path), args.repeats)
-            theirs = best_seconds(lambda: o3d.io.read_triangle_mesh(path).sample_points_uniformly(io.MESH_POINTS),
-                                  args.repeats)
-            rows.append((name, f"{len(sphere.triangles):,} triangles", "Open3D", os.path.getsize(path), ours, theirs,
-                         moved(path)))
+            theirs = best_seconds(
+                lambda: o3d.io.read_triangle_mesh(path).sample_points_uniformly(io.MESH_POINTS), args.repeats
+            )
+            rows.append(
+                (
+                    name,
+                    f"{len(sphere.triangles):,} triangles",
+                    "Open3D",
+                    os.path.getsize(path),
+                    ours,
+                    theirs,
+                    moved(path),
+                )
+            )
 
-    print("| file | holds | written by | MB | io.read (s) | Open3D (s) | io.move_file (s) |\n"
-          "|---|---|---|---|---|---|---|")
+    print(
+        "| file | holds | written by | MB | io.read (s) | Open3D (s) | io.move_file (s) |\n"
+        "|---|---|---|---|---|---|---|"
+    )
     show = lambda seconds: "-" if np.isnan(seconds) else f"{seconds:.2f}"  # noqa: E731
     for name, holds, writer, size, ours, theirs, move in rows:
         print(f"| {name} | {holds} | {writer} | {size / 1e6:.1f} | {ours:.2f} | {show(theirs)} | {show(move)} |")

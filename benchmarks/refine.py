@@ -34,8 +34,12 @@ def timed_refinements(pairs, registrar, modes) -> tuple[list[list[float]], bool]
             results.append(icp.refine(src, tgt, *start, scale=scale, workers=workers))
             times.append(time.perf_counter() - started)
         a = results[0]
-        identical &= all(np.array_equal(a.rotation, b.rotation) and np.array_equal(a.translation, b.translation)
-                         and a.iterations == b.iterations for b in results[1:])
+        identical &= all(
+            np.array_equal(a.rotation, b.rotation)
+            and np.array_equal(a.translation, b.translation)
+            and a.iterations == b.iterations
+            for b in results[1:]
+        )
     return seconds, identical
 
 
@@ -43,11 +47,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scans", default="../shared/data/stanford_dragon_stand")
     parser.add_argument("--scan-pairs", type=int, default=5, help="dragon pairs of each spacing (24, 48 degrees)")
-    parser.add_argument("--data-dir", default="../shared/data/modelnet40_ply_hdf5_1024",
-                        help="ModelNet40 (h5); validation pairs of categories 0-19")
+    parser.add_argument(
+        "--data-dir",
+        default="../shared/data/modelnet40_ply_hdf5_1024",
+        help="ModelNet40 (h5); validation pairs of categories 0-19",
+    )
     parser.add_argument("--pairs", type=int, default=8, help="ModelNet40 validation pairs per setting")
-    parser.add_argument("--settings", nargs="+", default=["high_noise_partial", "independent_clean",
-                                                          "scan_high_noise"])
+    parser.add_argument("--settings", nargs="+", default=["high_noise_partial", "independent_clean", "scan_high_noise"])
     args = parser.parse_args()
 
     from dit_jax import registration, training
@@ -58,27 +64,31 @@ def main() -> None:
     if os.path.isdir(args.scans):
         scans = scans_lib.load_scans(args.scans)
         for skip in (1, 2):
-            chosen = scans_lib.scan_pairs(scans, skip)[:args.scan_pairs]
+            chosen = scans_lib.scan_pairs(scans, skip)[: args.scan_pairs]
             groups[f"dragon, {24 * skip}-degree pairs"] = [(p.source, p.target) for p in chosen]
     if os.path.isdir(args.data_dir):
         batches = training.validation_batches(args.data_dir, args.settings, count=args.pairs, unseen=True)
         for setting, b in batches.items():
-            groups[f"ModelNet40 {setting}"] = [(b["src"][i].astype(np.float64), b["tgt"][i].astype(np.float64))
-                                               for i in range(len(b["src"]))]
+            groups[f"ModelNet40 {setting}"] = [
+                (b["src"][i].astype(np.float64), b["tgt"][i].astype(np.float64)) for i in range(len(b["src"]))
+            ]
     if not groups:
         parser.error("neither --scans nor --data-dir exists")
     first = next(iter(groups.values()))[0]
     registrar.register(*first, refine="none")  # compiles
 
     modes = (1, 3, None)
-    print(f"`icp.refine`, one direction, {os.cpu_count()} cores, {datetime.date.today().isoformat()}; "
-          "median seconds per pair\n")
+    print(
+        f"`icp.refine`, one direction, {os.cpu_count()} cores, {datetime.date.today().isoformat()}; "
+        "median seconds per pair\n"
+    )
     print("| pairs | count | serial | threads | default | identical |")
     print("|---|---|---|---|---|---|")
     for name, pairs in groups.items():
         seconds, identical = timed_refinements(pairs, registrar, modes)
         cells = " | ".join(f"{statistics.median(s):.2f}" for s in seconds)
         print(f"| {name} | {len(pairs)} | {cells} | {'yes' if identical else 'NO'} |", flush=True)
+
 
 if __name__ == "__main__":
     main()

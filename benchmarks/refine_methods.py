@@ -23,8 +23,10 @@ from dit_jax import icp, registration
 from dit_jax.data import scans
 from dit_jax.geometry import rotation_angle_deg
 
-METHODS = {"icp": lambda src, tgt, r, t, scale: icp.refine(src, tgt, r, t, scale=scale),
-           "gicp": lambda src, tgt, r, t, scale: icp.refine_gicp(src, tgt, r, t)}
+METHODS = {
+    "icp": lambda src, tgt, r, t, scale: icp.refine(src, tgt, r, t, scale=scale),
+    "gicp": lambda src, tgt, r, t, scale: icp.refine_gicp(src, tgt, r, t),
+}
 
 
 def measure(folders, skips=(1,)) -> dict:
@@ -43,20 +45,31 @@ def measure(folders, skips=(1,)) -> dict:
                     row[name] = _errors(pair, refined.rotation, refined.translation, time.perf_counter() - started)
                 rows.append(row)
             key = f"{os.path.basename(os.path.normpath(folder))}/{set_name}"
-            out[key] = {"criterion": found.criterion, "rows": rows,
-                        "summary": {m: _summary([r[m] for r in rows], found.criterion) for m in ("network", *METHODS)}}
+            out[key] = {
+                "criterion": found.criterion,
+                "rows": rows,
+                "summary": {m: _summary([r[m] for r in rows], found.criterion) for m in ("network", *METHODS)},
+            }
     return out
 
 
 def _errors(pair, rotation, translation, seconds) -> dict:
-    return {"rot_err": rotation_angle_deg(np.asarray(rotation).T @ pair.rotation),
-            "trans_err": float(np.linalg.norm(np.asarray(translation) - pair.translation)), "seconds": seconds}
+    return {
+        "rot_err": rotation_angle_deg(np.asarray(rotation).T @ pair.rotation),
+        "trans_err": float(np.linalg.norm(np.asarray(translation) - pair.translation)),
+        "seconds": seconds,
+    }
 
 
 def _summary(rows, criterion) -> dict:
     rot = np.array([r["rot_err"] for r in rows])
-    out = {"pairs": len(rows), "within_1": int((rot <= 1).sum()), "within_5": int((rot <= 5).sum()),
-           "rot_median": float(np.median(rot)), "seconds": float(np.mean([r["seconds"] for r in rows]))}
+    out = {
+        "pairs": len(rows),
+        "within_1": int((rot <= 1).sum()),
+        "within_5": int((rot <= 5).sum()),
+        "rot_median": float(np.median(rot)),
+        "seconds": float(np.mean([r["seconds"] for r in rows])),
+    }
     if criterion:
         out["registered"] = int(sum(r["rot_err"] <= criterion[0] and r["trans_err"] <= criterion[1] for r in rows))
     return out
@@ -68,19 +81,32 @@ def main(argv=None) -> None:
     parser.add_argument("--skips", nargs="+", type=int, default=[1])
     args = parser.parse_args(argv)
     results = measure(args.folders, tuple(args.skips))
-    print(f"refinements from the network's estimate, one direction, {os.cpu_count()} cores, "
-          f"{datetime.date.today().isoformat()}\n")
-    print("| pair set | method | pairs | within 1 deg | within 5 deg | registered | median rotation error (deg) "
-          "| s / pair |")
+    print(
+        f"refinements from the network's estimate, one direction, {os.cpu_count()} cores, "
+        f"{datetime.date.today().isoformat()}\n"
+    )
+    print(
+        "| pair set | method | pairs | within 1 deg | within 5 deg | registered | median rotation error (deg) "
+        "| s / pair |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for key, r in results.items():
         for method, s in r["summary"].items():
             registered = f"{s['registered']}" if "registered" in s else "-"
-            print(f"| {key} | {method} | {s['pairs']} | {s['within_1']} | {s['within_5']} | {registered} | "
-                  f"{s['rot_median']:.2f} | {s['seconds']:.2f} |")
-    print(json.dumps({"benchmark": "refine_methods", "date": datetime.date.today().isoformat(),
-                      "cores": os.cpu_count(), "results": {k: {"criterion": v["criterion"], "summary": v["summary"]}
-                                                           for k, v in results.items()}}))
+            print(
+                f"| {key} | {method} | {s['pairs']} | {s['within_1']} | {s['within_5']} | {registered} | "
+                f"{s['rot_median']:.2f} | {s['seconds']:.2f} |"
+            )
+    print(
+        json.dumps(
+            {
+                "benchmark": "refine_methods",
+                "date": datetime.date.today().isoformat(),
+                "cores": os.cpu_count(),
+                "results": {k: {"criterion": v["criterion"], "summary": v["summary"]} for k, v in results.items()},
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -22,12 +22,15 @@ import time
 
 import numpy as np
 
+
 def registered(rotation, translation, pair, criterion) -> bool:
     from dit_jax import geometry
 
     degrees, distance = criterion or (5.0, np.inf)
-    return bool(geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation) <= degrees
-                and np.linalg.norm(np.asarray(translation) - pair.translation) <= distance)
+    return bool(
+        geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation) <= degrees
+        and np.linalg.norm(np.asarray(translation) - pair.translation) <= distance
+    )
 
 
 def main() -> None:
@@ -66,31 +69,50 @@ def main() -> None:
                     rotation, translation, seconds = register_baseline(baseline, pair.source, pair.target)
                     baseline_s.append(seconds)
                     baseline_ok += registered(rotation, translation, pair, found.criterion)
-            record = {"benchmark": "register_scans", "date": datetime.date.today().isoformat(),
-                      "cpus": os.cpu_count(), "data": os.path.basename(os.path.normpath(folder)), "set": set_name,
-                      "pairs": len(pairs), "points": [min(min(len(p.source), len(p.target)) for p in pairs),
-                                                      max(max(len(p.source), len(p.target)) for p in pairs)],
-                      "criterion": found.criterion,
-                      "pipeline": {"registered": int(pipeline_ok), "trusted": int(trusted),
-                                   "trusted_right": int(trusted_right),
-                                   "median_s": float(np.median(pipeline_s)), "max_s": float(np.max(pipeline_s)),
-                                   "confirmed_pairs": len(confirmed_s),
-                                   "confirmed_max_s": float(np.max(confirmed_s)) if confirmed_s else None}}
+            record = {
+                "benchmark": "register_scans",
+                "date": datetime.date.today().isoformat(),
+                "cpus": os.cpu_count(),
+                "data": os.path.basename(os.path.normpath(folder)),
+                "set": set_name,
+                "pairs": len(pairs),
+                "points": [
+                    min(min(len(p.source), len(p.target)) for p in pairs),
+                    max(max(len(p.source), len(p.target)) for p in pairs),
+                ],
+                "criterion": found.criterion,
+                "pipeline": {
+                    "registered": int(pipeline_ok),
+                    "trusted": int(trusted),
+                    "trusted_right": int(trusted_right),
+                    "median_s": float(np.median(pipeline_s)),
+                    "max_s": float(np.max(pipeline_s)),
+                    "confirmed_pairs": len(confirmed_s),
+                    "confirmed_max_s": float(np.max(confirmed_s)) if confirmed_s else None,
+                },
+            }
             if baseline_s:
-                record[baseline] = {"registered": int(baseline_ok), "median_s": float(np.median(baseline_s)),
-                                    "max_s": float(np.max(baseline_s))}
+                record[baseline] = {
+                    "registered": int(baseline_ok),
+                    "median_s": float(np.median(baseline_s)),
+                    "max_s": float(np.max(baseline_s)),
+                }
             print(json.dumps(record), flush=True)
             records.append(record)
     print(f"\n{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, shipped weights with their settings\n")
-    print(f"| data | pairs | points a cloud | pipeline: registered, trusted (right) | pipeline s / pair: median, "
-          f"max, max where the first candidate was confirmed | {baseline}: registered | {baseline} s / pair: "
-          "median, max |\n|---|---|---|---|---|---|---|")
+    print(
+        f"| data | pairs | points a cloud | pipeline: registered, trusted (right) | pipeline s / pair: median, "
+        f"max, max where the first candidate was confirmed | {baseline}: registered | {baseline} s / pair: "
+        "median, max |\n|---|---|---|---|---|---|---|"
+    )
     for r in records:
         p, b = r["pipeline"], r.get(baseline)
         confirmed = "-" if p["confirmed_max_s"] is None else f"{p['confirmed_max_s']:.2f}"
-        print(f"| {r['data']} {r['set']} | {r['pairs']} | {r['points'][0]:,}-{r['points'][1]:,} | "
-              f"{p['registered']}, {p['trusted']} ({p['trusted_right']}) | {p['median_s']:.2f}, {p['max_s']:.2f}, "
-              f"{confirmed} | " + (f"{b['registered']} | {b['median_s']:.2f}, {b['max_s']:.2f} |" if b else "- | - |"))
+        print(
+            f"| {r['data']} {r['set']} | {r['pairs']} | {r['points'][0]:,}-{r['points'][1]:,} | "
+            f"{p['registered']}, {p['trusted']} ({p['trusted_right']}) | {p['median_s']:.2f}, {p['max_s']:.2f}, "
+            f"{confirmed} | " + (f"{b['registered']} | {b['median_s']:.2f}, {b['max_s']:.2f} |" if b else "- | - |")
+        )
 
 
 if __name__ == "__main__":

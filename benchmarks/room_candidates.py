@@ -34,7 +34,9 @@ def main() -> None:
     records = []
     for set_name, found in scans_lib.load_pair_sets(args.scenes).items():
         pairs = sample_pairs(found, args.max_pairs, args.seed)
-        right = {rule: 0 for rule in ("network", "kiss_matcher", "open3d", "network|kiss", "network|open3d", "all three")}
+        right = {
+            rule: 0 for rule in ("network", "kiss_matcher", "open3d", "network|kiss", "network|open3d", "all three")
+        }
         seconds = {name: [] for name in ("network", "kiss_matcher", "open3d")}
         for pair in pairs:
             spacing = max(icp.point_spacing(pair.source), icp.point_spacing(pair.target))
@@ -48,21 +50,36 @@ def main() -> None:
                     match = feature_match.register(pair.source, pair.target, spacing=spacing)
                     start = (match.rotation, match.translation)
                 else:
-                    options = baselines.Options(voxel=0.05, normal_radius=0.1, feature_radius=0.25, distance=0.075,
-                                                ransac_iterations=1_000_000, ransac_confidence=0.999)
-                    start = baselines.ransac_on_features(baselines.features(pair.source, options),
-                                                         baselines.features(pair.target, options), options)
+                    options = baselines.Options(
+                        voxel=0.05,
+                        normal_radius=0.1,
+                        feature_radius=0.25,
+                        distance=0.075,
+                        ransac_iterations=1_000_000,
+                        ransac_confidence=0.999,
+                    )
+                    start = baselines.ransac_on_features(
+                        baselines.features(pair.source, options), baselines.features(pair.target, options), options
+                    )
                 own = icp.refine_gicp(pair.source, pair.target, *start, spacing=spacing)
                 seconds[name].append(time.perf_counter() - started)
                 candidates[name] = (own.rotation, own.translation)
             ok = {}
             for name, (rotation, translation) in candidates.items():
-                row = {"rot_err": geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation),
-                       "trans_err": float(np.linalg.norm(translation - pair.translation))}
+                row = {
+                    "rot_err": geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation),
+                    "trans_err": float(np.linalg.norm(translation - pair.translation)),
+                }
                 ok[name] = is_right(row, found.criterion)
             names = list(candidates)
-            shares = dict(zip(names, icp.overlap(pair.source, pair.target, [candidates[n] for n in names],
-                                                 pipeline.CANDIDATE_OVERLAP * spacing)))
+            shares = dict(
+                zip(
+                    names,
+                    icp.overlap(
+                        pair.source, pair.target, [candidates[n] for n in names], pipeline.CANDIDATE_OVERLAP * spacing
+                    ),
+                )
+            )
             pick = lambda among: max(among, key=lambda n: (shares[n], n == "network"))
             right["network"] += ok["network"]
             right["kiss_matcher"] += ok["kiss_matcher"]
@@ -70,18 +87,32 @@ def main() -> None:
             right["network|kiss"] += ok[pick(["network", "kiss_matcher"])]
             right["network|open3d"] += ok[pick(["network", "open3d"])]
             right["all three"] += ok[pick(names)]
-        record = {"benchmark": "room_candidates", "date": datetime.date.today().isoformat(), "set": set_name,
-                  "pairs": len(pairs), "seed": args.seed, "right": right,
-                  "median_seconds": {k: float(np.median(v)) for k, v in seconds.items()}}
+        record = {
+            "benchmark": "room_candidates",
+            "date": datetime.date.today().isoformat(),
+            "set": set_name,
+            "pairs": len(pairs),
+            "seed": args.seed,
+            "right": right,
+            "median_seconds": {k: float(np.median(v)) for k, v in seconds.items()},
+        }
         print(json.dumps(record), flush=True)
         records.append(record)
     rules = list(records[0]["right"])
-    print("\n| list | pairs | " + " | ".join(rules) + " | median s: network, kiss, open3d |\n|---|---|"
-          + "---|" * len(rules) + "---|")
+    print(
+        "\n| list | pairs | "
+        + " | ".join(rules)
+        + " | median s: network, kiss, open3d |\n|---|---|"
+        + "---|" * len(rules)
+        + "---|"
+    )
     for r in records:
         s = r["median_seconds"]
-        print(f"| {r['set']} | {r['pairs']} | " + " | ".join(str(r["right"][k]) for k in rules)
-              + f" | {s['network']:.2f}, {s['kiss_matcher']:.2f}, {s['open3d']:.2f} |")
+        print(
+            f"| {r['set']} | {r['pairs']} | "
+            + " | ".join(str(r["right"][k]) for k in rules)
+            + f" | {s['network']:.2f}, {s['kiss_matcher']:.2f}, {s['open3d']:.2f} |"
+        )
 
 
 if __name__ == "__main__":

@@ -30,10 +30,12 @@ def main() -> None:
     model = registration.load()
     settings = model.settings
     samplers = {
-        "farthest-point": lambda cloud, seed: pipeline.farthest_point_sample(cloud, settings.n_points, seed=seed,
-                                                                            pool=settings.fps_pool),
-        "uniform random": lambda cloud, seed: np.sort(np.random.default_rng(seed).choice(
-            len(cloud), min(settings.n_points, len(cloud)), replace=False)),
+        "farthest-point": lambda cloud, seed: pipeline.farthest_point_sample(
+            cloud, settings.n_points, seed=seed, pool=settings.fps_pool
+        ),
+        "uniform random": lambda cloud, seed: np.sort(
+            np.random.default_rng(seed).choice(len(cloud), min(settings.n_points, len(cloud)), replace=False)
+        ),
     }
     records = []
     for folder in args.scans:
@@ -44,19 +46,27 @@ def main() -> None:
                     src = pair.source[pick(pair.source, settings.seed)]
                     tgt = pair.target[pick(pair.target, settings.seed + 1)]
                     src_n, tgt_n, src_c, tgt_c, scale = pipeline.normalise(src, tgt, settings.centring)
-                    rotation, _, _, _, _ = pipeline.network(model.params, model.config,
-                                                            src_n[None].astype(np.float32),
-                                                            tgt_n[None].astype(np.float32))
+                    rotation, _, _, _, _ = pipeline.network(
+                        model.params, model.config, src_n[None].astype(np.float32), tgt_n[None].astype(np.float32)
+                    )
                     errors.append(geometry.rotation_angle_deg(rotation[0].T @ pair.rotation))
                 errors = np.asarray(errors)
-                record = {"benchmark": "scene_sampling", "date": datetime.date.today().isoformat(),
-                          "data": os.path.basename(os.path.normpath(folder)), "set": set_name,
-                          "sampler": sampler, "pairs": len(errors), "median_deg": float(np.median(errors)),
-                          "within_5": int(np.sum(errors <= 5.0))}
+                record = {
+                    "benchmark": "scene_sampling",
+                    "date": datetime.date.today().isoformat(),
+                    "data": os.path.basename(os.path.normpath(folder)),
+                    "set": set_name,
+                    "sampler": sampler,
+                    "pairs": len(errors),
+                    "median_deg": float(np.median(errors)),
+                    "within_5": int(np.sum(errors <= 5.0)),
+                }
                 print(json.dumps(record), flush=True)
                 records.append(record)
-    print("\n| data | sampler | pairs | network alone: median rotation error (deg) | within 5 deg |\n"
-          "|---|---|---|---|---|")
+    print(
+        "\n| data | sampler | pairs | network alone: median rotation error (deg) | within 5 deg |\n"
+        "|---|---|---|---|---|"
+    )
     for r in records:
         print(f"| {r['data']} {r['set']} | {r['sampler']} | {r['pairs']} | {r['median_deg']:.2f} | {r['within_5']} |")
 

@@ -29,8 +29,12 @@ def _seeds(text: str) -> list[int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-9", help="e.g. 0-9 or 0,3,5")
-    parser.add_argument("--variants", nargs="+", default=["clip_inward", "authors_clamp"],
-                        choices=["clip_inward", "authors_clamp", "differentiable", "detached"])
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=["clip_inward", "authors_clamp"],
+        choices=["clip_inward", "authors_clamp", "differentiable", "detached"],
+    )
     parser.add_argument("--steps", type=int, default=None, help="default: the quick preset's 308")
     parser.add_argument("--json", default=None, help="write every curve here")
     args = parser.parse_args()
@@ -49,8 +53,12 @@ def main() -> None:
     base = training.load_config("configs/quick.py")
     if no_tfds:  # the same shapes in the same order as the TFDS-prepared copy
         rows = list(shapes._read_embedded("train", base.n_points))
-        all_shapes = shapes.Shapes(np.stack([r[1] for r in rows]), np.array([r[2] for r in rows]),
-                                   np.array([r[0] for r in rows]), shapes._shape_names(shapes.EMBEDDED))
+        all_shapes = shapes.Shapes(
+            np.stack([r[1] for r in rows]),
+            np.array([r[2] for r in rows]),
+            np.array([r[0] for r in rows]),
+            shapes._shape_names(shapes.EMBEDDED),
+        )
     else:
         all_shapes = shapes.load_shapes(None, "train", n_points=base.n_points)
     train_shapes, val_shapes = training.split_validation(all_shapes, base.val_fraction)
@@ -66,8 +74,10 @@ def main() -> None:
 
     clip_inward = head.clip_inward
     authors_clamp = lambda x, lower, upper: jnp.clip(x, lower, upper)  # noqa: E731
-    step_fns = {v: training.make_train_step(dataclasses.replace(base, differentiable=v != "detached"), optimizer,
-                                            mesh) for v in args.variants}
+    step_fns = {
+        v: training.make_train_step(dataclasses.replace(base, differentiable=v != "detached"), optimizer, mesh)
+        for v in args.variants
+    }
     results = []
     for seed in _seeds(args.seeds):
         for variant in args.variants:
@@ -83,17 +93,25 @@ def main() -> None:
                     state, _ = step_fns[variant](state, training.shard_batch(batch, mesh))
                     step += 1
                     if step in checkpoints:
-                        curve.append(dict(step=step, **training.validate(state.params, val_ds, model_config,
-                                                                         base.val_pairs)))
+                        curve.append(
+                            dict(step=step, **training.validate(state.params, val_ds, model_config, base.val_pairs))
+                        )
                     if step >= total:
                         break
                 epoch += 1
             results.append(dict(variant=variant, seed=seed, seconds=time.time() - start, curve=curve))
-            print(json.dumps({"variant": variant, "seed": seed,
-                              "network_rotation_error": [round(c["network_rotation_error"], 3) for c in curve],
-                              "rotation_error": [round(c["rotation_error"], 5) for c in curve],
-                              "network_match_accuracy": [round(c["network_match_accuracy"], 3) for c in curve]}),
-                  flush=True)
+            print(
+                json.dumps(
+                    {
+                        "variant": variant,
+                        "seed": seed,
+                        "network_rotation_error": [round(c["network_rotation_error"], 3) for c in curve],
+                        "rotation_error": [round(c["rotation_error"], 5) for c in curve],
+                        "network_match_accuracy": [round(c["network_match_accuracy"], 3) for c in curve],
+                    }
+                ),
+                flush=True,
+            )
             if args.json:
                 with open(args.json, "w") as f:
                     json.dump(results, f)

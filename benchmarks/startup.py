@@ -39,8 +39,7 @@ print(json.dumps({"started": started, "returned": time.time(), "status": status,
 def timed_call(args: list[str]) -> tuple[float, float, float]:
     """(wall, start-up, registration) seconds of one `dit-register --json` process (see the module doc)."""
     launched = time.time()
-    done = subprocess.run([sys.executable, "-c", _WRAPPER, *args, "--json"], cwd=ROOT, capture_output=True,
-                          text=True)
+    done = subprocess.run([sys.executable, "-c", _WRAPPER, *args, "--json"], cwd=ROOT, capture_output=True, text=True)
     ended = time.time()
     if done.returncode != 0:
         raise SystemExit(f"dit-register failed: {done.stderr.strip()[-500:]}")
@@ -56,8 +55,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--src", default="examples/chair_src.ply")
     parser.add_argument("--tgt", default="examples/chair_tgt.pcd")
-    parser.add_argument("--refine", choices=("auto", "icp", "gicp", "none"), default=None,
-                        help="dit-register's --refine (default: the shipped settings')")
+    parser.add_argument(
+        "--refine",
+        choices=("auto", "icp", "gicp", "none"),
+        default=None,
+        help="dit-register's --refine (default: the shipped settings')",
+    )
     args = parser.parse_args()
     pair = [args.src, args.tgt] + (["--refine", args.refine] if args.refine else [])
     with tempfile.TemporaryDirectory() as cache:
@@ -65,11 +68,14 @@ def main() -> None:
         rows.append(("first call, empty cache", timed_call(pair + ["--compile-cache", cache])))
         rows.append(("second call, cache filled", timed_call(pair + ["--compile-cache", cache])))
         size = sum(f.stat().st_size for f in pathlib.Path(cache).rglob("*") if f.is_file())
-    print(f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, `dit-register {' '.join(pair)}`; "
-          f"cache size {size / 2 ** 20:.1f} MB\n")
+    print(
+        f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, `dit-register {' '.join(pair)}`; "
+        f"cache size {size / 2**20:.1f} MB\n"
+    )
     print("| call | wall s | start-up s | registration s | output and exit s |\n|---|---|---|---|---|")
     for name, (wall, startup, work) in rows:
         print(f"| {name} | {wall:.2f} | {startup:.2f} | {work:.2f} | {wall - startup - work:.2f} |")
+
 
 if __name__ == "__main__":
     main()

@@ -40,10 +40,35 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 DEFAULT_CONFIGS = ("configs/cpu.py", "configs/paper.py")
 
 #: Primitives that move or relabel data without arithmetic: no FLOPs (their bytes still count).
-_NO_ARITHMETIC = {"reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "convert_element_type",
-                  "slice", "dynamic_slice", "dynamic_update_slice", "concatenate", "pad", "gather", "scatter",
-                  "scatter-add", "scatter_add", "select_n", "iota", "copy", "copy_p", "rev", "sort",
-                  "stop_gradient", "device_put", "sharding_constraint", "argmax", "argmin", "top_k"}
+_NO_ARITHMETIC = {
+    "reshape",
+    "broadcast_in_dim",
+    "transpose",
+    "squeeze",
+    "expand_dims",
+    "convert_element_type",
+    "slice",
+    "dynamic_slice",
+    "dynamic_update_slice",
+    "concatenate",
+    "pad",
+    "gather",
+    "scatter",
+    "scatter-add",
+    "scatter_add",
+    "select_n",
+    "iota",
+    "copy",
+    "copy_p",
+    "rev",
+    "sort",
+    "stop_gradient",
+    "device_put",
+    "sharding_constraint",
+    "argmax",
+    "argmin",
+    "top_k",
+}
 
 
 def count_work(jaxpr) -> tuple[float, float]:
@@ -68,8 +93,11 @@ def count_work(jaxpr) -> tuple[float, float]:
                 flops, nbytes = flops + f, nbytes + b
             continue
         sizes = [float(np.prod(v.aval.shape)) for v in (*eqn.invars, *eqn.outvars) if hasattr(v.aval, "shape")]
-        nbytes += sum(float(np.prod(v.aval.shape)) * v.aval.dtype.itemsize
-                      for v in (*eqn.invars, *eqn.outvars) if hasattr(v.aval, "dtype"))
+        nbytes += sum(
+            float(np.prod(v.aval.shape)) * v.aval.dtype.itemsize
+            for v in (*eqn.invars, *eqn.outvars)
+            if hasattr(v.aval, "dtype")
+        )
         if name == "dot_general":
             (contract, _), _ = eqn.params["dimension_numbers"]
             lhs = eqn.invars[0].aval.shape
@@ -97,15 +125,26 @@ def measure(config_path: str, steps: int, n_points: int | None, remat: str, coun
     rng = np.random.default_rng(0)
     b, n = config.batch_size, config.n_points
     src = rng.uniform(-1, 1, (b, n, 3)).astype(np.float32)
-    batch = training.shard_batch({"src": src, "tgt": src[:, ::-1] + 0.1,
-                                  "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
-                                  "t": np.full((b, 3), 0.1, np.float32)}, mesh)
-    record = {"config": config_path, "n_points": n, "batch_size": b, "train_iters": config.train_iters,
-              "remat": config.model_config().remat, "precision": config.model_config().precision}
+    batch = training.shard_batch(
+        {
+            "src": src,
+            "tgt": src[:, ::-1] + 0.1,
+            "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
+            "t": np.full((b, 3), 0.1, np.float32),
+        },
+        mesh,
+    )
+    record = {
+        "config": config_path,
+        "n_points": n,
+        "batch_size": b,
+        "train_iters": config.train_iters,
+        "remat": config.model_config().remat,
+        "precision": config.model_config().precision,
+    }
     if count:
         flops, nbytes = count_work(jax.make_jaxpr(step)(state, batch).jaxpr)
-        record.update(gflop_per_step=flops / 1e9, unfused_gbytes_per_step=nbytes / 1e9,
-                      flop_per_byte=flops / nbytes)
+        record.update(gflop_per_step=flops / 1e9, unfused_gbytes_per_step=nbytes / 1e9, flop_per_byte=flops / nbytes)
     t0 = time.perf_counter()
     state, out = step(state, batch)
     out["loss"].block_until_ready()
@@ -127,8 +166,9 @@ def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
     from dit_jax.data import pairs
 
     config = training.load_config(config_path)
-    config = dataclasses.replace(config, settings=config.settings or tuple(pairs.SETTINGS), data_dir=None,
-                                 n_points=n_points or config.n_points)
+    config = dataclasses.replace(
+        config, settings=config.settings or tuple(pairs.SETTINGS), data_dir=None, n_points=n_points or config.n_points
+    )
     optimizer = training.make_optimizer(config, 1000)
     mesh = training.make_mesh()
     state = training.replicate(training.init_state(config, optimizer), mesh)
@@ -136,8 +176,13 @@ def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
     train_ds, _ = training.make_datasets(config)
     b = config.batch_size
     batches = {s: train_ds.setting_batch(s, np.arange(b)) for s in dict.fromkeys(config.settings)}
-    record = {"config": config_path, "mix": list(batches), "mix_one_size": config.mix_one_size,
-              "cloud_points": sorted({v["src"].shape[1] for v in batches.values()}), "batch_size": b}
+    record = {
+        "config": config_path,
+        "mix": list(batches),
+        "mix_one_size": config.mix_one_size,
+        "cloud_points": sorted({v["src"].shape[1] for v in batches.values()}),
+        "batch_size": b,
+    }
     t0 = time.perf_counter()
     state, out = step(state, training.shard_batch(next(iter(batches.values())), mesh))
     out["loss"].block_until_ready()
@@ -159,8 +204,9 @@ def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
 def worktree(rev: str):
     """A temporary checkout of ``rev`` (a git worktree, removed afterwards)."""
     directory = tempfile.mkdtemp(prefix="dit-jax-compare-")
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", directory, rev], check=True,
-                   capture_output=True)
+    subprocess.run(
+        ["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", directory, rev], check=True, capture_output=True
+    )
     try:
         yield pathlib.Path(directory)
     finally:
@@ -169,8 +215,17 @@ def worktree(rev: str):
 
 def child_measure(tree: pathlib.Path, config_path: str, args) -> dict:
     """``measure`` in a fresh process importing ``dit_jax`` from ``tree``, the recipe read from there too."""
-    command = [sys.executable, str(pathlib.Path(__file__).resolve()), "--child", "--config", config_path,
-               "--steps", str(args.steps), "--remat", args.remat]
+    command = [
+        sys.executable,
+        str(pathlib.Path(__file__).resolve()),
+        "--child",
+        "--config",
+        config_path,
+        "--steps",
+        str(args.steps),
+        "--remat",
+        args.remat,
+    ]
     if args.n_points:
         command += ["--n-points", str(args.n_points)]
     env = dict(os.environ, PYTHONPATH=str(tree), DIT_JAX_COMPILE_CACHE="off")
@@ -185,8 +240,12 @@ def main():
     parser.add_argument("--config", action="append", help="a recipe file (repeatable; default: cpu and paper)")
     parser.add_argument("--steps", type=int, default=3, help="timed steps after the first (median)")
     parser.add_argument("--n-points", type=int, default=None)
-    parser.add_argument("--remat", choices=("preset", "on", "off"), default="preset",
-                        help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off")
+    parser.add_argument(
+        "--remat",
+        choices=("preset", "on", "off"),
+        default="preset",
+        help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off",
+    )
     parser.add_argument("--compare", metavar="REV", help="also time the step of this git revision")
     parser.add_argument("--mix", action="store_true", help="real pairs of a mix of settings (see above)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -196,8 +255,11 @@ def main():
         import jax
 
         for config_path in configs:
-            record = {"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
-                      **measure_mix(config_path, args.steps, args.n_points)}
+            record = {
+                "date": datetime.date.today().isoformat(),
+                "device": jax.devices()[0].device_kind,
+                **measure_mix(config_path, args.steps, args.n_points),
+            }
             print(json.dumps(record, indent=2), flush=True)
         return
 
@@ -206,23 +268,28 @@ def main():
         return
 
     import jax
-
     from inference import matmul_peak, peak_memory  # benchmarks/inference.py, beside this script
 
     probe = matmul_peak()
     with worktree(args.compare) if args.compare else contextlib.nullcontext() as other:
         for config_path in configs:
-            record = {"date": datetime.date.today().isoformat(), "device": jax.devices()[0].device_kind,
-                      **measure(config_path, args.steps, args.n_points, args.remat, count=True),
-                      "probe_gflop_s": probe}
+            record = {
+                "date": datetime.date.today().isoformat(),
+                "device": jax.devices()[0].device_kind,
+                **measure(config_path, args.steps, args.n_points, args.remat, count=True),
+                "probe_gflop_s": probe,
+            }
             record["probe_share"] = record["gflop_per_step"] / record["step_s"] / probe
             if other is not None:
                 # This tree's step again in a fresh process beside the other's, so both ran alike.
                 ours, theirs = child_measure(ROOT, config_path, args), child_measure(other, config_path, args)
-                record["compare"] = {"rev": args.compare, "step_s": theirs["step_s"],
-                                     "compile_and_first_step_s": theirs["compile_and_first_step_s"],
-                                     "this_tree_step_s": ours["step_s"],
-                                     "ratio": theirs["step_s"] / ours["step_s"]}
+                record["compare"] = {
+                    "rev": args.compare,
+                    "step_s": theirs["step_s"],
+                    "compile_and_first_step_s": theirs["compile_and_first_step_s"],
+                    "this_tree_step_s": ours["step_s"],
+                    "ratio": theirs["step_s"] / ours["step_s"],
+                }
             print(json.dumps({**record, **peak_memory()}, indent=2), flush=True)
 
 

@@ -6,5 +6,13 @@ from dit_jax.training import TrainConfig
 
 
 def get_config():
-    return TrainConfig(model=configs.paper("clean"), n_points=1000, batch_size=2, epochs=100, lr=3e-5,
-                       weight_decay=1e-4, eval_every=2000, ckpt_every=1000).to_config_dict()
+    return TrainConfig(
+        model=configs.paper("clean"),
+        n_points=1000,
+        batch_size=2,
+        epochs=100,
+        lr=3e-5,
+        weight_decay=1e-4,
+        eval_every=2000,
+        ckpt_every=1000,
+    ).to_config_dict()

@@ -6,5 +6,14 @@ from dit_jax.training import TrainConfig
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu("clean"), n_points=256, batch_size=8, epochs=4, lr=1e-3, val_pairs=32,
-                       eval_every=50, ckpt_every=50, log_every=5).to_config_dict()
+    return TrainConfig(
+        model=configs.cpu("clean"),
+        n_points=256,
+        batch_size=8,
+        epochs=4,
+        lr=1e-3,
+        val_pairs=32,
+        eval_every=50,
+        ckpt_every=50,
+        log_every=5,
+    ).to_config_dict()

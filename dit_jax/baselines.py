@@ -32,7 +32,7 @@ import dataclasses
 import functools
 import importlib.resources
 import json
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -80,14 +80,14 @@ class Options:
     icp_method: str = "point_to_point"
     fgr_tuple_scale: float = 0.95
 
-    def replace(self, **changes) -> "Options":
+    def replace(self, **changes) -> Options:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, values: dict) -> "Options":
+    def from_dict(cls, values: dict) -> Options:
         values = dict(values)
         if "icp_distances" in values:
             values["icp_distances"] = tuple(values["icp_distances"])
@@ -98,8 +98,9 @@ def _o3d():
     try:
         import open3d as o3d
     except ImportError:
-        raise ImportError("the baselines need Open3D: pip install 'dit-jax[baselines]' "
-                          "(and on Debian: apt-get install libusb-1.0-0)") from None
+        raise ImportError(
+            "the baselines need Open3D: pip install 'dit-jax[baselines]' (and on Debian: apt-get install libusb-1.0-0)"
+        ) from None
     return o3d
 
 
@@ -125,10 +126,12 @@ def features(points: np.ndarray, options: Options):
         voxel = DENSE_VOXEL
     if voxel:
         cloud = cloud.voxel_down_sample(voxel)
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius,
-                                                                max_nn=options.normal_neighbours))
+    cloud.estimate_normals(
+        o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius, max_nn=options.normal_neighbours)
+    )
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=options.feature_radius, max_nn=options.feature_neighbours))
+        cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=options.feature_radius, max_nn=options.feature_neighbours)
+    )
     return cloud, fpfh
 
 
@@ -139,9 +142,17 @@ def ransac_on_features(src_features, tgt_features, options: Options):
     o3d.utility.random.seed(0)
     (s, sf), (t, tf) = src_features, tgt_features
     result = reg.registration_ransac_based_on_feature_matching(
-        s, t, sf, tf, True, options.distance, reg.TransformationEstimationPointToPoint(False), 3,
+        s,
+        t,
+        sf,
+        tf,
+        True,
+        options.distance,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(options.distance)],
-        reg.RANSACConvergenceCriteria(options.ransac_iterations, options.ransac_confidence))
+        reg.RANSACConvergenceCriteria(options.ransac_iterations, options.ransac_confidence),
+    )
     return _split(result.transformation)
 
 
@@ -150,8 +161,14 @@ def fgr_on_features(src_features, tgt_features, options: Options):
     reg = _o3d().pipelines.registration
     (s, sf), (t, tf) = src_features, tgt_features
     result = reg.registration_fgr_based_on_feature_matching(
-        s, t, sf, tf, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=options.distance,
-                                                         tuple_scale=options.fgr_tuple_scale))
+        s,
+        t,
+        sf,
+        tf,
+        reg.FastGlobalRegistrationOption(
+            maximum_correspondence_distance=options.distance, tuple_scale=options.fgr_tuple_scale
+        ),
+    )
     return _split(result.transformation)
 
 
@@ -160,8 +177,15 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
     if options.icp_method == REFINE:
         result = icp_lib.refine(src, tgt, rotation, translation)
         return result.rotation, result.translation
-    result = icp_lib.icp(src, tgt, rotation, translation, distances=options.icp_distances,
-                         method=options.icp_method, max_iterations=options.icp_iterations)
+    result = icp_lib.icp(
+        src,
+        tgt,
+        rotation,
+        translation,
+        distances=options.icp_distances,
+        method=options.icp_method,
+        max_iterations=options.icp_iterations,
+    )
     return result.rotation, result.translation
 
 
@@ -169,9 +193,14 @@ def icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
     """Point-to-point ICP from the identity (Open3D), at ``options.icp_distances[0]``."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
-    result = reg.registration_icp(_cloud(src), _cloud(tgt), options.icp_distances[0], np.eye(4),
-                                  reg.TransformationEstimationPointToPoint(),
-                                  reg.ICPConvergenceCriteria(max_iteration=options.icp_iterations))
+    result = reg.registration_icp(
+        _cloud(src),
+        _cloud(tgt),
+        options.icp_distances[0],
+        np.eye(4),
+        reg.TransformationEstimationPointToPoint(),
+        reg.ICPConvergenceCriteria(max_iteration=options.icp_iterations),
+    )
     return _split(result.transformation)
 
 
@@ -191,8 +220,7 @@ def fgr_icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
     return refine(src, tgt, *fgr(src, tgt, options), options)
 
 
-_METHODS = {"icp": icp, "fpfh_ransac": fpfh_ransac, "fgr": fgr, "fpfh_ransac_icp": fpfh_ransac_icp,
-            "fgr_icp": fgr_icp}
+_METHODS = {"icp": icp, "fpfh_ransac": fpfh_ransac, "fgr": fgr, "fpfh_ransac_icp": fpfh_ransac_icp, "fgr_icp": fgr_icp}
 
 
 @functools.lru_cache(maxsize=1)
@@ -216,8 +244,9 @@ def tuned_options(name: str, setting: str | None = None) -> Options:
     return Options.from_dict(chosen) if chosen else Options()
 
 
-def get(name: str, setting: str | None = None, options: Options | None = None
-        ) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def get(
+    name: str, setting: str | None = None, options: Options | None = None
+) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """The baseline ``name`` as ``(src, tgt) -> (R, t)``, with ``options`` or else its tuned options for
     ``setting`` (see :func:`tuned_options`)."""
     options = options or tuned_options(name, setting)
@@ -228,8 +257,14 @@ def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[
     """Open3D's tutorial recipe (module docs) on clouds in their own units, ``voxel`` in those units: (R, t)."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
-    options = Options(voxel=voxel, normal_radius=2 * voxel, feature_radius=5 * voxel, distance=1.5 * voxel,
-                      ransac_iterations=1_000_000, ransac_confidence=0.999)
+    options = Options(
+        voxel=voxel,
+        normal_radius=2 * voxel,
+        feature_radius=5 * voxel,
+        distance=1.5 * voxel,
+        ransac_iterations=1_000_000,
+        ransac_confidence=0.999,
+    )
     rotation, translation = ransac_on_features(features(src, options), features(tgt, options), options)
     start = np.eye(4)
     start[:3, :3], start[:3, 3] = rotation, translation

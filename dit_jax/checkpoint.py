@@ -33,8 +33,9 @@ def _handler() -> ocp.Checkpointer:
     return ocp.Checkpointer(ocp.CompositeCheckpointHandler())
 
 
-def save(directory: str | os.PathLike, params: Any, config: DITConfig, *, overwrite: bool = False,
-         extra: dict | None = None) -> str:
+def save(
+    directory: str | os.PathLike, params: Any, config: DITConfig, *, overwrite: bool = False, extra: dict | None = None
+) -> str:
     """Writes ``params`` and ``config`` to ``directory`` (which must not exist unless ``overwrite``).
 
     ``extra``: JSON-able facts about how the params were made (training data, point count, steps), read back
@@ -45,8 +46,11 @@ def save(directory: str | os.PathLike, params: Any, config: DITConfig, *, overwr
         raise CheckpointError(f"{path} already exists; choose a new directory")
     meta = {"format": FORMAT, "dit_config": config.to_dict(), "extra": extra or {}}
     with _handler() as ckptr:
-        ckptr.save(path, ocp.args.Composite(params=ocp.args.StandardSave(params),
-                                            config=ocp.args.JsonSave(meta)), force=overwrite)
+        ckptr.save(
+            path,
+            ocp.args.Composite(params=ocp.args.StandardSave(params), config=ocp.args.JsonSave(meta)),
+            force=overwrite,
+        )
     return path
 
 
@@ -75,8 +79,10 @@ def update_config(directory: str | os.PathLike, changes: dict) -> DITConfig:
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: cannot apply {changes}: {err}") from None
     if param_shapes(old) != param_shapes(new):
-        raise CheckpointError(f"{os.path.abspath(os.fspath(directory))}: {changes} would change the params' "
-                              f"shapes; train or convert a new checkpoint instead")
+        raise CheckpointError(
+            f"{os.path.abspath(os.fspath(directory))}: {changes} would change the params' "
+            f"shapes; train or convert a new checkpoint instead"
+        )
     meta["dit_config"] = new.to_dict()
     _write_meta(directory, meta)
     return new
@@ -130,25 +136,32 @@ def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
         with _handler() as ckptr:
             params = ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore())).params
     except Exception as err:
-        raise CheckpointError(f"{path}: params do not restore for the stored config "
-                              f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        raise CheckpointError(
+            f"{path}: params do not restore for the stored config "
+            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
     stored = _shapes(params)
     expected = param_shapes(config)
     if stored != expected:
         wrong = sorted(set(stored.items()) ^ set(expected.items()))[0][0]
-        raise CheckpointError(f"{path}: params do not restore for the stored config (first difference at "
-                              f"{wrong}: stored {stored.get(wrong)}, the config needs {expected.get(wrong)})")
+        raise CheckpointError(
+            f"{path}: params do not restore for the stored config (first difference at "
+            f"{wrong}: stored {stored.get(wrong)}, the config needs {expected.get(wrong)})"
+        )
     return jax.device_put(params), config
 
 
 def param_shapes(config: DITConfig) -> dict[str, tuple[int, ...]]:
     """The shape of each parameter ``config`` makes, by its path ("a/b/kernel"). Tracing the model's init
     costs more than restoring its weights, so the answer is kept in the compilation cache where it is on."""
+
     def compute():
         from dit_jax import model  # Flax loads only where the shapes are not in the cache
 
-        return {name: list(shape) for name, shape in
-                _shapes(jax.eval_shape(lambda: model.init(jax.random.key(0), config))).items()}
+        return {
+            name: list(shape)
+            for name, shape in _shapes(jax.eval_shape(lambda: model.init(jax.random.key(0), config))).items()
+        }
 
     return {name: tuple(shape) for name, shape in compile_cache.memo("param-shapes", config, compute).items()}
 

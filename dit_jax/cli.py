@@ -54,69 +54,131 @@ REFINE_CHOICES = ("auto", "icp", "gicp", "none")
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
-                                            ".npy, text (.xyz .txt .csv .asc .pts),\n"
-                                            ".las and .laz (read; written only as SRC moved); "
-                                            "meshes (.obj .off .stl, .ply with faces) "
-                                            f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
-                                            + __doc__.split("\n\n")[-1].strip())
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="formats: .ply (ascii/binary), .pcd (ascii/binary/binary_compressed), "
+        ".npy, text (.xyz .txt .csv .asc .pts),\n"
+        ".las and .laz (read; written only as SRC moved); "
+        "meshes (.obj .off .stl, .ply with faces) "
+        f"as {io.MESH_POINTS:,} points sampled over their surface\n\n" + __doc__.split("\n\n")[-1].strip(),
+    )
     parser.add_argument("src", nargs="?", help="the cloud (or mesh) to move")
     parser.add_argument("tgt", nargs="?", help="the cloud (or mesh) to align it to")
-    parser.add_argument("--pairs", default=None, metavar="LIST",
-                        help="instead of SRC TGT: a text file of pairs, 'SRC TGT' a line (paths relative to the "
-                             "list's folder, # comments), registered in this process, one JSON line per pair")
-    parser.add_argument("--results", default=None, metavar="FILE.jsonl",
-                        help="with --pairs: append each pair's JSON line here instead of printing it; pairs "
-                             "already in it are skipped, so a stopped run resumes")
-    parser.add_argument("--shard", default=None, metavar="I/N",
-                        help="with --pairs: register only pairs I, I+N, I+2N, ... of the list (0 <= I < N), so N "
-                             "processes or array jobs share it")
+    parser.add_argument(
+        "--pairs",
+        default=None,
+        metavar="LIST",
+        help="instead of SRC TGT: a text file of pairs, 'SRC TGT' a line (paths relative to the "
+        "list's folder, # comments), registered in this process, one JSON line per pair",
+    )
+    parser.add_argument(
+        "--results",
+        default=None,
+        metavar="FILE.jsonl",
+        help="with --pairs: append each pair's JSON line here instead of printing it; pairs "
+        "already in it are skipped, so a stopped run resumes",
+    )
+    parser.add_argument(
+        "--shard",
+        default=None,
+        metavar="I/N",
+        help="with --pairs: register only pairs I, I+N, I+2N, ... of the list (0 <= I < N), so N "
+        "processes or array jobs share it",
+    )
     parser.add_argument("--no-progress", action="store_true", help="with --pairs: no progress bar")
-    parser.add_argument("--checkpoint", default=None,
-                        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
-    parser.add_argument("--out", default=None,
-                        help="write SRC moved onto TGT here (format by extension; with SRC's own extension, a "
-                             "mesh or a PLY, PCD or LAS SRC is written whole: every point, face and field kept)")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
+    )
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="write SRC moved onto TGT here (format by extension; with SRC's own extension, a "
+        "mesh or a PLY, PCD or LAS SRC is written whole: every point, face and field kept)",
+    )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
-    parser.add_argument("--points", type=int, default=None,
-                        help="points per cloud the network sees (default: the checkpoint's)")
+    parser.add_argument(
+        "--points", type=int, default=None, help="points per cloud the network sees (default: the checkpoint's)"
+    )
     parser.add_argument("--iters", type=int, default=None, help="registration iterations (default: the model's)")
-    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
-                        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
-    parser.add_argument("--no-downsample", action="store_true",
-                        help="refuse clouds above --max-points instead of reading a random subset")
-    parser.add_argument("--drop-nonfinite", action="store_true",
-                        help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
-                             "files' pixels without a return) instead of refusing the file")
+    parser.add_argument(
+        "--max-points",
+        type=int,
+        default=DEFAULT_MAX_POINTS,
+        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})",
+    )
+    parser.add_argument(
+        "--no-downsample",
+        action="store_true",
+        help="refuse clouds above --max-points instead of reading a random subset",
+    )
+    parser.add_argument(
+        "--drop-nonfinite",
+        action="store_true",
+        help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
+        "files' pixels without a return) instead of refusing the file",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
-    parser.add_argument("--refine", choices=REFINE_CHOICES, default=None,
-                        help="how the network's estimate is refined on the full clouds: icp; gicp (small_gicp's "
-                             "generalized ICP at the clouds' point spacing, far faster on large scans); auto "
-                             "(gicp on scans, icp on sparse clouds); none: the network alone (faster, less "
-                             "accurate). Default: the checkpoint's")
-    parser.add_argument("--features", choices=("auto", "on", "off"), default=None,
-                        help="where the verdict does not trust the refined result, also register by local "
-                             "features (KISS-Matcher) and keep whichever lays more of SRC onto TGT; auto: on "
-                             "scans of 5,000 points or more (default: the checkpoint's)")
-    parser.add_argument("--any-rotation", action="store_true",
-                        help="for clouds at any relative rotation: start the network from 24 turns of SRC "
-                             "and go on from the best fitting (about 24 times the network's time)")
-    parser.add_argument("--plot", default=None, metavar="FILE.png",
-                        help="draw both clouds before and after the registration, from two viewpoints")
-    parser.add_argument("--verdict", choices=("agreement", "fitness"), default="agreement",
-                        help="agreement (default): also register TGT onto SRC and trust the result where both "
-                             "agree (twice the time); fitness: trust it where enough of SRC lands on TGT")
-    parser.add_argument("--max-disagreement", type=float, default=None, metavar="DEG",
-                        help="agreement verdict: trust the result where the two registrations agree within DEG "
-                             "degrees (default: the checkpoint's, strict by design; larger trusts more right results "
-                             "and more wrong ones: docs/verdict.md)")
-    parser.add_argument("--best-direction", choices=("on", "off"), default=None,
-                        help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
-                             "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: the checkpoint's)")
-    parser.add_argument("--no-verdict-status", action="store_true",
-                        help=f"exit 0 even when the verdict finds the result probably wrong (else {EXIT_SUSPECT})")
+    parser.add_argument(
+        "--refine",
+        choices=REFINE_CHOICES,
+        default=None,
+        help="how the network's estimate is refined on the full clouds: icp; gicp (small_gicp's "
+        "generalized ICP at the clouds' point spacing, far faster on large scans); auto "
+        "(gicp on scans, icp on sparse clouds); none: the network alone (faster, less "
+        "accurate). Default: the checkpoint's",
+    )
+    parser.add_argument(
+        "--features",
+        choices=("auto", "on", "off"),
+        default=None,
+        help="where the verdict does not trust the refined result, also register by local "
+        "features (KISS-Matcher) and keep whichever lays more of SRC onto TGT; auto: on "
+        "scans of 5,000 points or more (default: the checkpoint's)",
+    )
+    parser.add_argument(
+        "--any-rotation",
+        action="store_true",
+        help="for clouds at any relative rotation: start the network from 24 turns of SRC "
+        "and go on from the best fitting (about 24 times the network's time)",
+    )
+    parser.add_argument(
+        "--plot",
+        default=None,
+        metavar="FILE.png",
+        help="draw both clouds before and after the registration, from two viewpoints",
+    )
+    parser.add_argument(
+        "--verdict",
+        choices=("agreement", "fitness"),
+        default="agreement",
+        help="agreement (default): also register TGT onto SRC and trust the result where both "
+        "agree (twice the time); fitness: trust it where enough of SRC lands on TGT",
+    )
+    parser.add_argument(
+        "--max-disagreement",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="agreement verdict: trust the result where the two registrations agree within DEG "
+        "degrees (default: the checkpoint's, strict by design; larger trusts more right results "
+        "and more wrong ones: docs/verdict.md)",
+    )
+    parser.add_argument(
+        "--best-direction",
+        choices=("on", "off"),
+        default=None,
+        help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
+        "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: the checkpoint's)",
+    )
+    parser.add_argument(
+        "--no-verdict-status",
+        action="store_true",
+        help=f"exit 0 even when the verdict finds the result probably wrong (else {EXIT_SUSPECT})",
+    )
     compile_cache.add_arguments(parser)
     return parser
 
@@ -129,8 +191,9 @@ def _fail(message: str, prog: str = PROG) -> int:
 def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", io.NonFiniteWarning)
-        points, total = io.read(path, max_points=args.max_points, seed=args.seed, return_count=True,
-                                drop_nonfinite=args.drop_nonfinite)
+        points, total = io.read(
+            path, max_points=args.max_points, seed=args.seed, return_count=True, drop_nonfinite=args.drop_nonfinite
+        )
     for warning in caught:
         if issubclass(warning.category, io.NonFiniteWarning):
             print(f"{prog}: note: {warning.message}", file=sys.stderr)
@@ -138,10 +201,15 @@ def _read(path: str, args, prog: str = PROG) -> np.ndarray:
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     if total > len(points):
         if args.no_downsample:
-            raise io.CloudFileError(path, f"{total:,} points, above the limit of {args.max_points:,} "
-                                          f"(--max-points); drop --no-downsample to use a random subset")
-        print(f"{prog}: note: {path}: {total:,} points, above --max-points; using a random {len(points):,}",
-              file=sys.stderr)
+            raise io.CloudFileError(
+                path,
+                f"{total:,} points, above the limit of {args.max_points:,} "
+                f"(--max-points); drop --no-downsample to use a random subset",
+            )
+        print(
+            f"{prog}: note: {path}: {total:,} points, above --max-points; using a random {len(points):,}",
+            file=sys.stderr,
+        )
     return points
 
 
@@ -153,8 +221,10 @@ def _output_problem(path: str | None, source: str | None = None) -> str | None:
     ext = os.path.splitext(path)[1].lower()
     if ext in io.MOVE_FORMATS and ext not in io.WRITE_FORMATS:
         if source is None or os.path.splitext(source)[1].lower() != ext:
-            return (f"{path}: a {ext} file is written only as SRC moved, where SRC is a {ext} file; "
-                    f"choose one of {', '.join(io.WRITE_FORMATS)} for the moved points")
+            return (
+                f"{path}: a {ext} file is written only as SRC moved, where SRC is a {ext} file; "
+                f"choose one of {', '.join(io.WRITE_FORMATS)} for the moved points"
+            )
     else:
         try:
             io.file_format(path, kind="output format", formats=io.WRITE_FORMATS)
@@ -184,8 +254,13 @@ def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) ->
     lines = []
     for warning in caught:
         if issubclass(warning.category, SizeMismatchWarning):
-            lines.append(str(warning.message).replace("source", "\0", 1).replace("target", "\1", 1)
-                         .replace("\0", src).replace("\1", tgt))
+            lines.append(
+                str(warning.message)
+                .replace("source", "\0", 1)
+                .replace("target", "\1", 1)
+                .replace("\0", src)
+                .replace("\1", tgt)
+            )
         else:
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
     return lines
@@ -260,8 +335,15 @@ def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], m
     model = registration.load(args.checkpoint, **model_kwargs)
     out = open(args.results, "a") if args.results else sys.stdout
     errors = wrong = 0
-    bar = tqdm(total=len(chosen), initial=len(chosen) - len(todo), desc="pairs", unit="pair", file=sys.stderr,
-               disable=args.no_progress, dynamic_ncols=True)
+    bar = tqdm(
+        total=len(chosen),
+        initial=len(chosen) - len(todo),
+        desc="pairs",
+        unit="pair",
+        file=sys.stderr,
+        disable=args.no_progress,
+        dynamic_ncols=True,
+    )
     try:
         for k, (src_path, tgt_path) in todo:
             record = {"index": k, "src": src_path, "tgt": tgt_path}
@@ -284,8 +366,10 @@ def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], m
         if out is not sys.stdout:
             out.close()
     if errors:
-        print(f"{PROG}: error: {errors} of {len(todo)} pairs could not be registered (their lines say why)",
-              file=sys.stderr)
+        print(
+            f"{PROG}: error: {errors} of {len(todo)} pairs could not be registered (their lines say why)",
+            file=sys.stderr,
+        )
         return 2
     if wrong:
         print(f"{PROG}: warning: {wrong} of {len(todo)} results are probably wrong", file=sys.stderr)
@@ -315,8 +399,11 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
 
     if args.pairs is not None:
-        extra = [name for name, value in (("SRC TGT", args.src), ("--out", args.out), ("--plot", args.plot))
-                 if value is not None]
+        extra = [
+            name
+            for name, value in (("SRC TGT", args.src), ("--out", args.out), ("--plot", args.plot))
+            if value is not None
+        ]
         if extra:
             return _fail(f"--pairs registers a list; it cannot go with {', '.join(extra)}")
         try:  # the list and the shard are checked before any work
@@ -340,7 +427,9 @@ def main(argv: list[str] | None = None) -> int:
         if not 0.0 <= args.max_disagreement <= 180.0:
             return _fail(f"--max-disagreement must be between 0 and 180 degrees, got {args.max_disagreement:g}")
         if args.verdict != "agreement":
-            return _fail("--max-disagreement sets the agreement verdict's threshold; it cannot go with --verdict fitness")
+            return _fail(
+                "--max-disagreement sets the agreement verdict's threshold; it cannot go with --verdict fitness"
+            )
 
     if args.pairs is None:
         # The files first: bad input is reported before JAX is imported or a model loaded.
@@ -384,13 +473,14 @@ def main(argv: list[str] | None = None) -> int:
         with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
             print(result.matrix)
         angle = rotation_angle_deg(result.rotation)
-        print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} "
-              f"(units of the input)")
+        print(f"rotation {angle:.3f} deg, translation {np.linalg.norm(result.translation):.6g} (units of the input)")
         print(f"{result.level}: {result.evidence()}")
-        print(f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
-              f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
-              + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else "")
-              + (f" + {result.candidate_seconds:.2f} s of feature matching" if result.candidate_seconds else ""))
+        print(
+            f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
+            f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
+            + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else "")
+            + (f" + {result.candidate_seconds:.2f} s of feature matching" if result.candidate_seconds else "")
+        )
         print(f"found by: {result.label}")
         if args.any_rotation:
             print(f"rotation search: went on from a start turned {result.start_turn:.0f} deg")
@@ -410,39 +500,69 @@ SERIES_PROG = "dit-register-series"
 
 def _series_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=SERIES_PROG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog=SERIES_PROG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Register a series of scans, each onto the one before, and print every scan's pose in the "
-                    "first one's frame (dit_jax.series).",
+        "first one's frame (dit_jax.series).",
         epilog="Prints each scan's 4x4 pose (x_first = R x_scan + t) and each link's verdict. With --loop the "
-               "last scan is registered onto the first too and the loop's gap (the motion left after going "
-               "once around it) is spread over the links. Exit status 3 where a link is probably wrong or the loop's "
-               f"gap exceeds {LOOP_GAP_WARNING_DEG:g} degrees (a link is then most likely wrong); 2 on bad input.")
+        "last scan is registered onto the first too and the loop's gap (the motion left after going "
+        "once around it) is spread over the links. Exit status 3 where a link is probably wrong or the loop's "
+        f"gap exceeds {LOOP_GAP_WARNING_DEG:g} degrees (a link is then most likely wrong); 2 on bad input.",
+    )
     parser.add_argument("scans", nargs="+", help="the scans (or meshes) in the order they were taken, at least 2")
-    parser.add_argument("--loop", action="store_true",
-                        help="the last scan overlaps the first (a full turn): close the loop")
-    parser.add_argument("--checkpoint", default=None,
-                        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)")
+    parser.add_argument(
+        "--loop", action="store_true", help="the last scan overlaps the first (a full turn): close the loop"
+    )
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
+    )
     parser.add_argument("--out", default=None, help="write every scan moved into the first one's frame, as one cloud")
-    parser.add_argument("--out-dir", default=None, metavar="DIR",
-                        help="write each scan moved into the first one's frame to DIR, under its own name and "
-                             "format (PLY, PCD, LAS and meshes whole: every point and field kept)")
-    parser.add_argument("--plot", default=None, metavar="FILE.png",
-                        help="draw every scan in the first one's frame, from two sides, beside each link's "
-                             "agreement and verdict")
+    parser.add_argument(
+        "--out-dir",
+        default=None,
+        metavar="DIR",
+        help="write each scan moved into the first one's frame to DIR, under its own name and "
+        "format (PLY, PCD, LAS and meshes whole: every point and field kept)",
+    )
+    parser.add_argument(
+        "--plot",
+        default=None,
+        metavar="FILE.png",
+        help="draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
+    )
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    parser.add_argument("--refine", choices=REFINE_CHOICES, default=None,
-                        help="icp, gicp (small_gicp's generalized ICP), auto (gicp on scans, icp on sparse "
-                             "clouds) or none: the network alone for every link (default: the checkpoint's)")
-    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
-                        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})")
-    parser.add_argument("--no-downsample", action="store_true",
-                        help="refuse clouds above --max-points instead of reading a random subset")
-    parser.add_argument("--drop-nonfinite", action="store_true",
-                        help="leave out points with NaN or Inf coordinates instead of refusing the file")
+    parser.add_argument(
+        "--refine",
+        choices=REFINE_CHOICES,
+        default=None,
+        help="icp, gicp (small_gicp's generalized ICP), auto (gicp on scans, icp on sparse "
+        "clouds) or none: the network alone for every link (default: the checkpoint's)",
+    )
+    parser.add_argument(
+        "--max-points",
+        type=int,
+        default=DEFAULT_MAX_POINTS,
+        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})",
+    )
+    parser.add_argument(
+        "--no-downsample",
+        action="store_true",
+        help="refuse clouds above --max-points instead of reading a random subset",
+    )
+    parser.add_argument(
+        "--drop-nonfinite",
+        action="store_true",
+        help="leave out points with NaN or Inf coordinates instead of refusing the file",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--no-verdict-status", action="store_true",
-                        help=f"exit 0 even when a link is probably wrong or the loop's gap is large (else {EXIT_SUSPECT})")
+    parser.add_argument(
+        "--no-verdict-status",
+        action="store_true",
+        help=f"exit 0 even when a link is probably wrong or the loop's gap is large (else {EXIT_SUSPECT})",
+    )
     compile_cache.add_arguments(parser)
     return parser
 
@@ -473,10 +593,11 @@ def series_main(argv: list[str] | None = None) -> int:
     args = _series_parser().parse_args(argv)
     fail = lambda message: _fail(message, SERIES_PROG)  # noqa: E731
     if len(args.scans) < (3 if args.loop else 2):
-        return fail(f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
-                    f"got {len(args.scans)}")
-    problem = (_output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans)
-               or _plot_problem(args.plot))
+        return fail(
+            f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
+            f"got {len(args.scans)}"
+        )
+    problem = _output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans) or _plot_problem(args.plot)
     if problem:
         return fail(problem)
     if args.max_points < 1:
@@ -491,9 +612,16 @@ def series_main(argv: list[str] | None = None) -> int:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
         model = registration.load(args.checkpoint, seed=args.seed)
         pairs = series.link_pairs(len(clouds), args.loop)
-        with tqdm(total=len(pairs), desc="links", unit="link", file=sys.stderr,
-                  disable=args.no_progress or not sys.stderr.isatty()) as bar, \
-                warnings.catch_warnings(record=True) as caught:
+        with (
+            tqdm(
+                total=len(pairs),
+                desc="links",
+                unit="link",
+                file=sys.stderr,
+                disable=args.no_progress or not sys.stderr.isatty(),
+            ) as bar,
+            warnings.catch_warnings(record=True) as caught,
+        ):
             warnings.simplefilter("always", registration.SizeMismatchWarning)
 
             def link_done(done: int, total: int) -> None:  # each link's warnings name its two scans
@@ -504,8 +632,7 @@ def series_main(argv: list[str] | None = None) -> int:
                 caught.clear()
 
             try:
-                result = series.register_series(model, clouds, loop=args.loop, refine=args.refine,
-                                                 progress=link_done)
+                result = series.register_series(model, clouds, loop=args.loop, refine=args.refine, progress=link_done)
             except registration.InputError as err:
                 return fail(str(err))
         if args.out is not None:
@@ -521,24 +648,34 @@ def series_main(argv: list[str] | None = None) -> int:
 
     names = args.scans
     if args.json:
-        report = {"scans": names, "poses": result.poses.tolist(), "out": args.out, "out_dir": args.out_dir,
-                  "plot": args.plot,
-                  "links": [{"source": names[a], "target": names[b]} | link.to_json()
-                            for (a, b), link in zip(pairs, result.links)],
-                  "loop_gap_deg": None if np.isnan(result.loop_gap_deg) else result.loop_gap_deg,
-                  "loop_gap": None if np.isnan(result.loop_gap) else result.loop_gap}
+        report = {
+            "scans": names,
+            "poses": result.poses.tolist(),
+            "out": args.out,
+            "out_dir": args.out_dir,
+            "plot": args.plot,
+            "links": [
+                {"source": names[a], "target": names[b]} | link.to_json() for (a, b), link in zip(pairs, result.links)
+            ],
+            "loop_gap_deg": None if np.isnan(result.loop_gap_deg) else result.loop_gap_deg,
+            "loop_gap": None if np.isnan(result.loop_gap) else result.loop_gap,
+        }
         print(json.dumps(report, indent=2))
     else:
         with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
             for name, pose in zip(names, result.poses):
-                print(f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
-                      f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame")
+                print(
+                    f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
+                    f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame"
+                )
                 print(pose)
         for (a, b), link in zip(pairs, result.links):
             print(f"{names[a]} onto {names[b]}: {link.level}: {link.evidence()}")
         if args.loop:
-            print(f"loop: gap {result.loop_gap_deg:.3f} deg and {result.loop_gap:.6g} (units of the input) "
-                  f"before closing, spread over {len(pairs)} links")
+            print(
+                f"loop: gap {result.loop_gap_deg:.3f} deg and {result.loop_gap:.6g} (units of the input) "
+                f"before closing, spread over {len(pairs)} links"
+            )
         if args.out is not None:
             print(f"wrote {args.out}")
         if args.out_dir is not None:
@@ -547,13 +684,19 @@ def series_main(argv: list[str] | None = None) -> int:
             print(f"wrote {args.plot}")
     for (a, b), link in zip(pairs, result.links):
         if link.level == "unconfirmed":
-            print(f"{SERIES_PROG}: note: {names[a]} onto {names[b]} is not confirmed: {link.evidence()}",
-                  file=sys.stderr)
-    problems = [f"{names[a]} onto {names[b]} is probably wrong" for (a, b), link in zip(pairs, result.links)
-                if link.level == "probably wrong"]
+            print(
+                f"{SERIES_PROG}: note: {names[a]} onto {names[b]} is not confirmed: {link.evidence()}", file=sys.stderr
+            )
+    problems = [
+        f"{names[a]} onto {names[b]} is probably wrong"
+        for (a, b), link in zip(pairs, result.links)
+        if link.level == "probably wrong"
+    ]
     if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:
-        problems.append(f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
-                        f"a link is most likely wrong")
+        problems.append(
+            f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
+            f"a link is most likely wrong"
+        )
     for problem in problems:
         print(f"{SERIES_PROG}: warning: {problem}", file=sys.stderr)
     return EXIT_SUSPECT if problems and not args.no_verdict_status else 0

@@ -46,9 +46,13 @@ def default_dir() -> str | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``--compile-cache DIR`` and ``--no-compile-cache``."""
-    parser.add_argument("--compile-cache", default=None, metavar="DIR",
-                        help=f"keep compiled XLA programs here, so the next run starts without compiling "
-                             f"(default: ${ENV_VAR}, else ~/.cache/dit-jax/xla)")
+    parser.add_argument(
+        "--compile-cache",
+        default=None,
+        metavar="DIR",
+        help=f"keep compiled XLA programs here, so the next run starts without compiling "
+        f"(default: ${ENV_VAR}, else ~/.cache/dit-jax/xla)",
+    )
     parser.add_argument("--no-compile-cache", action="store_true", help="compile afresh every run")
 
 
@@ -89,8 +93,17 @@ def _source_digest() -> str:
     root = pathlib.Path(__file__).resolve().parent
     for path in sorted(root.rglob("*.py")):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-    digest.update(repr((jax.__version__, jaxlib.__version__, jax.default_backend(), jax.config.jax_enable_x64,
-                        jax.config.jax_default_matmul_precision)).encode())
+    digest.update(
+        repr(
+            (
+                jax.__version__,
+                jaxlib.__version__,
+                jax.default_backend(),
+                jax.config.jax_enable_x64,
+                jax.config.jax_default_matmul_precision,
+            )
+        ).encode()
+    )
     return digest.hexdigest()
 
 

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 #: The authors' evaluation thresholds tau of GMCCE for each data setting.
 GMCCE_THRESHOLDS: Mapping[str, float] = {
@@ -165,7 +166,6 @@ class DITConfig(Record):
         return max(self.k, self.gmcce_k + 1, 3)
 
 
-
 def paper(setting: str = "clean") -> DITConfig:
     """The paper's network: E 512, T 64, 12 blocks, FF 1024, 4 heads, k 20, 3 iterations."""
     return DITConfig(gmcce_threshold=GMCCE_THRESHOLDS[setting])
@@ -173,14 +173,14 @@ def paper(setting: str = "clean") -> DITConfig:
 
 def cpu(setting: str = "clean") -> DITConfig:
     """A network small enough to train on a CPU in hours: E 128, 2 blocks."""
-    return DITConfig(emb_dims=128, token_dim=16, n_blocks=2, ff_dims=256,
-                     gmcce_threshold=GMCCE_THRESHOLDS[setting])
+    return DITConfig(emb_dims=128, token_dim=16, n_blocks=2, ff_dims=256, gmcce_threshold=GMCCE_THRESHOLDS[setting])
 
 
 def tiny(setting: str = "clean") -> DITConfig:
     """The smallest useful network, for tests: E 32, 1 block, k 8."""
-    return DITConfig(emb_dims=32, token_dim=4, n_blocks=1, ff_dims=32, k=8, temp_hidden=16,
-                     gmcce_threshold=GMCCE_THRESHOLDS[setting])
+    return DITConfig(
+        emb_dims=32, token_dim=4, n_blocks=1, ff_dims=32, k=8, temp_hidden=16, gmcce_threshold=GMCCE_THRESHOLDS[setting]
+    )
 
 
 PRESETS = {"paper": paper, "cpu": cpu, "tiny": tiny}

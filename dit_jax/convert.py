@@ -20,7 +20,8 @@ import argparse
 import pickle
 import re
 import sys
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import jax
 import numpy as np
@@ -42,31 +43,51 @@ _QKVO = "qkvo"
 
 # (pattern over the authors' name, function of the match to (our path, leaf kind))
 _RULES: list[tuple[re.Pattern, Callable[[re.Match], tuple[tuple[str, ...], str]]]] = [
-    (re.compile(r"emb_nn\.attention(\d+)\.(norm1|norm2)\.(weight|bias)"),
-     lambda m: (("pse", f"attention{m[1]}", m[2], _NORM_LEAF[m[3]]), "norm")),
-    (re.compile(r"emb_nn\.attention(\d+)\.attn\.(qkv|proj)\.(weight|bias)"),
-     lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3])),
-    (re.compile(r"emb_nn\.attention(\d+)\.mlp\.(fc1|fc2)\.(weight|bias)"),
-     lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3])),
-    (re.compile(r"emb_nn\.norm\.(weight|bias)"),
-     lambda m: (("pse", "norm", _NORM_LEAF[m[1]]), "norm")),
-    (re.compile(r"Position_encoding\.PE\.(0|2)\.(weight|bias)"),
-     lambda m: (("positional_encoding", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2])),
-    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.(self_attn|src_attn)\.linears\.([0-3])\."
-                r"(weight|bias)"),
-     lambda m: (("pft", m[1], f"layers_{m[2]}", m[3], _QKVO[int(m[4])], _LINEAR_LEAF[m[5]]), m[5])),
-    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.feed_forward\.(w_1|w_2)\.(weight|bias)"),
-     lambda m: (("pft", m[1], f"layers_{m[2]}", "feed_forward", m[3], _LINEAR_LEAF[m[4]]), m[4])),
-    (re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.sublayer\.(\d)\.norm\.(a_2|b_2)"),
-     lambda m: (("pft", m[1], f"layers_{m[2]}", f"norm{m[3]}", m[4]), "norm")),
-    (re.compile(r"attention\.model\.(encoder|decoder)\.norm\.(a_2|b_2)"),
-     lambda m: (("pft", m[1], "norm", m[2]), "norm")),
-    (re.compile(r"SE_Block\.fc\.(0|2)\.weight"),
-     lambda m: (("se", f"fc{m[1]}", "kernel"), "weight")),
-    (re.compile(r"temp_net\.nn\.([0369])\.(weight|bias)"),
-     lambda m: (("temp_net", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2])),
-    (re.compile(r"temp_net\.nn\.([147])\.(weight|bias)"),
-     lambda m: (("temp_net", f"norm{m[1]}", _NORM_LEAF[m[2]]), "norm")),
+    (
+        re.compile(r"emb_nn\.attention(\d+)\.(norm1|norm2)\.(weight|bias)"),
+        lambda m: (("pse", f"attention{m[1]}", m[2], _NORM_LEAF[m[3]]), "norm"),
+    ),
+    (
+        re.compile(r"emb_nn\.attention(\d+)\.attn\.(qkv|proj)\.(weight|bias)"),
+        lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3]),
+    ),
+    (
+        re.compile(r"emb_nn\.attention(\d+)\.mlp\.(fc1|fc2)\.(weight|bias)"),
+        lambda m: (("pse", f"attention{m[1]}", m[2], _LINEAR_LEAF[m[3]]), m[3]),
+    ),
+    (re.compile(r"emb_nn\.norm\.(weight|bias)"), lambda m: (("pse", "norm", _NORM_LEAF[m[1]]), "norm")),
+    (
+        re.compile(r"Position_encoding\.PE\.(0|2)\.(weight|bias)"),
+        lambda m: (("positional_encoding", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2]),
+    ),
+    (
+        re.compile(
+            r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.(self_attn|src_attn)\.linears\.([0-3])\."
+            r"(weight|bias)"
+        ),
+        lambda m: (("pft", m[1], f"layers_{m[2]}", m[3], _QKVO[int(m[4])], _LINEAR_LEAF[m[5]]), m[5]),
+    ),
+    (
+        re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.feed_forward\.(w_1|w_2)\.(weight|bias)"),
+        lambda m: (("pft", m[1], f"layers_{m[2]}", "feed_forward", m[3], _LINEAR_LEAF[m[4]]), m[4]),
+    ),
+    (
+        re.compile(r"attention\.model\.(encoder|decoder)\.layers\.(\d+)\.sublayer\.(\d)\.norm\.(a_2|b_2)"),
+        lambda m: (("pft", m[1], f"layers_{m[2]}", f"norm{m[3]}", m[4]), "norm"),
+    ),
+    (
+        re.compile(r"attention\.model\.(encoder|decoder)\.norm\.(a_2|b_2)"),
+        lambda m: (("pft", m[1], "norm", m[2]), "norm"),
+    ),
+    (re.compile(r"SE_Block\.fc\.(0|2)\.weight"), lambda m: (("se", f"fc{m[1]}", "kernel"), "weight")),
+    (
+        re.compile(r"temp_net\.nn\.([0369])\.(weight|bias)"),
+        lambda m: (("temp_net", f"fc{m[1]}", _LINEAR_LEAF[m[2]]), m[2]),
+    ),
+    (
+        re.compile(r"temp_net\.nn\.([147])\.(weight|bias)"),
+        lambda m: (("temp_net", f"norm{m[1]}", _NORM_LEAF[m[2]]), "norm"),
+    ),
 ]
 
 
@@ -76,7 +97,7 @@ class ConversionError(ValueError):
 
 def _strip_prefix(name: str) -> str:
     # Checkpoints saved from nn.DataParallel prefix every name with "module.".
-    return name[len("module."):] if name.startswith("module.") else name
+    return name[len("module.") :] if name.startswith("module.") else name
 
 
 def _map_name(name: str) -> tuple[tuple[str, ...], str] | None:
@@ -103,9 +124,16 @@ def infer_config(state_dict: Mapping[str, Any], **overrides: Any) -> DITConfig:
         raise ConversionError(f"not a DIT state dict: no tensor {err.args[0]!r}") from None
     layer = re.compile(r"attention\.model\.encoder\.layers\.(\d+)\.")
     n_blocks = 1 + max(int(m[1]) for m in map(layer.match, sd) if m)
-    values = dict(emb_dims=emb_dims, token_dim=token_dim, k=k, ff_dims=ff_dims, n_blocks=n_blocks,
-                  temp_hidden=temp_hidden, pe_expansion=pe_hidden // emb_dims,
-                  se_reduction=emb_dims // se_hidden)
+    values = dict(
+        emb_dims=emb_dims,
+        token_dim=token_dim,
+        k=k,
+        ff_dims=ff_dims,
+        n_blocks=n_blocks,
+        temp_hidden=temp_hidden,
+        pe_expansion=pe_hidden // emb_dims,
+        se_reduction=emb_dims // se_hidden,
+    )
     values.update(overrides)
     return DITConfig(**values)
 
@@ -163,14 +191,16 @@ def authors_names(config: DITConfig) -> list[str]:
     for layer in range(1, configs.PSE_LAYERS + 1):
         base = f"emb_nn.attention{layer}."
         names += [base + "attn.qkv.weight", base + "attn.proj.weight", base + "attn.proj.bias"]
-        names += [base + f"{mod}.{leaf}" for mod in ("norm1", "norm2", "mlp.fc1", "mlp.fc2")
-                  for leaf in ("weight", "bias")]
+        names += [
+            base + f"{mod}.{leaf}" for mod in ("norm1", "norm2", "mlp.fc1", "mlp.fc2") for leaf in ("weight", "bias")
+        ]
     names += [f"Position_encoding.PE.{i}.{leaf}" for i in (0, 2) for leaf in ("weight", "bias")]
     for part, attns, n_norms in (("encoder", ("self_attn",), 2), ("decoder", ("self_attn", "src_attn"), 3)):
         for block in range(config.n_blocks):
             base = f"attention.model.{part}.layers.{block}."
-            names += [base + f"{attn}.linears.{i}.{leaf}" for attn in attns for i in range(4)
-                      for leaf in ("weight", "bias")]
+            names += [
+                base + f"{attn}.linears.{i}.{leaf}" for attn in attns for i in range(4) for leaf in ("weight", "bias")
+            ]
             names += [base + f"feed_forward.{w}.{leaf}" for w in ("w_1", "w_2") for leaf in ("weight", "bias")]
             names += [base + f"sublayer.{j}.norm.{leaf}" for j in range(n_norms) for leaf in ("a_2", "b_2")]
         names += [f"attention.model.{part}.norm.{leaf}" for leaf in ("a_2", "b_2")]
@@ -232,11 +262,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dit_jax.convert", description=__doc__.split("\n\n")[0])
     parser.add_argument("pth", help="the authors' checkpoint (.pth / .t7 state dict)")
     parser.add_argument("out", help="directory for the orbax checkpoint (must not exist)")
-    parser.add_argument("--config", default=None, choices=sorted(configs.PRESETS),
-                        help="preset to check the weights against (default: read widths off the weights)")
+    parser.add_argument(
+        "--config",
+        default=None,
+        choices=sorted(configs.PRESETS),
+        help="preset to check the weights against (default: read widths off the weights)",
+    )
     parser.add_argument("--n-heads", type=int, default=4, help="PFT attention heads (not stored in weights)")
-    parser.add_argument("--setting", default="clean", choices=sorted(configs.GMCCE_THRESHOLDS),
-                        help="data setting whose GMCCE threshold the config gets")
+    parser.add_argument(
+        "--setting",
+        default="clean",
+        choices=sorted(configs.GMCCE_THRESHOLDS),
+        help="data setting whose GMCCE threshold the config gets",
+    )
     args = parser.parse_args(argv)
 
     from dit_jax import checkpoint  # orbax is slow to import; only the command needs it

@@ -70,8 +70,14 @@ def _enough_voxels(points: np.ndarray, voxel: float) -> bool:
     return occupied_voxels(subset, voxel) >= MIN_VOXELS or occupied_voxels(points, voxel) >= MIN_VOXELS
 
 
-def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, seed: int = 0,
-             voxel_spacings: float | None = None) -> FeatureMatch:
+def register(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    *,
+    spacing: float | None = None,
+    seed: int = 0,
+    voxel_spacings: float | None = None,
+) -> FeatureMatch:
     """Registers src (N, 3) onto tgt (M, 3) by KISS-Matcher at the voxel of :func:`feature_voxel`.
 
     Args:
@@ -91,8 +97,7 @@ def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, 
     tgt = np.asarray(tgt, np.float64)
     if spacing is None:
         spacing = max(icp_lib.point_spacing(src, seed=seed), icp_lib.point_spacing(tgt, seed=seed))
-    voxel = (feature_voxel(spacing, max(len(src), len(tgt))) if voxel_spacings is None
-             else voxel_spacings * spacing)
+    voxel = feature_voxel(spacing, max(len(src), len(tgt))) if voxel_spacings is None else voxel_spacings * spacing
     identity = FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
     if not np.isfinite(voxel) or voxel <= 0 or not (_enough_voxels(src, voxel) and _enough_voxels(tgt, voxel)):
         return identity
@@ -102,8 +107,9 @@ def register(src: np.ndarray, tgt: np.ndarray, *, spacing: float | None = None, 
     factor = NATIVE_VOXEL / voxel
     matcher = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(voxel_size=NATIVE_VOXEL))
     try:
-        solution = matcher.estimate(((src - centre) * factor).astype(np.float32),
-                                    ((tgt - centre) * factor).astype(np.float32))
+        solution = matcher.estimate(
+            ((src - centre) * factor).astype(np.float32), ((tgt - centre) * factor).astype(np.float32)
+        )
     except RuntimeError:  # the library refuses some inputs (too few points after the voxel grid, say)
         return identity
     inliers = int(matcher.get_num_final_inliers()) if solution.valid else 0

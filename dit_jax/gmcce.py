@@ -92,8 +92,9 @@ def matching_error(src: jax.Array, tgt: jax.Array, partners: jax.Array) -> jax.A
     return jnp.mean(jnp.sqrt(smallest + ERROR_EPS), axis=-1)
 
 
-def confidence(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0,
-               min_dist2: float = 0.1) -> jax.Array:
+def confidence(
+    src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0, min_dist2: float = 0.1
+) -> jax.Array:
     """c_i = 2 sigmoid(-lambda (E_i - min_j E_j)), in (0, 1]; 1 for the best-kept correspondence.
 
     Args:
@@ -115,9 +116,16 @@ def confidence(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float 
     return 2.0 * jax.nn.sigmoid(-sharpness * error)
 
 
-def weights(src: jax.Array, tgt: jax.Array, *, k: int = 10, sharpness: float = 30.0,
-            threshold: float | jax.Array = 0.99,
-            min_dist2: float = 0.1, min_keep: float = 0.0) -> jax.Array:
+def weights(
+    src: jax.Array,
+    tgt: jax.Array,
+    *,
+    k: int = 10,
+    sharpness: float = 30.0,
+    threshold: float | jax.Array = 0.99,
+    min_dist2: float = 0.1,
+    min_keep: float = 0.0,
+) -> jax.Array:
     """GMCCE's inlier weights: 1.0 where :func:`confidence` exceeds ``threshold``, else 0.0. Shape (N,).
 
     ``min_keep`` > 0 also keeps the ``ceil(min_keep N)`` most confident correspondences, however low their

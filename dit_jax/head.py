@@ -73,8 +73,15 @@ class HeadOutput(NamedTuple):
     tgt_soft: jax.Array  # (N, 3) P Y, the soft targets GMCCE scores (the soft mode's in soft mode)
 
 
-def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Array, config: DITConfig,
-         use_gmcce: bool, gmcce_threshold: jax.Array | None = None) -> HeadOutput:
+def head(
+    src: jax.Array,
+    tgt: jax.Array,
+    scores: jax.Array,
+    temperature: jax.Array,
+    config: DITConfig,
+    use_gmcce: bool,
+    gmcce_threshold: jax.Array | None = None,
+) -> HeadOutput:
     """Correspondences, weights and the rigid motion mapping ``src`` onto ``tgt``.
 
     Args:
@@ -101,10 +108,15 @@ def head(src: jax.Array, tgt: jax.Array, scores: jax.Array, temperature: jax.Arr
     correspondences = jnp.argmax(probs, axis=-1).astype(jnp.int32)
     tgt_soft = jnp.matmul(probs, tgt, precision=jax.lax.Precision.HIGHEST)
     if use_gmcce:
-        inliers = gmcce.weights(src, tgt_soft, k=config.gmcce_k, sharpness=config.gmcce_sharpness,
-                                threshold=config.gmcce_threshold if gmcce_threshold is None else gmcce_threshold,
-                                min_dist2=config.gmcce_min_dist2,
-                                min_keep=config.gmcce_min_keep)
+        inliers = gmcce.weights(
+            src,
+            tgt_soft,
+            k=config.gmcce_k,
+            sharpness=config.gmcce_sharpness,
+            threshold=config.gmcce_threshold if gmcce_threshold is None else gmcce_threshold,
+            min_dist2=config.gmcce_min_dist2,
+            min_keep=config.gmcce_min_keep,
+        )
         fallback = jnp.sum(inliers) == 0
         weights = jnp.where(fallback, soft_weights, inliers)
     else:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -122,11 +122,23 @@ def _point_to_plane_step(src: np.ndarray, tgt: np.ndarray, normals: np.ndarray):
     return rotation, x[3:]
 
 
-def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
-        translation: np.ndarray | None = None, *, distances: float | Sequence[float] = 0.05,
-        method: str = "point_to_point", max_iterations: int = 50, tolerance: float = 1e-7,
-        max_points: int | None = 5_000, normal_neighbours: int = 20, seed: int = 0, tree=None,
-        trim: float | None = None, normals: np.ndarray | None = None) -> ICPResult:
+def icp(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray | None = None,
+    translation: np.ndarray | None = None,
+    *,
+    distances: float | Sequence[float] = 0.05,
+    method: str = "point_to_point",
+    max_iterations: int = 50,
+    tolerance: float = 1e-7,
+    max_points: int | None = 5_000,
+    normal_neighbours: int = 20,
+    seed: int = 0,
+    tree=None,
+    trim: float | None = None,
+    normals: np.ndarray | None = None,
+) -> ICPResult:
     """Refines the motion moving ``src`` onto ``tgt``, starting from ``(rotation, translation)``.
 
     Args:
@@ -182,8 +194,7 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
                 new_translation = step[0] @ translation + step[1]
             iterations += 1
             # How far the update moves the cloud: the rotation change at the cloud's extent plus the shift.
-            change = (np.linalg.norm(new_rotation - rotation) * extent
-                      + np.linalg.norm(new_translation - translation))
+            change = np.linalg.norm(new_rotation - rotation) * extent + np.linalg.norm(new_translation - translation)
             rotation, translation = new_rotation, new_translation
             if change <= tolerance * distance:
                 break
@@ -192,13 +203,20 @@ def icp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray | None = None,
     paired = np.isfinite(gap)
     fitness = float(paired.mean())
     rmse = float(np.sqrt(np.mean(gap[paired] ** 2))) if paired.any() else 0.0
-    return ICPResult(rotation=rotation, translation=translation, fitness=fitness, rmse=rmse,
-                     iterations=iterations)
+    return ICPResult(rotation=rotation, translation=translation, fitness=fitness, rmse=rmse, iterations=iterations)
 
 
-def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, *,
-                share: float = FIT_SHARE, seed: int = 0, max_points: int = 5_000,
-                cap: float | None = None) -> float | np.ndarray:
+def trimmed_fit(
+    src: np.ndarray,
+    tree,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    share: float = FIT_SHARE,
+    seed: int = 0,
+    max_points: int = 5_000,
+    cap: float | None = None,
+) -> float | np.ndarray:
     """How well a motion lays src (N, 3) onto the target of ``tree`` (a ``cKDTree``): the mean squared
     distance from the moved source points to their nearest target points, over the closest ``share`` of
     them (a seeded random ``max_points`` of the source for large clouds). Lower is better.
@@ -212,13 +230,14 @@ def trimmed_fit(src: np.ndarray, tree, rotation: np.ndarray, translation: np.nda
     moved = (src @ rotation.T)[None] + np.reshape(translation, (-1, 1, 3))
     bound = np.inf if cap is None else cap
     gaps = np.minimum(tree.query(moved.reshape(-1, 3), distance_upper_bound=bound)[0], bound)
-    gaps = np.sort(gaps.reshape(len(moved), -1), axis=1)[:, :max(1, int(share * len(src)))]
-    scores = np.mean(gaps ** 2, axis=1)
+    gaps = np.sort(gaps.reshape(len(moved), -1), axis=1)[:, : max(1, int(share * len(src)))]
+    scores = np.mean(gaps**2, axis=1)
     return scores if translation.ndim == 2 else float(scores[0])
 
 
-def overlap(src: np.ndarray, tgt: np.ndarray, motions: Sequence[tuple], radius: float, *, seed: int = 0,
-            max_points: int = 5_000) -> np.ndarray:
+def overlap(
+    src: np.ndarray, tgt: np.ndarray, motions: Sequence[tuple], radius: float, *, seed: int = 0, max_points: int = 5_000
+) -> np.ndarray:
     """How much of src (N, 3) each motion lays onto tgt (M, 3): the share of the source points (a seeded
     random ``max_points`` of them) within ``radius`` of a target point, for each (R (3, 3), t (3,)) of
     ``motions``. Returns (len(motions),) in [0, 1]; higher is better.
@@ -272,8 +291,16 @@ START_MARGIN = 0.7
 START_DISTANCES = (0.1, 0.05)
 
 
-def start_scores(src: np.ndarray, tgt: np.ndarray, rotations: np.ndarray, translations: np.ndarray, *,
-                 scale: float = 1.0, max_points: int = 500, seed: int = 0) -> np.ndarray:
+def start_scores(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotations: np.ndarray,
+    translations: np.ndarray,
+    *,
+    scale: float = 1.0,
+    max_points: int = 500,
+    seed: int = 0,
+) -> np.ndarray:
     """How well each of several estimates of one motion lays src (N, 3) onto tgt (M, 3) after a short
     point-to-point ICP from it (:data:`START_DISTANCES` times ``scale``): (K,) :func:`trimmed_fit` scores of
     where the ICP ends, lower is better, for rotations (K, 3, 3) and translations (K, 3). ``max_points``: the
@@ -285,8 +312,16 @@ def start_scores(src: np.ndarray, tgt: np.ndarray, rotations: np.ndarray, transl
     tree = cKDTree(tgt)
     scores = []
     for rotation, translation in zip(np.asarray(rotations, np.float64), np.asarray(translations, np.float64)):
-        run = icp(src, tgt, rotation, translation, distances=tuple(scale * d for d in START_DISTANCES),
-                  max_points=max_points, seed=seed, tree=tree)
+        run = icp(
+            src,
+            tgt,
+            rotation,
+            translation,
+            distances=tuple(scale * d for d in START_DISTANCES),
+            max_points=max_points,
+            seed=seed,
+            tree=tree,
+        )
         scores.append(trimmed_fit(src, tree, run.rotation, run.translation, seed=seed, max_points=max_points))
     return np.asarray(scores)
 
@@ -300,8 +335,13 @@ def best_start(scores: np.ndarray, margin: float = START_MARGIN) -> int:
     return best if scores[best] < margin * scores[0] else 0
 
 
-def mean_shift(src: np.ndarray, rotation_a: np.ndarray, translation_a: np.ndarray, rotation_b: np.ndarray,
-               translation_b: np.ndarray) -> float:
+def mean_shift(
+    src: np.ndarray,
+    rotation_a: np.ndarray,
+    translation_a: np.ndarray,
+    rotation_b: np.ndarray,
+    translation_b: np.ndarray,
+) -> float:
     """How far two motions place the points of src (N, 3) apart, on average (the clouds' units)."""
     return float(np.mean(np.linalg.norm(src @ (rotation_a - rotation_b).T + (translation_a - translation_b), axis=1)))
 
@@ -313,11 +353,21 @@ def _translation_offsets(span: float, step: float) -> np.ndarray:
     return grid[np.linalg.norm(grid, axis=1) > step / 2]
 
 
-def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
-           scale: float = 1.0, seed: int = 0, max_shift: float | None = MAX_SHIFT,
-           rounds: int = 2, max_points: int = 2_000, max_target_points: int | None = TARGET_POINTS,
-           translation_search: tuple[float, float, int] | None = TRANSLATION_SEARCH,
-           workers: int | None = None) -> ICPResult:
+def refine(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    scale: float = 1.0,
+    seed: int = 0,
+    max_shift: float | None = MAX_SHIFT,
+    rounds: int = 2,
+    max_points: int = 2_000,
+    max_target_points: int | None = TARGET_POINTS,
+    translation_search: tuple[float, float, int] | None = TRANSLATION_SEARCH,
+    workers: int | None = None,
+) -> ICPResult:
     """DIT's refinement of a global estimate: the best fit among several ICP runs and the estimate itself.
 
     Each round runs every :data:`REFINE_CANDIDATES` ICP from the current estimate (distances times
@@ -359,9 +409,19 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
         for _ in range(rounds):
             improved = False
             for method, distances, trim in REFINE_CANDIDATES:
-                run = icp(src, tgt, best.rotation, best.translation,
-                          distances=tuple(scale * d for d in distances), method=method, trim=trim, seed=seed,
-                          tree=tree, max_points=max_points, normals=normals)
+                run = icp(
+                    src,
+                    tgt,
+                    best.rotation,
+                    best.translation,
+                    distances=tuple(scale * d for d in distances),
+                    method=method,
+                    trim=trim,
+                    seed=seed,
+                    tree=tree,
+                    max_points=max_points,
+                    normals=normals,
+                )
                 iterations += run.iterations
                 if max_shift is not None and mean_shift(src, run.rotation, run.translation, *start) > max_shift * scale:
                     continue
@@ -378,8 +438,9 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
         span, step, starts = translation_search
         offsets = scale * _translation_offsets(span, step)
         # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
-        grid_scores = trimmed_fit(src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS,
-                                  cap=step * scale)
+        grid_scores = trimmed_fit(
+            src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS, cap=step * scale
+        )
         chosen = np.argsort(grid_scores, kind="stable")[:starts]
         # The searched descents are independent NumPy and scipy work (which releases the GIL), so they run
         # side by side; they are then weighed in the grid's order, which keeps the result the serial one's.
@@ -425,9 +486,17 @@ def point_spacing(points: np.ndarray, *, seed: int = 0, samples: int = 2_000, tr
     return float(np.median(tree.query(points[rows], k=2)[0][:, 1]))
 
 
-def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: np.ndarray, *,
-                seed: int = 0, threads: int | None = None, max_iterations: int = 30,
-                spacing: float | None = None) -> ICPResult:
+def refine_gicp(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    seed: int = 0,
+    threads: int | None = None,
+    max_iterations: int = 30,
+    spacing: float | None = None,
+) -> ICPResult:
     """A fast refinement of a global estimate on the full clouds: small_gicp's generalized ICP, coarse to
     fine, at resolutions set by the clouds' point spacing (:data:`GICP_RESOLUTIONS`), so any units give the
     same motion.
@@ -458,9 +527,16 @@ def refine_gicp(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translat
     if spacing > 0:
         for factor in GICP_RESOLUTIONS:
             resolution = max(factor, finest_factor) * spacing
-            found = small_gicp.align(tgt, src, motion, registration_type="GICP", downsampling_resolution=resolution,
-                                     max_correspondence_distance=GICP_PAIRING * resolution,
-                                     num_threads=threads or os.cpu_count() or 1, max_iterations=max_iterations)
+            found = small_gicp.align(
+                tgt,
+                src,
+                motion,
+                registration_type="GICP",
+                downsampling_resolution=resolution,
+                max_correspondence_distance=GICP_PAIRING * resolution,
+                num_threads=threads or os.cpu_count() or 1,
+                max_iterations=max_iterations,
+            )
             motion, iterations = np.asarray(found.T_target_source, np.float64), iterations + int(found.iterations)
     finest = GICP_PAIRING * max(GICP_RESOLUTIONS[-1], finest_factor) * spacing
     fit = lambda m: trimmed_fit(src, tree, m[:3, :3], m[:3, 3], seed=seed)  # noqa: E731

@@ -55,6 +55,7 @@ MOVE_FORMATS = (".ply", ".pcd", ".las", ".laz", ".obj", ".off", ".stl")
 #: The formats read and written as text, one point per line.
 TEXT_FORMATS = (".xyz", ".txt", ".csv", ".asc", ".pts")
 
+
 class CloudFileError(ValueError):
     """A point-cloud file that cannot be read as (N, 3) finite coordinates; the message names the file."""
 
@@ -76,13 +77,19 @@ def file_format(path: str | os.PathLike, kind: str = "format", formats: tuple[st
     """The lower-case extension of ``path`` if it is one of ``formats``, else :class:`CloudFileError`."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext not in formats:
-        raise CloudFileError(path, f"unknown {kind} {ext or '(no extension)'!r}; expected one of "
-                                   f"{', '.join(formats)}")
+        raise CloudFileError(path, f"unknown {kind} {ext or '(no extension)'!r}; expected one of {', '.join(formats)}")
     return ext
 
 
-def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 0,
-         return_count: bool = False, drop_nonfinite: bool = False, mesh_points: int = MESH_POINTS):
+def read(
+    path: str | os.PathLike,
+    *,
+    max_points: int | None = None,
+    seed: int = 0,
+    return_count: bool = False,
+    drop_nonfinite: bool = False,
+    mesh_points: int = MESH_POINTS,
+):
     """Reads the points of a .ply, .pcd, text (.xyz, .txt, .csv, .asc, .pts) or .npy file, or samples a mesh.
 
     Args:
@@ -120,6 +127,7 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         raise ValueError(f"mesh_points must be positive, got {mesh_points}")
     n_samples = mesh_points if max_points is None else min(mesh_points, max_points)
     if ext == ".ply":
+
         def reader(path_, select_):
             fast = _ascii_ply_vertices(path_)
             if fast is not None:
@@ -131,10 +139,12 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
                 return _read_ply(path_, select_, ply)
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     elif ext in MESH_FORMATS:
+
         def reader(path_, select_):
             return _read_mesh_as_points(path_, select_, n_samples, seed)
     else:
         reader = {".pcd": _read_pcd, ".npy": _read_npy, ".las": _read_las, ".laz": _read_las}.get(ext, _read_text)
+
     def select(count: int) -> np.ndarray | None:
         if max_points is None or count <= max_points:
             return None
@@ -152,9 +162,12 @@ def read(path: str | os.PathLike, *, max_points: int | None = None, seed: int = 
         raise CloudFileError(path, f"expected N x 3 coordinates, got an array of shape {points.shape}")
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any() and not drop_nonfinite:
-        raise CloudFileError(path, f"{int(bad.sum())} of {len(points)} points have NaN or Inf coordinates "
-                                   f"(first at row {int(np.argmax(bad))}); to leave them out, read with "
-                                   f"drop_nonfinite=True (dit-register --drop-nonfinite)")
+        raise CloudFileError(
+            path,
+            f"{int(bad.sum())} of {len(points)} points have NaN or Inf coordinates "
+            f"(first at row {int(np.argmax(bad))}); to leave them out, read with "
+            f"drop_nonfinite=True (dit-register --drop-nonfinite)",
+        )
     if drop_nonfinite:
         if len(points) and bad.all():
             raise CloudFileError(path, f"all {len(points)} points have NaN or Inf coordinates")
@@ -185,12 +198,14 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
         elif ext == ".csv":
             np.savetxt(f, points, fmt=_text_format(points), delimiter=",", header="x,y,z", comments="")
         else:
-            np.savetxt(f, points, fmt=_text_format(points), header=str(len(points)) if ext == ".pts" else "",
-                       comments="")
+            np.savetxt(
+                f, points, fmt=_text_format(points), header=str(len(points)) if ext == ".pts" else "", comments=""
+            )
 
 
-def move_file(source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray,
-              translation: np.ndarray) -> None:
+def move_file(
+    source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray, translation: np.ndarray
+) -> None:
     """Writes the file ``source`` moved by ``x -> rotation @ x + translation`` to ``destination``, in the same
     format, atomically, with everything but the coordinates kept: points (every one) and vertices moved,
     normals turned, every other line or byte as it was. So a scan keeps its colours, intensities and
@@ -251,8 +266,11 @@ def _moved_ply(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     ply = _ply(path)
     data = np.array(_ply_vertices(path, ply))
     if any(data.dtype[axis].kind != "f" for axis in _XYZ):
-        raise CloudFileError(path, "PLY coordinates stored as integers would be rounded when moved; "
-                                   "write the moved points to another file instead")
+        raise CloudFileError(
+            path,
+            "PLY coordinates stored as integers would be rounded when moved; "
+            "write the moved points to another file instead",
+        )
     _move_fields(data, _NORMALS[".ply"], rotation, translation)
     ply["vertex"].data = data
     buffer = io_lib.BytesIO()
@@ -277,8 +295,11 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     _columns(path, list(cloud.fields))
     meta = cloud.metadata
     if any(meta.type[meta.fields.index(axis)] != "F" for axis in _XYZ):
-        raise CloudFileError(path, "PCD coordinates stored as integers would be rounded when moved; "
-                                   "write the moved points to another file instead")
+        raise CloudFileError(
+            path,
+            "PCD coordinates stored as integers would be rounded when moved; "
+            "write the moved points to another file instead",
+        )
     data = np.array(cloud.pc_data)  # a writable copy
     _move_fields(data, _NORMALS[".pcd"], rotation, translation)
     view = np.asarray(meta.viewpoint, np.float64)  # tx ty tz qw qx qy qz
@@ -296,7 +317,7 @@ def _moved_las(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     las = _las(path)
     moved = np.asarray(las.xyz, np.float64) @ rotation.T + translation
     scale, offset = np.asarray(las.header.scales, np.float64), np.asarray(las.header.offsets, np.float64)
-    limit = 2 ** 31 - 2 ** 20  # int32, with room for rounding
+    limit = 2**31 - 2**20  # int32, with room for rounding
     if len(moved) and (np.abs((moved - offset) / scale) > limit).any():
         # re-centre the integers on the moved points
         # (the header's offset alone: the points are all assigned anew below)
@@ -308,8 +329,9 @@ def _moved_las(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
     return buffer.getvalue()
 
 
-def _move_fields(table: np.ndarray, normals: tuple[str, str, str], rotation: np.ndarray,
-                 translation: np.ndarray) -> None:
+def _move_fields(
+    table: np.ndarray, normals: tuple[str, str, str], rotation: np.ndarray, translation: np.ndarray
+) -> None:
     """Moves x, y, z of a structured array of points in place, and turns its normals where it has them."""
     names = table.dtype.names
     groups = [(axes, axes is not _XYZ) for axes in (_XYZ, normals) if all(a in names for a in axes)]
@@ -319,11 +341,11 @@ def _move_fields(table: np.ndarray, normals: tuple[str, str, str], rotation: np.
 def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
     """The bytes of an OBJ, OFF or ASCII STL file with its vertices moved and its normals turned: each such line
     is written again as its words joined by single spaces, a comment at its end and its line end kept."""
-    with open(path, "r", encoding="utf-8", errors="surrogateescape", newline="") as f:  # "\r\n" stays
+    with open(path, encoding="utf-8", errors="surrogateescape", newline="") as f:  # "\r\n" stays
         lines = f.readlines()
     numbers = _mesh_coordinate_lines(path, ext, lines)
     rows = [lines[n].rstrip("\r\n") for n in numbers]
-    tails = [lines[n][len(row):] for n, row in zip(numbers, rows)]  # the line ends
+    tails = [lines[n][len(row) :] for n, row in zip(numbers, rows)]  # the line ends
     if any("#" in row for row in rows):
         parts = [row.partition("#") for row in rows]
         rows = [code for code, _, _ in parts]
@@ -350,8 +372,7 @@ def _moved_text_mesh(path: str, ext: str, rotation: np.ndarray, translation: np.
     return "".join(lines).encode("utf-8", errors="surrogateescape")
 
 
-def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndarray,
-                  translation: np.ndarray) -> None:
+def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndarray, translation: np.ndarray) -> None:
     """Moves each group of three coordinate columns (views into a file's records, (N,) each) in place, or,
     where the group is a normal, turns it."""
     for views, is_normal in groups:
@@ -368,14 +389,22 @@ def _rotation_quaternion(rotation: np.ndarray) -> np.ndarray:
     """The unit quaternion (w, x, y, z) of a rotation matrix (3, 3), w >= 0."""
     m = np.asarray(rotation, np.float64)
     # the largest of 4w^2, 4x^2, 4y^2, 4z^2 gives the best-conditioned square root
-    squares = np.array([1 + np.trace(m), 1 + m[0, 0] - m[1, 1] - m[2, 2], 1 - m[0, 0] + m[1, 1] - m[2, 2],
-                        1 - m[0, 0] - m[1, 1] + m[2, 2]])
+    squares = np.array(
+        [
+            1 + np.trace(m),
+            1 + m[0, 0] - m[1, 1] - m[2, 2],
+            1 - m[0, 0] + m[1, 1] - m[2, 2],
+            1 - m[0, 0] - m[1, 1] + m[2, 2],
+        ]
+    )
     k = int(np.argmax(squares))
     r = np.sqrt(max(squares[k], 0.0)) * 2  # 4 * |component k|
-    off = {0: (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]),
-           1: (m[2, 1] - m[1, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]),
-           2: (m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], m[1, 2] + m[2, 1]),
-           3: (m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1])}[k]
+    off = {
+        0: (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]),
+        1: (m[2, 1] - m[1, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]),
+        2: (m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], m[1, 2] + m[2, 1]),
+        3: (m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1]),
+    }[k]
     q = np.empty(4)
     q[k] = r / 4
     q[[i for i in range(4) if i != k]] = np.asarray(off) / r
@@ -385,8 +414,14 @@ def _rotation_quaternion(rotation: np.ndarray) -> np.ndarray:
 def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a * b for quaternions (w, x, y, z): the rotation b, then a."""
     (aw, ax, ay, az), (bw, bx, by, bz) = a, b
-    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
@@ -430,8 +465,9 @@ def _first_line(err: BaseException) -> str:
 def _columns(path: str, names: list[str]) -> list[int]:
     missing = [axis for axis in "xyz" if axis not in names]
     if missing:
-        raise CloudFileError(path, f"not three coordinates: no {'/'.join(missing)} field "
-                                   f"(fields: {' '.join(names) or 'none'})")
+        raise CloudFileError(
+            path, f"not three coordinates: no {'/'.join(missing)} field (fields: {' '.join(names) or 'none'})"
+        )
     return [names.index(axis) for axis in "xyz"]
 
 
@@ -577,8 +613,9 @@ def _las(path: str):
             raise CloudFileError(path, f"LAS file ends before its {header.point_count} points")
         return laspy.read(path)
     except (laspy.LaspyException, ValueError, EOFError) as err:
-        raise CloudFileError(path, f"malformed {os.path.splitext(path)[1][1:].upper()} file "
-                                   f"({_first_line(err)})") from None
+        raise CloudFileError(
+            path, f"malformed {os.path.splitext(path)[1][1:].upper()} file ({_first_line(err)})"
+        ) from None
 
 
 def _read_las(path: str, select) -> tuple[np.ndarray, int]:
@@ -615,7 +652,7 @@ def _read_text_fast(path: str) -> np.ndarray | None:
     the file is anything else (a short row, a mixed separator, bad bytes): the line-by-line reader then reads
     it or says which line is wrong."""
     try:
-        with open(path, "r", encoding="utf-8", errors="strict") as f:
+        with open(path, encoding="utf-8", errors="strict") as f:
             lines = (line.split("#", 1)[0].strip() for line in f)
             numbered = ((number, line) for number, line in enumerate(lines, 1) if line)
             number, line = next(numbered, (0, ""))
@@ -628,8 +665,16 @@ def _read_text_fast(path: str) -> np.ndarray | None:
         delimiter = "," if "," in line else ";" if ";" in line else None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "input contained no data": the line-by-line reader decides
-            points = np.loadtxt(path, dtype=np.float64, comments="#", delimiter=delimiter, skiprows=skip,
-                                usecols=(0, 1, 2), ndmin=2, encoding="utf-8")
+            points = np.loadtxt(
+                path,
+                dtype=np.float64,
+                comments="#",
+                delimiter=delimiter,
+                skiprows=skip,
+                usecols=(0, 1, 2),
+                ndmin=2,
+                encoding="utf-8",
+            )
     except (ValueError, UnicodeDecodeError, IndexError):
         return None
     return points
@@ -637,7 +682,7 @@ def _read_text_fast(path: str) -> np.ndarray | None:
 
 def _read_text_by_line(path: str) -> np.ndarray:
     rows, first = [], True
-    with open(path, "r", encoding="utf-8", errors="strict") as f:
+    with open(path, encoding="utf-8", errors="strict") as f:
         for number, line in enumerate(f, 1):
             line = line.split("#", 1)[0].strip()
             if not line:
@@ -795,7 +840,7 @@ def _fans(corners: np.ndarray, counts: np.ndarray) -> np.ndarray:
 
 
 def _read_obj(path: str) -> tuple[np.ndarray, np.ndarray]:
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
+    with open(path, encoding="utf-8", errors="replace") as f:
         text = f.read()
     if "#" in text:
         text = re.sub(r"#[^\n]*", "", text)
@@ -831,8 +876,12 @@ def _off_layout(path: str, text_lines: list[str]) -> tuple[list[int], list[int]]
     head = code[data[0]].split() if data else []
     keyword = re.fullmatch(r"(ST)?C?N?OFF(.*)", head[0], re.IGNORECASE) if data else None
     if keyword is None:
-        raise CloudFileError(path, "not an OFF file (no OFF header)" if not data or "OFF" not in head[0]
-                             else f"OFF variant {head[0]!r} is not supported")
+        raise CloudFileError(
+            path,
+            "not an OFF file (no OFF header)"
+            if not data or "OFF" not in head[0]
+            else f"OFF variant {head[0]!r} is not supported",
+        )
     # Counts follow the keyword on its line (ModelNet's files even write "OFF490 518 0"), or on the next.
     counts = ([keyword[2]] if keyword[2] else []) + head[1:]
     body = data[1:]
@@ -843,11 +892,11 @@ def _off_layout(path: str, text_lines: list[str]) -> tuple[list[int], list[int]]
     n_vertices, n_faces = int(counts[0]), int(counts[1])
     if len(body) < n_vertices + n_faces:
         raise CloudFileError(path, f"OFF file ends before its {n_vertices} vertices and {n_faces} faces")
-    return body[:n_vertices], body[n_vertices:n_vertices + n_faces]
+    return body[:n_vertices], body[n_vertices : n_vertices + n_faces]
 
 
 def _read_off(path: str) -> tuple[np.ndarray, np.ndarray]:
-    with open(path, "r", encoding="utf-8", errors="replace") as f:
+    with open(path, encoding="utf-8", errors="replace") as f:
         lines = f.readlines()
     vertex_lines, face_lines = _off_layout(path, lines)
     code = lambda numbers: [lines[i].partition("#")[0] for i in numbers]  # noqa: E731
@@ -890,7 +939,7 @@ def _read_stl(path: str) -> tuple[np.ndarray, np.ndarray]:
         count = int(np.frombuffer(head[80:84], "<u4")[0])
         corners = np.fromfile(path, _STL_RECORD, count=count, offset=84)["corners"].reshape(-1, 3)
     elif head.lstrip().lower().startswith(b"solid"):
-        with open(path, "r", encoding="ascii", errors="replace") as f:
+        with open(path, encoding="ascii", errors="replace") as f:
             rows = _STL_VERTEX_ROW.findall(f.read().replace("\r", "\n"))
         if len(rows) % 3:
             raise CloudFileError(path, f"ASCII STL with {len(rows)} vertices, not three per facet")
@@ -925,8 +974,9 @@ def _write_ply(f, points: np.ndarray, binary: bool) -> None:
     vertex = np.empty(len(points), [(axis, kind) for axis in _XYZ])
     for k, axis in enumerate(_XYZ):
         vertex[axis] = points[:, k]
-    PlyData([PlyElement.describe(vertex, "vertex")], text=not binary, byte_order="<",
-            comments=["written by dit-jax"]).write(f)
+    PlyData(
+        [PlyElement.describe(vertex, "vertex")], text=not binary, byte_order="<", comments=["written by dit-jax"]
+    ).write(f)
 
 
 def _write_pcd(f, points: np.ndarray, binary: bool) -> None:

@@ -43,18 +43,24 @@ def dot_general(name: str):
     def dot(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kwargs):
         del precision
         (lhs, rhs), wanted = _operands(name, lhs, rhs)
-        return jax.lax.dot_general(lhs, rhs, dimension_numbers, precision=dot_precision(name),
-                                   preferred_element_type=wanted or preferred_element_type, **kwargs)
+        return jax.lax.dot_general(
+            lhs,
+            rhs,
+            dimension_numbers,
+            precision=dot_precision(name),
+            preferred_element_type=wanted or preferred_element_type,
+            **kwargs,
+        )
 
     return dot
 
 
-def einsum(subscripts: str, a: jax.Array, b: jax.Array, *, precision: str,
-           preferred_element_type=None) -> jax.Array:
+def einsum(subscripts: str, a: jax.Array, b: jax.Array, *, precision: str, preferred_element_type=None) -> jax.Array:
     """``jnp.einsum`` of two operands computed as the precision setting says (see :func:`dot_precision`)."""
     (a, b), wanted = _operands(precision, a, b)
-    return jnp.einsum(subscripts, a, b, precision=dot_precision(precision),
-                      preferred_element_type=wanted or preferred_element_type)
+    return jnp.einsum(
+        subscripts, a, b, precision=dot_precision(precision), preferred_element_type=wanted or preferred_element_type
+    )
 
 
 def _row_blocks(x: jax.Array, rows: int) -> jax.Array:
@@ -76,13 +82,22 @@ def _attention_forward(q, k, v, rows: int, precision: str):
     low = q.dtype != jnp.float32
 
     def block(_, q_rows):
-        logits = einsum("hnd,hmd->hnm", q_rows, k, precision=precision,
-                        preferred_element_type=jnp.float32 if low else None)
+        logits = einsum(
+            "hnd,hmd->hnm", q_rows, k, precision=precision, preferred_element_type=jnp.float32 if low else None
+        )
         peak = jnp.max(logits, axis=-1, keepdims=True)
         weights = jnp.exp(logits - peak)
         total = jnp.sum(weights, axis=-1, keepdims=True)
-        out = einsum("hnm,hmd->hnd", weights.astype(v.dtype), v, precision=precision,
-                     preferred_element_type=jnp.float32 if low else None) / total
+        out = (
+            einsum(
+                "hnm,hmd->hnd",
+                weights.astype(v.dtype),
+                v,
+                precision=precision,
+                preferred_element_type=jnp.float32 if low else None,
+            )
+            / total
+        )
         return None, (out.astype(v.dtype), (peak + jnp.log(total))[..., 0])
 
     n = q.shape[1]
@@ -131,8 +146,12 @@ def _attention_bwd(rows, precision, residuals, d_out):
         (d_k, d_v), d_q = block(start, (q, d_out, lse, row_dot))
     else:
         # Padded rows have zero cotangents, so they add nothing to d_k and d_v.
-        xs = (_row_blocks(q, rows), _row_blocks(d_out, rows), _row_blocks(lse[..., None], rows)[..., 0],
-              _row_blocks(row_dot[..., None], rows)[..., 0])
+        xs = (
+            _row_blocks(q, rows),
+            _row_blocks(d_out, rows),
+            _row_blocks(lse[..., None], rows)[..., 0],
+            _row_blocks(row_dot[..., None], rows)[..., 0],
+        )
         (d_k, d_v), d_q = jax.lax.scan(block, start, xs)
         d_q = _from_row_blocks(d_q, n)
     return d_q.astype(q.dtype), d_k.astype(k.dtype), d_v.astype(v.dtype)
@@ -141,8 +160,9 @@ def _attention_bwd(rows, precision, residuals, d_out):
 _attention.defvjp(_attention_fwd, _attention_bwd)
 
 
-def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = None,
-              chunk: int = 0, *, precision: str) -> jax.Array:
+def attention(
+    q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = None, chunk: int = 0, *, precision: str
+) -> jax.Array:
     """softmax(q k^T / divisor) v for each head: q (N, h, d), k (M, h, d), v (M, h, d_v) -> (N, h, d_v).
 
     ``divisor`` is a Python number (a constant of the program); it divides ``q`` before the product, which
@@ -164,9 +184,17 @@ def attention(q: jax.Array, k: jax.Array, v: jax.Array, divisor: float | None = 
     return heads_first(_attention(heads_first(q), heads_first(k), heads_first(v), rows, precision))
 
 
-def stack_of_layers(parent: nn.Module, template: nn.Module, names: Sequence[str], x: jax.Array,
-                    call: Callable[[nn.Module, jax.Array], jax.Array], *, remat: bool = False,
-                    dropout: bool = False, collect: bool = False) -> tuple[jax.Array, jax.Array | None]:
+def stack_of_layers(
+    parent: nn.Module,
+    template: nn.Module,
+    names: Sequence[str],
+    x: jax.Array,
+    call: Callable[[nn.Module, jax.Array], jax.Array],
+    *,
+    remat: bool = False,
+    dropout: bool = False,
+    collect: bool = False,
+) -> tuple[jax.Array, jax.Array | None]:
     """Layers of one structure and shape applied in turn, ``x = call(layer, x)``, as one ``lax.scan``.
 
     Each layer keeps its parameters under its own name in ``parent`` (``names``), as if it were a separate
@@ -241,8 +269,7 @@ class AnnotatedLayerNorm(nn.Module):
         return scale * centred / (std + self.eps) + bias
 
 
-def torch_dense(features: int, name: str, use_bias: bool = True, dtype: str = "float32", *,
-                precision: str) -> nn.Dense:
+def torch_dense(features: int, name: str, use_bias: bool = True, dtype: str = "float32", *, precision: str) -> nn.Dense:
     """A Dense layer whose kernel starts like PyTorch's ``nn.Linear`` weight: U(+-1/sqrt(fan_in)).
 
     (variance scaling 1/3 with a uniform law has exactly that bound.) Biases start at zero. Kernels are

@@ -70,13 +70,21 @@ def correspondence_loss(soft_targets, src, tgt, rotation_gt, translation_gt, rad
     point has a counterpart)."""
     truth = jnp.matmul(src, rotation_gt.T, precision=_HIGHEST) + translation_gt
     nearest = jnp.min(geometry.pairwise_sq_dist(truth, tgt), axis=-1)
-    has_counterpart = jax.lax.stop_gradient((nearest < radius ** 2).astype(src.dtype))
+    has_counterpart = jax.lax.stop_gradient((nearest < radius**2).astype(src.dtype))
     gaps = jnp.sum((soft_targets - truth) ** 2, axis=-1)
     return jnp.sum(has_counterpart * gaps) / jnp.maximum(jnp.sum(has_counterpart), 1.0)
 
 
-def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: float = DISCOUNT,
-             match_radius: float = MATCH_RADIUS, correspondence_weight: float = 0.0):
+def dit_loss(
+    its: Iterations,
+    src,
+    tgt,
+    rotation_gt,
+    translation_gt,
+    discount: float = DISCOUNT,
+    match_radius: float = MATCH_RADIUS,
+    correspondence_weight: float = 0.0,
+):
     """The total loss of one pair and its terms (each summed over iterations with the discount).
 
     Args:
@@ -95,11 +103,13 @@ def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: f
     """
     n_iters = its.rotation.shape[0]
     factors = discount ** jnp.arange(n_iters, dtype=src.dtype)
-    trans = jax.vmap(transformation_loss, (0, 0, None, None))(its.rotation, its.translation, rotation_gt,
-                                                                translation_gt)
+    trans = jax.vmap(transformation_loss, (0, 0, None, None))(
+        its.rotation, its.translation, rotation_gt, translation_gt
+    )
     cycle = jax.vmap(cycle_loss)(its.rotation_ab, its.translation_ab, its.rotation_ba, its.translation_ba)
-    labels = jax.vmap(match_labels, (None, None, 0, None, None, None))(src, tgt, its.correspondences, rotation_gt,
-                                                                       translation_gt, match_radius)
+    labels = jax.vmap(match_labels, (None, None, 0, None, None, None))(
+        src, tgt, its.correspondences, rotation_gt, translation_gt, match_radius
+    )
     disc = jax.vmap(discrimination_loss)(its.soft_weights, jax.lax.stop_gradient(labels))
     terms = {
         "transformation": jnp.sum(factors * trans),
@@ -110,7 +120,8 @@ def dit_loss(its: Iterations, src, tgt, rotation_gt, translation_gt, discount: f
     total = terms["transformation"] + CYCLE_WEIGHT * terms["cycle"] + DISCRIMINATION_WEIGHT * terms["discrimination"]
     if correspondence_weight:
         corr = jax.vmap(correspondence_loss, (0, None, None, None, None, None))(
-            its.soft_targets, src, tgt, rotation_gt, translation_gt, match_radius)
+            its.soft_targets, src, tgt, rotation_gt, translation_gt, match_radius
+        )
         terms["correspondence"] = jnp.sum(factors * corr)
         total = total + correspondence_weight * terms["correspondence"]
     return total, terms

@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -54,8 +54,9 @@ def matrix_to_euler_zyx(rotation) -> np.ndarray:
     return np.degrees(np.stack([az, ay, ax], axis=-1))
 
 
-def chamfer_distance(src_moved: np.ndarray, tgt: np.ndarray, src_clean_moved: np.ndarray,
-                     tgt_clean: np.ndarray) -> np.ndarray:
+def chamfer_distance(
+    src_moved: np.ndarray, tgt: np.ndarray, src_clean_moved: np.ndarray, tgt_clean: np.ndarray
+) -> np.ndarray:
     """RPM-Net's modified Chamfer distance (squared distances).
 
     ``mean_i min_j |src_moved_i - tgt_clean_j|^2 + mean_j min_i |tgt_j - src_clean_moved_i|^2``: the source
@@ -71,9 +72,15 @@ def chamfer_distance(src_moved: np.ndarray, tgt: np.ndarray, src_clean_moved: np
     return directed(src_moved, tgt_clean) + directed(tgt, src_clean_moved)
 
 
-def summarise(rotation, translation, rotation_gt, translation_gt, *,
-              rotation_thresholds: Sequence[float] = (0.5, 1, 2, 5, 10, 20, 45),
-              translation_thresholds: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5)) -> dict:
+def summarise(
+    rotation,
+    translation,
+    rotation_gt,
+    translation_gt,
+    *,
+    rotation_thresholds: Sequence[float] = (0.5, 1, 2, 5, 10, 20, 45),
+    translation_thresholds: Sequence[float] = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5),
+) -> dict:
     """The authors' table metrics and more, over B pairs: rotations (B, 3, 3), translations (B, 3).
 
     Returns a dict of floats: ``rot_rmse``, ``rot_mae`` (degrees, over all Euler components as the authors
@@ -90,9 +97,9 @@ def summarise(rotation, translation, rotation_gt, translation_gt, *,
     per_pair_trans_mae = np.abs(trans_err).mean(axis=-1)
     return {
         "pairs": int(len(trans_err)),
-        "rot_rmse": float(np.sqrt(np.mean(euler_err ** 2))),
+        "rot_rmse": float(np.sqrt(np.mean(euler_err**2))),
         "rot_mae": float(np.mean(np.abs(euler_err))),
-        "trans_rmse": float(np.sqrt(np.mean(trans_err ** 2))),
+        "trans_rmse": float(np.sqrt(np.mean(trans_err**2))),
         "trans_mae": float(np.mean(np.abs(trans_err))),
         "rot_iso": float(np.mean(rot_iso)),
         "trans_iso": float(np.mean(trans_iso)),
@@ -100,8 +107,10 @@ def summarise(rotation, translation, rotation_gt, translation_gt, *,
         "success_curve": {
             "rotation_thresholds": list(map(float, rotation_thresholds)),
             "translation_thresholds": list(map(float, translation_thresholds)),
-            "ratio": [float(np.mean((rot_iso <= r) & (trans_iso <= t)))
-                      for r, t in zip(rotation_thresholds, translation_thresholds)],
+            "ratio": [
+                float(np.mean((rot_iso <= r) & (trans_iso <= t)))
+                for r, t in zip(rotation_thresholds, translation_thresholds)
+            ],
         },
     }
 
@@ -121,8 +130,10 @@ def _surface_tree(samples: np.ndarray):
 
 
 def _place(shape: np.ndarray, rotation, translation) -> np.ndarray:
-    return np.einsum("bij,bpj->bpi", np.asarray(rotation, np.float64), shape) + \
-        np.asarray(translation, np.float64)[:, None]
+    return (
+        np.einsum("bij,bpj->bpi", np.asarray(rotation, np.float64), shape)
+        + np.asarray(translation, np.float64)[:, None]
+    )
 
 
 def surface_error(shape, rotation, translation, rotation_gt, translation_gt) -> np.ndarray:
@@ -139,8 +150,9 @@ def surface_error(shape, rotation, translation, rotation_gt, translation_gt) -> 
     return np.array([np.mean(_surface_tree(q).query(p)[0]) for p, q in zip(placed, truth)])
 
 
-def symmetry_tolerance(shape, rotation_gt, translation_gt, degrees: float = 5.0,
-                       n_axes: int = SYMMETRY_AXES) -> np.ndarray:
+def symmetry_tolerance(
+    shape, rotation_gt, translation_gt, degrees: float = 5.0, n_axes: int = SYMMETRY_AXES
+) -> np.ndarray:
     """The :func:`surface_error` of the true pose turned by ``degrees`` about the shape's centroid, the median
     over ``n_axes`` axes spread evenly over the sphere (a Fibonacci lattice): how close a typical pose
     ``degrees`` off comes. On a shape without symmetry a larger rotation error lies farther; on a shape with
@@ -149,7 +161,7 @@ def symmetry_tolerance(shape, rotation_gt, translation_gt, degrees: float = 5.0,
     shape: (B, P, 3) in the source frame; rotation_gt (B, 3, 3), translation_gt (B, 3). Returns (B,).
     """
     k = np.arange(n_axes) + 0.5
-    polar, azimuth = np.arccos(1.0 - 2.0 * k / n_axes), np.pi * (1.0 + 5.0 ** 0.5) * k
+    polar, azimuth = np.arccos(1.0 - 2.0 * k / n_axes), np.pi * (1.0 + 5.0**0.5) * k
     axes = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=1)
     turns = np.stack([axis_angle_matrix(a, degrees) for a in axes])  # (A, 3, 3)
     shape = np.asarray(shape, np.float64)
@@ -161,8 +173,9 @@ def symmetry_tolerance(shape, rotation_gt, translation_gt, degrees: float = 5.0,
     return out
 
 
-def within_up_to_symmetry(rotation_error, translation_error, surface, tolerance, degrees: float = 5.0,
-                          max_translation: float = 0.05) -> np.ndarray:
+def within_up_to_symmetry(
+    rotation_error, translation_error, surface, tolerance, degrees: float = 5.0, max_translation: float = 0.05
+) -> np.ndarray:
     """Whether each estimate is right up to the shape's symmetry: within ``degrees`` (``rotation_error``,
     degrees) and ``max_translation`` (``translation_error``) of the truth, or placing the complete shape at
     least as close to the truth's placement as a typical pose ``degrees`` off (``surface``, its

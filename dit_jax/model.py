@@ -62,8 +62,9 @@ class DIT(nn.Module):
         self.se = SqueezeExcitation(c.emb_dims, c.se_reduction, c.precision)
         self.temp_net = TemperatureNet(c.temp_hidden, c.temp_factor, c.precision)
 
-    def embed(self, points: jax.Array, knn_idx: jax.Array | None = None, encode: bool = False,
-              deterministic: bool = True) -> Embedding:
+    def embed(
+        self, points: jax.Array, knn_idx: jax.Array | None = None, encode: bool = False, deterministic: bool = True
+    ) -> Embedding:
         """points: (N, 3) -> the cloud's :class:`Embedding`.
 
         ``knn_idx`` (N, k) reuses a kNN graph computed earlier: a rigid motion keeps every distance, so a
@@ -99,9 +100,22 @@ class DIT(nn.Module):
 #: DITConfig fields that change what the network computes but not the parameters it holds: configs that
 #: differ only in these initialise through one compiled program. (A field not named here counts as shaping
 #: the parameters, so a new one can cost a compilation, never a wrong tree.)
-_COMPUTE_ONLY_FIELDS = ("n_iters", "gmcce_k", "gmcce_sharpness", "gmcce_threshold", "gmcce_min_dist2",
-                        "gmcce_min_keep", "guard_iterations", "fitness_radius", "temp_factor", "dropout",
-                        "attention_chunk", "compute_dtype", "precision", "remat")
+_COMPUTE_ONLY_FIELDS = (
+    "n_iters",
+    "gmcce_k",
+    "gmcce_sharpness",
+    "gmcce_threshold",
+    "gmcce_min_dist2",
+    "gmcce_min_keep",
+    "guard_iterations",
+    "fitness_radius",
+    "temp_factor",
+    "dropout",
+    "attention_chunk",
+    "compute_dtype",
+    "precision",
+    "remat",
+)
 
 
 def init(key: jax.Array, config: DITConfig, n_points: int | None = None) -> Params:
@@ -130,9 +144,17 @@ def embed(params: Params, points: jax.Array, config: DITConfig, *, encode: bool 
     return DIT(config).apply({"params": params}, points, encode=encode, method=DIT.embed)
 
 
-def features(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, *,
-             tgt_embedding: Embedding | None = None, src_knn: jax.Array | None = None,
-             deterministic: bool = True, dropout_key: jax.Array | None = None) -> tuple[Embedding, Features]:
+def features(
+    params: Params,
+    src: jax.Array,
+    tgt: jax.Array,
+    config: DITConfig,
+    *,
+    tgt_embedding: Embedding | None = None,
+    src_knn: jax.Array | None = None,
+    deterministic: bool = True,
+    dropout_key: jax.Array | None = None,
+) -> tuple[Embedding, Features]:
     """The network's features for one pair: src (N, 3), tgt (M, 3).
 
     ``tgt_embedding`` reuses a target embedding computed earlier (the target does not move across
@@ -149,9 +171,16 @@ def features(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, 
     return nn.apply(run, DIT(config))({"params": params}, rngs=rngs)
 
 
-def forward(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, use_gmcce: bool = False, *,
-            tgt_embedding: Embedding | None = None, src_knn: jax.Array | None = None
-            ) -> tuple[Features, HeadOutput]:
+def forward(
+    params: Params,
+    src: jax.Array,
+    tgt: jax.Array,
+    config: DITConfig,
+    use_gmcce: bool = False,
+    *,
+    tgt_embedding: Embedding | None = None,
+    src_knn: jax.Array | None = None,
+) -> tuple[Features, HeadOutput]:
     """One registration step of one pair (the authors' ``forward``): features, then the head.
 
     src: (N, 3), tgt: (M, 3). Returns the :class:`Features` and the X-to-Y :class:`HeadOutput`.
@@ -168,14 +197,17 @@ def _check_inputs(src: jax.Array, tgt: jax.Array, config: DITConfig) -> None:
         if not jnp.issubdtype(cloud.dtype, jnp.floating):
             raise ValueError(f"{name} must be floating point, got {cloud.dtype}")
         if cloud.shape[1] < config.min_points:
-            raise ValueError(f"{name} has {cloud.shape[1]} points; this config needs at least "
-                             f"{config.min_points} (k={config.k}, gmcce_k={config.gmcce_k})")
+            raise ValueError(
+                f"{name} has {cloud.shape[1]} points; this config needs at least "
+                f"{config.min_points} (k={config.k}, gmcce_k={config.gmcce_k})"
+            )
     if src.shape[0] != tgt.shape[0]:
         raise ValueError(f"src and tgt batch sizes differ: {src.shape[0]} vs {tgt.shape[0]}")
 
 
-def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
-                  gmcce_threshold: jax.Array | None = None):
+def _register_one(
+    params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, gmcce_threshold: jax.Array | None = None
+):
     """The iterative registration of one pair (docs/network.md, section 10).
 
     Computed once, not per iteration: the target's kNN graph, PSE, positional encoding and encoder memory
@@ -192,8 +224,9 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
     def iteration(carry, index):
         rotation, translation, moved, cost, last = carry
         _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn)
-        run_head = lambda use_gmcce: head(moved, tgt, feats.scores, feats.temperature, config, use_gmcce,
-                                          gmcce_threshold)
+        run_head = lambda use_gmcce: head(
+            moved, tgt, feats.scores, feats.temperature, config, use_gmcce, gmcce_threshold
+        )
         out = jax.lax.cond(index >= 1, lambda: run_head(True), lambda: run_head(False))
         new_moved = geometry.apply_transform(out.rotation, out.translation, moved)
         if config.guard_iterations:
@@ -204,15 +237,32 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
         new_rotation, new_translation = geometry.compose(out.rotation, out.translation, rotation, translation)
         keep = lambda new, old: jnp.where(accept, new, old)
         matches = (out.correspondences, out.weights)
-        carry = (keep(new_rotation, rotation), keep(new_translation, translation), keep(new_moved, moved),
-                 keep(new_cost, cost), jax.tree.map(keep, matches, last))
-        record = (out.rotation, out.translation, feats.temperature, out.gmcce_fallback, out.soft_weights, accept,
-                  out.correspondences)
+        carry = (
+            keep(new_rotation, rotation),
+            keep(new_translation, translation),
+            keep(new_moved, moved),
+            keep(new_cost, cost),
+            jax.tree.map(keep, matches, last),
+        )
+        record = (
+            out.rotation,
+            out.translation,
+            feats.temperature,
+            out.gmcce_fallback,
+            out.soft_weights,
+            accept,
+            out.correspondences,
+        )
         return carry, record
 
     n_src = src.shape[0]
-    start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src, jnp.asarray(2.0, src.dtype),
-             (jnp.zeros(n_src, jnp.int32), jnp.zeros(n_src, src.dtype)))
+    start = (
+        jnp.eye(3, dtype=src.dtype),
+        jnp.zeros(3, dtype=src.dtype),
+        src,
+        jnp.asarray(2.0, src.dtype),
+        (jnp.zeros(n_src, jnp.int32), jnp.zeros(n_src, src.dtype)),
+    )
     carry, records = jax.lax.scan(iteration, start, jnp.arange(config.n_iters))
     rotation, translation, moved, _, (correspondences, weights) = carry
     step_r, step_t, temperature, fallback, soft_weights, accepted, step_matches = records
@@ -227,9 +277,12 @@ def _register_one(params: Params, src: jax.Array, tgt: jax.Array, config: DITCon
         "step_correspondences": step_matches,
         "correspondences": correspondences,  # (N,) the last kept iteration's matches into tgt
         "weights": weights,  # (N,) its Procrustes weights
-        "inlier_ratio": jnp.mean((weights > 0.5).astype(src.dtype)) if config.n_iters > 1
+        "inlier_ratio": jnp.mean((weights > 0.5).astype(src.dtype))
+        if config.n_iters > 1
         else jnp.mean(soft_weights[-1]),
-        "fitness": geometry.fitness(moved, tgt, radius),  # () share of the moved source within fitness_radius spacings of the target
+        "fitness": geometry.fitness(
+            moved, tgt, radius
+        ),  # () share of the moved source within fitness_radius spacings of the target
     }
     return rotation, translation, extras
 
@@ -239,8 +292,9 @@ _MAP_PAIRS_ABOVE = 2048 * 2048
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def register(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig,
-             gmcce_threshold: jax.Array | None = None):
+def register(
+    params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, gmcce_threshold: jax.Array | None = None
+):
     """Estimates the rigid motion mapping each source cloud onto its target.
 
     ``n_iters`` iterations: the first in soft mode, the rest in GMCCE mode; each re-runs the network on the
@@ -310,13 +364,20 @@ def _soft_pose(src, tgt, scores, temperature, differentiable: bool):
     if differentiable:
         rotation, translation = geometry.weighted_procrustes(src, soft_targets, weights)
     else:
-        rotation, translation = jax.lax.stop_gradient(
-            geometry.weighted_procrustes(src, tgt[matches], weights))
+        rotation, translation = jax.lax.stop_gradient(geometry.weighted_procrustes(src, tgt[matches], weights))
     return rotation, translation, weights, matches, soft_targets
 
 
-def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_iters: int, *,
-           differentiable: bool = False, dropout_key: jax.Array | None = None) -> Iterations:
+def unroll(
+    params: Params,
+    src: jax.Array,
+    tgt: jax.Array,
+    config: DITConfig,
+    n_iters: int,
+    *,
+    differentiable: bool = False,
+    dropout_key: jax.Array | None = None,
+) -> Iterations:
     """The training-time iterations of one pair (docs/network.md, sections 10-11): soft mode, both directions.
 
     Each iteration runs the network on the moved source and estimates source-to-target and
@@ -336,15 +397,25 @@ def unroll(params: Params, src: jax.Array, tgt: jax.Array, config: DITConfig, n_
     def iteration(carry, index):
         rotation, translation, moved = carry
         key = None if dropout_key is None else jax.random.fold_in(dropout_key, index)
-        _, feats = features(params, moved, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn,
-                            deterministic=key is None, dropout_key=key)
-        r_ab, t_ab, weights, matches, soft_targets = _soft_pose(moved, tgt, feats.scores, feats.temperature,
-                                                                differentiable)
+        _, feats = features(
+            params,
+            moved,
+            tgt,
+            config,
+            tgt_embedding=tgt_embedding,
+            src_knn=src_knn,
+            deterministic=key is None,
+            dropout_key=key,
+        )
+        r_ab, t_ab, weights, matches, soft_targets = _soft_pose(
+            moved, tgt, feats.scores, feats.temperature, differentiable
+        )
         r_ba, t_ba, *_ = _soft_pose(tgt, moved, feats.scores.T, feats.temperature, differentiable)
         rotation, translation = geometry.compose(r_ab, t_ab, rotation, translation)
         moved = geometry.apply_transform(jax.lax.stop_gradient(r_ab), jax.lax.stop_gradient(t_ab), moved)
-        record = Iterations(rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches, feats.temperature,
-                            soft_targets)
+        record = Iterations(
+            rotation, translation, r_ab, t_ab, r_ba, t_ba, weights, matches, feats.temperature, soft_targets
+        )
         return (rotation, translation, moved), record
 
     start = (jnp.eye(3, dtype=src.dtype), jnp.zeros(3, dtype=src.dtype), src)

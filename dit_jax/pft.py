@@ -44,8 +44,7 @@ class MultiHeadAttention(nn.Module):
         split = lambda a: a.reshape(a.shape[0], self.n_heads, head_dims)
         dense = lambda name: torch_dense(self.emb_dims, name, dtype=self.dtype, precision=self.precision)
         q, k, v = split(dense("q")(query)), split(dense("k")(key)), split(dense("v")(value))
-        mixed = attention(q, k, v, float(head_dims) ** 0.5, chunk=self.attention_chunk,
-                          precision=self.precision)
+        mixed = attention(q, k, v, float(head_dims) ** 0.5, chunk=self.attention_chunk, precision=self.precision)
         mixed = mixed.reshape(query.shape[0], self.emb_dims)
         return dense("o")(mixed).astype(jnp.float32)
 
@@ -76,11 +75,13 @@ class EncoderLayer(nn.Module):
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
-                                   name="self_attn")(u, u, u)
+        x = x + MultiHeadAttention(
+            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="self_attn"
+        )(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision,
-                               name="feed_forward")(u, deterministic)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision, name="feed_forward")(
+            u, deterministic
+        )
 
 
 class DecoderLayer(nn.Module):
@@ -92,14 +93,17 @@ class DecoderLayer(nn.Module):
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
         c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
-                                   name="self_attn")(u, u, u)
+        x = x + MultiHeadAttention(
+            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="self_attn"
+        )(u, u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        x = x + MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision,
-                                   name="src_attn")(u, memory, memory)
+        x = x + MultiHeadAttention(
+            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="src_attn"
+        )(u, memory, memory)
         u = AnnotatedLayerNorm(name="norm2")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision,
-                               name="feed_forward")(u, deterministic)
+        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision, name="feed_forward")(
+            u, deterministic
+        )
 
 
 class Encoder(nn.Module):

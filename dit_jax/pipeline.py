@@ -35,13 +35,14 @@ import functools
 import os
 import time
 import warnings
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import compile_cache, geometry, icp as icp_lib
+from dit_jax import compile_cache, geometry
+from dit_jax import icp as icp_lib
 from dit_jax.configs import PRECISIONS, DITConfig, Record
 
 #: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
@@ -152,8 +153,12 @@ class InferenceSettings(Record):
     def __post_init__(self):
         if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
             object.__setattr__(self, "feature_candidate", "on" if self.feature_candidate else "off")
-        for name, allowed in (("centring", CENTRINGS), ("refine", REFINEMENTS), ("verdict_rule", VERDICTS),
-                              ("feature_candidate", FEATURE_CANDIDATES)):
+        for name, allowed in (
+            ("centring", CENTRINGS),
+            ("refine", REFINEMENTS),
+            ("verdict_rule", VERDICTS),
+            ("feature_candidate", FEATURE_CANDIDATES),
+        ):
             value = getattr(self, name)
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
@@ -257,11 +262,11 @@ class Result:
     direction: str
     start_turn: float
     agreement_band: tuple | None
-    network: "Result | None"
+    network: Result | None
     candidate: str = "network"
     candidate_agreement: float = float("nan")
     candidate_seconds: float = 0.0
-    first: "Result | None" = None
+    first: Result | None = None
 
     @property
     def total_seconds(self) -> float:
@@ -273,19 +278,30 @@ class Result:
         return np.asarray(points, np.float64) @ self.rotation.T + self.translation
 
     def to_json(self) -> dict:
-        return {"matrix": self.matrix.tolist(), "rotation": self.rotation.tolist(),
-                "translation": self.translation.tolist(), "inlier_ratio": self.inlier_ratio,
-                "fitness": self.fitness, "verdict": self.level,
-                "verdict_rule": self.verdict_rule, "threshold": self.threshold,
-                "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
-                "mean_confidence": float(self.confidence.mean()), "points_used": int(len(self.source_indices)),
-                "seconds": self.seconds, "refinement": self.refinement, "refine_seconds": self.refine_seconds,
-                "direction": self.direction, "start_turn_deg": self.start_turn, "candidate": self.candidate,
-                "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement)
-                                            else self.candidate_agreement),
-                "candidate_seconds": self.candidate_seconds,
-                "agreement_band": None if self.agreement_band is None else dict(zip(
-                    ("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band))}
+        return {
+            "matrix": self.matrix.tolist(),
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "inlier_ratio": self.inlier_ratio,
+            "fitness": self.fitness,
+            "verdict": self.level,
+            "verdict_rule": self.verdict_rule,
+            "threshold": self.threshold,
+            "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
+            "mean_confidence": float(self.confidence.mean()),
+            "points_used": int(len(self.source_indices)),
+            "seconds": self.seconds,
+            "refinement": self.refinement,
+            "refine_seconds": self.refine_seconds,
+            "direction": self.direction,
+            "start_turn_deg": self.start_turn,
+            "candidate": self.candidate,
+            "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement) else self.candidate_agreement),
+            "candidate_seconds": self.candidate_seconds,
+            "agreement_band": None
+            if self.agreement_band is None
+            else dict(zip(("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band)),
+        }
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
@@ -293,24 +309,32 @@ class Result:
             return f"{self.first.evidence()}; a registration by local features found no match"
         if not np.isnan(self.candidate_agreement):
             first = self.first.evidence() if self.first is not None else ""
-            line = (f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
-                    f"deg from the network's (trusted up to {self.threshold:g} deg)")
+            line = (
+                f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
+                f"deg from the network's (trusted up to {self.threshold:g} deg)"
+            )
             if self.candidate == "features":
                 line += " and lays more of the source onto the target, so it is the result"
             return line
         if self.verdict_rule == "agreement":
-            line = (f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
-                    f"this one's inverse (trusted up to {self.threshold:g} deg)")
+            line = (
+                f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
+                f"this one's inverse (trusted up to {self.threshold:g} deg)"
+            )
             if self.agreement_band is not None:
                 low, high, pairs, right = self.agreement_band
                 band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
-                line += (f"; of the {pairs} validation results that {band} deg, "
-                         f"{100 * right / pairs:.0f} % were within 5 deg")
+                line += (
+                    f"; of the {pairs} validation results that {band} deg, "
+                    f"{100 * right / pairs:.0f} % were within 5 deg"
+                )
             elif not self.verdict:
                 line += "; no validation results agreed as loosely"
             return line
-        return (f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
-                f"(trusted from {100 * self.threshold:.0f} %)")
+        return (
+            f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
+            f"(trusted from {100 * self.threshold:.0f} %)"
+        )
 
     def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
         """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
@@ -318,9 +342,18 @@ class Result:
         error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
         from dit_jax import plotting
 
-        return plotting.plot_registration(path, np.asarray(src), np.asarray(tgt), self.rotation, self.translation,
-                                          title=title, inlier_ratio=self.inlier_ratio, fitness=self.fitness,
-                                          truth=truth, label=self.label)
+        return plotting.plot_registration(
+            path,
+            np.asarray(src),
+            np.asarray(tgt),
+            self.rotation,
+            self.translation,
+            title=title,
+            inlier_ratio=self.inlier_ratio,
+            fitness=self.fitness,
+            truth=truth,
+            label=self.label,
+        )
 
     @property
     def label(self) -> str:
@@ -356,8 +389,9 @@ def check_cloud(name: str, points, min_points: int) -> np.ndarray:
     centred = array - array.mean(axis=0)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))  # ascending
     if spread[1] <= 1e-6 * spread[2]:
-        raise InputError(f"{name}: its {len(array)} points lie on one line, so no rotation about that line "
-                         f"can be told from another")
+        raise InputError(
+            f"{name}: its {len(array)} points lie on one line, so no rotation about that line can be told from another"
+        )
     return array
 
 
@@ -388,7 +422,7 @@ def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: in
     cloud = (cloud - cloud.mean(axis=0)).astype(np.float32)
     step = 1 << max(len(cloud).bit_length() - 4, 0)
     padded = np.zeros((3, -(-len(cloud) // step) * step), np.float32)
-    padded[:, :len(cloud)] = cloud.T
+    padded[:, : len(cloud)] = cloud.T
     chosen = _farthest_points(padded, np.int32(len(cloud)), np.int32(first), n)
     return candidates[np.asarray(chosen, np.int64)]
 
@@ -424,18 +458,21 @@ def normalise(src: np.ndarray, tgt: np.ndarray, centring: str = "shared"):
     Returns ``(src_n, tgt_n, src_centre (3,), tgt_centre (3,), scale)``, float64."""
     src_centre, tgt_centre = src.mean(axis=0), tgt.mean(axis=0)
     if centring == "auto":
-        radius = max(float(np.linalg.norm(c - centre, axis=1).max())
-                     for c, centre in ((src, src_centre), (tgt, tgt_centre)))
+        radius = max(
+            float(np.linalg.norm(c - centre, axis=1).max()) for c, centre in ((src, src_centre), (tgt, tgt_centre))
+        )
         centring = "separate" if np.linalg.norm(src_centre - tgt_centre) > FAR_APART * radius else "shared"
     if centring == "shared":
         src_centre = tgt_centre = np.concatenate([src, tgt]).mean(axis=0)
-    scale = max(float(np.linalg.norm(src - src_centre, axis=1).max()),
-                float(np.linalg.norm(tgt - tgt_centre, axis=1).max()))
+    scale = max(
+        float(np.linalg.norm(src - src_centre, axis=1).max()), float(np.linalg.norm(tgt - tgt_centre, axis=1).max())
+    )
     return (src - src_centre) / scale, (tgt - tgt_centre) / scale, src_centre, tgt_centre, scale
 
 
-def to_caller_units(rotation: np.ndarray, translation: np.ndarray, src_centre: np.ndarray, tgt_centre: np.ndarray,
-                    scale: float) -> np.ndarray:
+def to_caller_units(
+    rotation: np.ndarray, translation: np.ndarray, src_centre: np.ndarray, tgt_centre: np.ndarray, scale: float
+) -> np.ndarray:
     """The translation of a motion found between normalised clouds, in the caller's frame:
     ``s t' + c_y - R c_x``."""
     return scale * translation + tgt_centre - rotation @ src_centre
@@ -466,8 +503,9 @@ def sample_and_normalise(src, tgt, settings: InferenceSettings, min_points: int)
     src_idx = farthest_point_sample(src, settings.n_points, seed=settings.seed, pool=settings.fps_pool)
     tgt_idx = farthest_point_sample(tgt, settings.n_points, seed=settings.seed + 1, pool=settings.fps_pool)
     src_n, tgt_n, src_centre, tgt_centre, scale = normalise(src[src_idx], tgt[tgt_idx], settings.centring)
-    return Normalised(src, tgt, src_idx, tgt_idx, src_n.astype(np.float32), tgt_n.astype(np.float32),
-                      src_centre, tgt_centre, scale)
+    return Normalised(
+        src, tgt, src_idx, tgt_idx, src_n.astype(np.float32), tgt_n.astype(np.float32), src_centre, tgt_centre, scale
+    )
 
 
 def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
@@ -477,15 +515,28 @@ def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
     ratio = radius[big] / radius[1 - big]
     if ratio >= SIZE_RATIO_WARNING:
         names = ("source", "target")
-        warnings.warn(f"{names[big]} is {ratio:,.0f} times the size of {names[1 - big]} (radius {radius[big]:.4g} "
-                      f"against {radius[1 - big]:.4g}): are both in the same units, and free of stray far-off points? "
-                      "A rigid motion cannot rescale one onto the other", SizeMismatchWarning, stacklevel=5)
+        warnings.warn(
+            f"{names[big]} is {ratio:,.0f} times the size of {names[1 - big]} (radius {radius[big]:.4g} "
+            f"against {radius[1 - big]:.4g}): are both in the same units, and free of stray far-off points? "
+            "A rigid motion cannot rescale one onto the other",
+            SizeMismatchWarning,
+            stacklevel=5,
+        )
 
 
 # ------------------------------------------------------------------------------------------ stage 2: network
 
-def network(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, *, rotation_search: bool = False,
-            seed: int = 0, batch_size: int | None = None):
+
+def network(
+    params,
+    config: DITConfig,
+    src_n: np.ndarray,
+    tgt_n: np.ndarray,
+    *,
+    rotation_search: bool = False,
+    seed: int = 0,
+    batch_size: int | None = None,
+):
     """Stage 2: the network's estimates in the normalised frame, ``tgt_n ~ src_n @ R.T + t``.
 
     Args:
@@ -507,8 +558,13 @@ def network(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, *, 
     if rotation_search:
         found = [_search_one(params, config, src_n[i], tgt_n[i], seed) for i in range(len(src_n))]
         rotation, translation, extras, turns, seconds = zip(*found)
-        return (np.stack(rotation), np.stack(translation), jax.tree.map(lambda *a: np.stack(a), *extras),
-                np.asarray(turns), np.asarray(seconds))
+        return (
+            np.stack(rotation),
+            np.stack(translation),
+            jax.tree.map(lambda *a: np.stack(a), *extras),
+            np.asarray(turns),
+            np.asarray(seconds),
+        )
     return _batched(params, config, src_n, tgt_n, min(batch_size or len(src_n), len(src_n)))
 
 
@@ -516,7 +572,7 @@ def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, ba
     outputs, seconds = [], []
     for start in range(0, len(src_n), batch_size):
         real = min(batch_size, len(src_n) - start)
-        rows = np.r_[start:start + real, np.full(batch_size - real, start + real - 1)]
+        rows = np.r_[start : start + real, np.full(batch_size - real, start + real - 1)]
         src, tgt = jnp.asarray(src_n[rows]), jnp.asarray(tgt_n[rows])
         if start == 0 and len(src_n) > batch_size:  # many batches: compile outside their timings
             jax.block_until_ready(_register(params, src, tgt, config))
@@ -525,13 +581,19 @@ def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, ba
         seconds.append(np.full(real, (time.perf_counter() - started) / real))
         outputs.append(jax.tree.map(lambda a: a[:real], out))
     rotation, translation, extras = jax.tree.map(lambda *a: np.concatenate(a), *outputs)
-    return (np.asarray(rotation, np.float64), np.asarray(translation, np.float64), extras,
-            np.zeros(len(src_n)), np.concatenate(seconds))
+    return (
+        np.asarray(rotation, np.float64),
+        np.asarray(translation, np.float64),
+        extras,
+        np.zeros(len(src_n)),
+        np.concatenate(seconds),
+    )
 
 
 def _register(params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     """:func:`dit_jax.model.register`, its program traced once per config and shapes across processes
     (:func:`dit_jax.compile_cache.call`)."""
+
     def program(params, src, tgt):
         from dit_jax import model as model_lib  # Flax loads only where a program is traced, not read back
 
@@ -549,11 +611,11 @@ def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray,
     found, shifts, extras, _, _ = _batched(params, config, turned.astype(np.float32), targets, len(SEARCH_TURNS))
     rotations = found @ SEARCH_TURNS
     translations = shifts + found @ centre - rotations @ centre
-    k = icp_lib.best_start(icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), rotations, translations,
-                                                seed=seed))
+    k = icp_lib.best_start(
+        icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), rotations, translations, seed=seed)
+    )
     turn = round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6)  # 0, 90, 120 or 180
-    return (rotations[k], translations[k], jax.tree.map(lambda a: a[k], extras), turn,
-            time.perf_counter() - started)
+    return (rotations[k], translations[k], jax.tree.map(lambda a: a[k], extras), turn, time.perf_counter() - started)
 
 
 # ------------------------------------------------------------------------------------------ stage 3: refine
@@ -565,6 +627,7 @@ def refinement_for(refine: str, src_points: int, tgt_points: int) -> str:
     if refine != "auto":
         return refine
     return "gicp" if min(src_points, tgt_points) >= DENSE_POINTS else "icp"
+
 
 @dataclasses.dataclass(frozen=True)
 class Refined:
@@ -579,8 +642,16 @@ class Refined:
     seconds: float
 
 
-def refine_pair(pair: Normalised, forward: tuple, backward: tuple | None, *, best_direction: bool,
-                seed: int, method: str = "icp", spacing: float | None = None) -> Refined:
+def refine_pair(
+    pair: Normalised,
+    forward: tuple,
+    backward: tuple | None,
+    *,
+    best_direction: bool,
+    seed: int,
+    method: str = "icp",
+    spacing: float | None = None,
+) -> Refined:
     """Stage 3 for one pair: refines ``forward`` (R, t), source onto target, and ``backward``, target onto
     source (None: one direction), on the full clouds by ``method``: "icp" (:func:`dit_jax.icp.refine`, the
     two side by side) or "gicp" (:func:`dit_jax.icp.refine_gicp`, threaded itself); with
@@ -605,15 +676,19 @@ def refine_pair(pair: Normalised, forward: tuple, backward: tuple | None, *, bes
         inverse = (back.rotation.T, -back.rotation.T @ back.translation)
         if best_direction and icp_lib.fits_better(pair.src, pair.tgt, inverse, (rotation, translation)):
             (rotation, translation), direction = inverse, "backward"
-    return Refined(rotation, translation, refined[0].rotation, back_rotation, direction,
-                   time.perf_counter() - started)
+    return Refined(rotation, translation, refined[0].rotation, back_rotation, direction, time.perf_counter() - started)
 
 
 # ------------------------------------------------------------------------------------------ stage 4: verdict
 
 
-def judge(settings: InferenceSettings, refine: str, fitness: float, forward_rotation: np.ndarray,
-          backward_rotation: np.ndarray | None) -> tuple[bool, float, float, tuple | None]:
+def judge(
+    settings: InferenceSettings,
+    refine: str,
+    fitness: float,
+    forward_rotation: np.ndarray,
+    backward_rotation: np.ndarray | None,
+) -> tuple[bool, float, float, tuple | None]:
     """Stage 4: ``(verdict, threshold, agreement, agreement_band)`` of one result. The agreement verdict
     trusts a result whose two directions' rotations (``forward_rotation``, source onto target, and
     ``backward_rotation``, target onto source) are within ``settings.max_disagreement(refine)`` degrees of
@@ -621,8 +696,7 @@ def judge(settings: InferenceSettings, refine: str, fitness: float, forward_rota
     if settings.verdict_rule == "agreement":
         threshold = settings.max_disagreement(refine)
         agreement = geometry.rotation_angle_deg(forward_rotation @ backward_rotation)
-        return agreement <= threshold, threshold, agreement, agreement_band(settings.agreement_bands(refine),
-                                                                            agreement)
+        return agreement <= threshold, threshold, agreement, agreement_band(settings.agreement_bands(refine), agreement)
     return fitness >= settings.min_fitness, settings.min_fitness, float("nan"), None
 
 
@@ -654,8 +728,15 @@ def agreement_band(bands: Sequence | None, agreement: float) -> tuple | None:
 # ------------------------------------------------------------------------------------------ the pipeline
 
 
-def register_pairs(params, config: DITConfig, settings: InferenceSettings, pairs: Sequence[tuple], *,
-                   batch_size: int = 8, on_pair: Callable[[int], None] | None = None) -> list[Result]:
+def register_pairs(
+    params,
+    config: DITConfig,
+    settings: InferenceSettings,
+    pairs: Sequence[tuple],
+    *,
+    batch_size: int = 8,
+    on_pair: Callable[[int], None] | None = None,
+) -> list[Result]:
     """Registers each ``(src (N, 3), tgt (M, 3))`` of ``pairs``, in the caller's units, through the four stages.
 
     Pairs whose sampled clouds have the same sizes go through the network together, ``batch_size`` at a time.
@@ -681,16 +762,23 @@ def register_pairs(params, config: DITConfig, settings: InferenceSettings, pairs
         rotation, translation, extras, turns, seconds = forward
         for k, i in enumerate(rows):
             p = prepared[i]
-            estimate = {"rotation": rotation[k], "extras": {name: v[k] for name, v in extras.items()},
-                        "turn": float(turns[k]), "seconds": float(seconds[k]),
-                        "translation": to_caller_units(rotation[k], translation[k], p.src_centre, p.tgt_centre,
-                                                       p.scale)}
+            estimate = {
+                "rotation": rotation[k],
+                "extras": {name: v[k] for name, v in extras.items()},
+                "turn": float(turns[k]),
+                "seconds": float(seconds[k]),
+                "translation": to_caller_units(rotation[k], translation[k], p.src_centre, p.tgt_centre, p.scale),
+            }
             if backward is not None:
                 back_rotation, back_translation, _, back_turns, back_seconds = backward
-                estimate.update(back_rotation=back_rotation[k], back_turn=float(back_turns[k]),
-                                back_translation=to_caller_units(back_rotation[k], back_translation[k],
-                                                                 p.tgt_centre, p.src_centre, p.scale),
-                                seconds=float(seconds[k] + back_seconds[k]))
+                estimate.update(
+                    back_rotation=back_rotation[k],
+                    back_turn=float(back_turns[k]),
+                    back_translation=to_caller_units(
+                        back_rotation[k], back_translation[k], p.tgt_centre, p.src_centre, p.scale
+                    ),
+                    seconds=float(seconds[k] + back_seconds[k]),
+                )
             estimates[i] = estimate
     results = []
     for p, e in zip(prepared, estimates):
@@ -703,32 +791,69 @@ def register_pairs(params, config: DITConfig, settings: InferenceSettings, pairs
 def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConfig) -> Result:
     """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`)."""
     extras = e["extras"]
-    common = dict(source_indices=p.src_indices, correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
-                  confidence=np.asarray(extras["weights"], np.float64), inlier_ratio=float(extras["inlier_ratio"]),
-                  seconds=e["seconds"], verdict_rule=settings.verdict_rule,
-                  min_right=settings.unconfirmed_min_right)
+    common = dict(
+        source_indices=p.src_indices,
+        correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
+        confidence=np.asarray(extras["weights"], np.float64),
+        inlier_ratio=float(extras["inlier_ratio"]),
+        seconds=e["seconds"],
+        verdict_rule=settings.verdict_rule,
+        min_right=settings.unconfirmed_min_right,
+    )
     back_rotation = e.get("back_rotation")
-    verdict, threshold, agreement, band = judge(settings, "none", float(extras["fitness"]), e["rotation"],
-                                                back_rotation)
-    network_result = _result(e["rotation"], e["translation"], fitness=float(extras["fitness"]), refinement=None,
-                             refine_seconds=0.0, verdict=verdict, threshold=threshold, agreement=agreement,
-                             direction="forward", start_turn=e["turn"], agreement_band=band, network=None, **common)
+    verdict, threshold, agreement, band = judge(
+        settings, "none", float(extras["fitness"]), e["rotation"], back_rotation
+    )
+    network_result = _result(
+        e["rotation"],
+        e["translation"],
+        fitness=float(extras["fitness"]),
+        refinement=None,
+        refine_seconds=0.0,
+        verdict=verdict,
+        threshold=threshold,
+        agreement=agreement,
+        direction="forward",
+        start_turn=e["turn"],
+        agreement_band=band,
+        network=None,
+        **common,
+    )
     method = settings.refinement_for(len(p.src), len(p.tgt))
     if method == "none":
         return network_result
     backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
     # GICP (and the second candidate) work at the clouds' point spacing: measured once for the pair.
     spacing = _spacing(p, settings.seed) if method == "gicp" else None
-    refined = refine_pair(p, (e["rotation"], e["translation"]), backward, best_direction=settings.best_direction,
-                          seed=settings.seed, method=method, spacing=spacing)
+    refined = refine_pair(
+        p,
+        (e["rotation"], e["translation"]),
+        backward,
+        best_direction=settings.best_direction,
+        seed=settings.seed,
+        method=method,
+        spacing=spacing,
+    )
     fitness = _fitness(p, refined.rotation, refined.translation, config)
-    verdict, threshold, agreement, band = judge(settings, method, fitness, refined.forward_rotation,
-                                                refined.backward_rotation)
+    verdict, threshold, agreement, band = judge(
+        settings, method, fitness, refined.forward_rotation, refined.backward_rotation
+    )
     turn = e["turn"] if refined.direction == "forward" else e["back_turn"]
-    result = _result(refined.rotation, refined.translation, fitness=fitness, refinement=method,
-                     refine_seconds=refined.seconds, verdict=verdict, threshold=threshold, agreement=agreement,
-                     direction=refined.direction, start_turn=turn, agreement_band=band, network=network_result,
-                     **common)
+    result = _result(
+        refined.rotation,
+        refined.translation,
+        fitness=fitness,
+        refinement=method,
+        refine_seconds=refined.seconds,
+        verdict=verdict,
+        threshold=threshold,
+        agreement=agreement,
+        direction=refined.direction,
+        start_turn=turn,
+        agreement_band=band,
+        network=network_result,
+        **common,
+    )
     if not result.verdict and settings.runs_feature_candidate(len(p.src), len(p.tgt)):
         result = second_candidate(p, result, refined, settings, config, spacing=spacing)
     return result
@@ -743,8 +868,11 @@ def _fitness(p: Normalised, rotation: np.ndarray, translation: np.ndarray, confi
     """The fitness of a motion in the caller's units, as the model measures it (:func:`dit_jax.geometry.fitness`
     on the sampled clouds)."""
     moved = ((p.src[p.src_indices] @ rotation.T + translation) - p.tgt_centre) / p.scale
-    return float(_fitness_within_spacings(np.asarray(moved, np.float32), np.asarray(p.tgt_n, np.float32),
-                                          np.float32(config.fitness_radius)))
+    return float(
+        _fitness_within_spacings(
+            np.asarray(moved, np.float32), np.asarray(p.tgt_n, np.float32), np.float32(config.fitness_radius)
+        )
+    )
 
 
 @jax.jit
@@ -755,8 +883,15 @@ def _fitness_within_spacings(moved: jax.Array, tgt: jax.Array, spacings: jax.Arr
     return geometry.fitness(moved, tgt, spacings * geometry.spacing(tgt))
 
 
-def second_candidate(p: Normalised, result: Result, refined: Refined, settings: InferenceSettings,
-                     config: DITConfig, *, spacing: float | None = None) -> Result:
+def second_candidate(
+    p: Normalised,
+    result: Result,
+    refined: Refined,
+    settings: InferenceSettings,
+    config: DITConfig,
+    *,
+    spacing: float | None = None,
+) -> Result:
     """The pipeline's second candidate for a pair whose refined network ``result`` the verdict did not trust.
 
     Registers the caller's clouds by local features (:func:`dit_jax.feature_match.register`), refines that
@@ -775,33 +910,62 @@ def second_candidate(p: Normalised, result: Result, refined: Refined, settings: 
     match = feature_match.register(p.src, p.tgt, seed=settings.seed, spacing=spacing)
     if match.inliers == 0:  # no estimate: the network's result stands, its level unchanged
         return dataclasses.replace(result, candidate_seconds=time.perf_counter() - started, first=result)
-    own = refine_pair(p, (match.rotation, match.translation), None, best_direction=False, seed=settings.seed,
-                      method=result.refinement, spacing=spacing)
+    own = refine_pair(
+        p,
+        (match.rotation, match.translation),
+        None,
+        best_direction=False,
+        seed=settings.seed,
+        method=result.refinement,
+        spacing=spacing,
+    )
     network_rotations = [refined.forward_rotation]
     if refined.backward_rotation is not None:
         network_rotations.append(refined.backward_rotation.T)  # target onto source, inverted
     agreement = min(geometry.rotation_angle_deg(own.rotation.T @ r) for r in network_rotations)
     threshold = settings.max_disagreement(result.refinement)
-    shares = icp_lib.overlap(p.src, p.tgt, [(result.rotation, result.translation), (own.rotation, own.translation)],
-                             CANDIDATE_OVERLAP * spacing, seed=settings.seed)
+    shares = icp_lib.overlap(
+        p.src,
+        p.tgt,
+        [(result.rotation, result.translation), (own.rotation, own.translation)],
+        CANDIDATE_OVERLAP * spacing,
+        seed=settings.seed,
+    )
     better = shares[1] > shares[0]
     trusted = agreement <= threshold
     kept = dict(candidate="network")
     if better:
         matrix = np.eye(4)
         matrix[:3, :3], matrix[:3, 3] = own.rotation, own.translation
-        kept = dict(candidate="features", rotation=own.rotation, translation=own.translation, matrix=matrix,
-                    fitness=_fitness(p, own.rotation, own.translation, config), direction="forward",
-                    start_turn=0.0)
-    return dataclasses.replace(result, **kept, verdict=trusted or result.verdict,
-                               level="trusted" if trusted else result.level, candidate_agreement=agreement,
-                               candidate_seconds=time.perf_counter() - started, first=result)
+        kept = dict(
+            candidate="features",
+            rotation=own.rotation,
+            translation=own.translation,
+            matrix=matrix,
+            fitness=_fitness(p, own.rotation, own.translation, config),
+            direction="forward",
+            start_turn=0.0,
+        )
+    return dataclasses.replace(
+        result,
+        **kept,
+        verdict=trusted or result.verdict,
+        level="trusted" if trusted else result.level,
+        candidate_agreement=agreement,
+        candidate_seconds=time.perf_counter() - started,
+        first=result,
+    )
 
 
 def _result(rotation, translation, *, min_right: float, **fields) -> Result:
     matrix = np.eye(4)
     matrix[:3, :3], matrix[:3, 3] = rotation, translation
     verdict = bool(fields.pop("verdict"))
-    return Result(rotation=np.asarray(rotation, np.float64), translation=np.asarray(translation, np.float64),
-                  matrix=matrix, verdict=verdict, level=verdict_level(verdict, fields["agreement_band"], min_right),
-                  **fields)
+    return Result(
+        rotation=np.asarray(rotation, np.float64),
+        translation=np.asarray(translation, np.float64),
+        matrix=matrix,
+        verdict=verdict,
+        level=verdict_level(verdict, fields["agreement_band"], min_right),
+        **fields,
+    )

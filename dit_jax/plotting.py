@@ -38,8 +38,14 @@ def _subset(points: np.ndarray, seed: int) -> np.ndarray:
     return points[np.random.default_rng(seed).choice(len(points), MAX_DRAWN, replace=False)]
 
 
-def describe(rotation: np.ndarray, translation: np.ndarray, *, inlier_ratio: float | None = None,
-             fitness: float | None = None, truth: tuple[np.ndarray, np.ndarray] | None = None) -> str:
+def describe(
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    inlier_ratio: float | None = None,
+    fitness: float | None = None,
+    truth: tuple[np.ndarray, np.ndarray] | None = None,
+) -> str:
     """One line: the motion's angle and shift, its evidence and (with ``truth`` = (R, t)) its errors."""
     parts = [f"rotation {rotation_angle_deg(rotation):.2f} deg, translation {np.linalg.norm(translation):.4g}"]
     if inlier_ratio is not None:
@@ -52,8 +58,16 @@ def describe(rotation: np.ndarray, translation: np.ndarray, *, inlier_ratio: flo
     return "; ".join(parts)
 
 
-def draw_registration(fig, row: int, rows: int, src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray,
-                      translation: np.ndarray, label: str = "estimate") -> None:
+def draw_registration(
+    fig,
+    row: int,
+    rows: int,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    label: str = "estimate",
+) -> None:
     """Fills one row of ``fig`` (of ``rows``) with four 3-D panels: before and after, from each of
     :data:`VIEWS`. src (N, 3), tgt (M, 3); ``tgt ~ src @ rotation.T + translation``."""
     src = _subset(np.asarray(src, np.float64), 0)
@@ -65,11 +79,13 @@ def draw_registration(fig, row: int, rows: int, src: np.ndarray, tgt: np.ndarray
     centre, half = (low + high) / 2, (high - low).max() / 2
     size = max(0.3, 4000.0 / max(len(src), len(tgt)))
     for col, ((elev, azim), (moving, stage)) in enumerate(
-            [(v, m) for m in ((src, "before"), (moved, f"after ({label})")) for v in VIEWS]):
+        [(v, m) for m in ((src, "before"), (moved, f"after ({label})")) for v in VIEWS]
+    ):
         ax = fig.add_subplot(rows, 4, 4 * row + col + 1, projection="3d")
         ax.scatter(*tgt.T, s=size, c="tab:blue", alpha=0.5, label="target", depthshade=False)
-        ax.scatter(*moving.T, s=size, c="tab:red" if stage == "before" else "tab:green", label="source",
-                   depthshade=False)
+        ax.scatter(
+            *moving.T, s=size, c="tab:red" if stage == "before" else "tab:green", label="source", depthshade=False
+        )
         ax.view_init(elev=elev, azim=azim)
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
             setter(c - 1.1 * half, c + 1.1 * half)
@@ -79,10 +95,19 @@ def draw_registration(fig, row: int, rows: int, src: np.ndarray, tgt: np.ndarray
             ax.legend(fontsize=7, loc="upper left", markerscale=max(1.0, 6.0 / size))
 
 
-def plot_registration(path: str | os.PathLike, src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray,
-                      translation: np.ndarray, *, title: str | None = None, inlier_ratio: float | None = None,
-                      fitness: float | None = None, truth: tuple[np.ndarray, np.ndarray] | None = None,
-                      label: str = "estimate") -> str:
+def plot_registration(
+    path: str | os.PathLike,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    *,
+    title: str | None = None,
+    inlier_ratio: float | None = None,
+    fitness: float | None = None,
+    truth: tuple[np.ndarray, np.ndarray] | None = None,
+    label: str = "estimate",
+) -> str:
     """Writes a PNG of src (N, 3) and tgt (M, 3) before and after ``(rotation, translation)`` to ``path``,
     with :func:`describe` under ``title``; returns the path."""
     plt = pyplot()
@@ -96,8 +121,14 @@ def plot_registration(path: str | os.PathLike, src: np.ndarray, tgt: np.ndarray,
     return os.fspath(path)
 
 
-def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: list[str] | None = None,
-                links: list[tuple[str, float, float, bool]] | None = None, title: str | None = None) -> str:
+def plot_series(
+    path: str | os.PathLike,
+    clouds: list[np.ndarray],
+    *,
+    names: list[str] | None = None,
+    links: list[tuple[str, float, float, bool]] | None = None,
+    title: str | None = None,
+) -> str:
     """Writes a PNG of scans already in one frame, each (N_k, 3) in its own colour, seen along the merged
     cloud's thinnest and middle principal axes (whatever axis is up), and a bar per
     link: ``links`` = (label, agreement in degrees, threshold, trusted), green where trusted, red where
@@ -105,8 +136,10 @@ def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: lis
     plt = pyplot()
     names = names or [f"scan {k}" for k in range(len(clouds))]  # legend entries
     per_scan = max(300, 3 * MAX_DRAWN // max(1, len(clouds)))
-    drawn = [np.asarray(c, np.float64)[np.random.default_rng(k).choice(len(c), min(len(c), per_scan), replace=False)]
-             for k, c in enumerate(clouds)]
+    drawn = [
+        np.asarray(c, np.float64)[np.random.default_rng(k).choice(len(c), min(len(c), per_scan), replace=False)]
+        for k, c in enumerate(clouds)
+    ]
     everything = np.concatenate(drawn)
     centre = np.median(everything, axis=0)
     _, _, axes = np.linalg.svd(everything - centre, full_matrices=False)  # rows: most to least spread
@@ -133,8 +166,9 @@ def plot_series(path: str | os.PathLike, clouds: list[np.ndarray], *, names: lis
         ax.set_title("links: green trusted, red not trusted; dashed: threshold", fontsize=8)
     if len(clouds) <= 20:
         handles, labels = ax_row[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="lower center", ncol=min(5, len(clouds)), fontsize=7, markerscale=8,
-                   frameon=False)
+        fig.legend(
+            handles, labels, loc="lower center", ncol=min(5, len(clouds)), fontsize=7, markerscale=8, frameon=False
+        )
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout(rect=(0, 0.04 * (1 + min(20, len(clouds)) // 5), 1, 1))

@@ -55,8 +55,7 @@ class TokenTransformer(nn.Module):
         q, k, v = jnp.split(qkv, 3, axis=-1)
         split = lambda a: a.reshape(n_points, self.n_heads, head_dims)
         scale = (in_dims // self.n_heads) ** -0.5
-        mixed = attention(split(q) * scale, split(k), split(v), chunk=self.attention_chunk,
-                          precision=self.precision)
+        mixed = attention(split(q) * scale, split(k), split(v), chunk=self.attention_chunk, precision=self.precision)
         mixed = mixed.reshape(n_points, self.token_dim)
         out = v + torch_dense(self.token_dim, "proj", precision=self.precision)(mixed)
         z = layer_norm("norm2")(out)
@@ -78,9 +77,15 @@ class PSE(nn.Module):
         first = (nn.remat(TokenTransformer) if c.remat else TokenTransformer)(*settings, name="attention1")
         tokens = first(lfi(points))
         # Layers 2 to 8 all read k T wide inputs: the program holds one scanned layer instead of seven.
-        _, later = stack_of_layers(self, TokenTransformer(*settings, parent=None),
-                                   [f"attention{layer}" for layer in range(2, PSE_LAYERS + 1)], tokens,
-                                   lambda layer, features: layer(lfi(features)), remat=c.remat, collect=True)
+        _, later = stack_of_layers(
+            self,
+            TokenTransformer(*settings, parent=None),
+            [f"attention{layer}" for layer in range(2, PSE_LAYERS + 1)],
+            tokens,
+            lambda layer, features: layer(lfi(features)),
+            remat=c.remat,
+            collect=True,
+        )
         tokens = jnp.concatenate([tokens[None], later])  # (8, N, T), token l of every point
         tokens = jnp.moveaxis(tokens, 0, 1).reshape(points.shape[0], -1)  # (N, 8 T), token l at columns l T...
         # The paper writes ReLU here; the authors' code (and so their weights) use leaky ReLU.

@@ -48,8 +48,9 @@ def _channel_first(a) -> np.ndarray:
     return np.asarray(a).T[None]  # (N, C) -> (1, C, N), the authors' layout
 
 
-def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32",
-            precision: str = "highest") -> dict[str, np.ndarray]:
+def compute(
+    data: dict[str, np.ndarray], compute_dtype: str = "float32", precision: str = "highest"
+) -> dict[str, np.ndarray]:
     """Runs dit-jax on the file's pair and returns its activations under the file's names and layouts.
 
     ``compute_dtype="bfloat16"`` runs PFT's products in bfloat16, ``precision`` sets
@@ -62,10 +63,9 @@ def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32",
     raw = data["config"]
     authors = ast.literal_eval(str(raw.item() if raw.shape == () else raw))
     n_iters = len([k for k in data if re.fullmatch(r"iter\d+_R", k)]) or 2
-    config = configs.from_authors(authors, n_iters=n_iters).replace(compute_dtype=compute_dtype,
-                                                                             precision=precision)
+    config = configs.from_authors(authors, n_iters=n_iters).replace(compute_dtype=compute_dtype, precision=precision)
     dtype = jax.dtypes.canonicalize_dtype(jnp.float64)
-    state_dict = {k[len("param/"):]: v for k, v in data.items() if k.startswith("param/")}
+    state_dict = {k[len("param/") :]: v for k, v in data.items() if k.startswith("param/")}
     params = jax.tree.map(lambda a: jnp.asarray(a, dtype), convert.from_torch_state_dict(state_dict, config))
     src = jnp.asarray(data["src"], dtype)
     tgt = jnp.asarray(data["tgt"], dtype)
@@ -73,14 +73,19 @@ def compute(data: dict[str, np.ndarray], compute_dtype: str = "float32",
     src_emb, tgt_emb, feats, soft, hard, rot, trans, extras = _activations(config)(params, src, tgt)
     ours = {
         "pse_knn_idx_src": np.asarray(geometry.knn(src, config.k))[None],
-        "pse_src": _channel_first(src_emb.pse), "pse_tgt": _channel_first(tgt_emb.pse),
-        "pe_src": _channel_first(src_emb.positional), "pe_tgt": _channel_first(tgt_emb.positional),
-        "pft_transformer_src": _channel_first(feats.src_p), "pft_transformer_tgt": _channel_first(feats.tgt_p),
-        "pft_src": _channel_first(feats.phi_src), "pft_tgt": _channel_first(feats.phi_tgt),
+        "pse_src": _channel_first(src_emb.pse),
+        "pse_tgt": _channel_first(tgt_emb.pse),
+        "pe_src": _channel_first(src_emb.positional),
+        "pe_tgt": _channel_first(tgt_emb.positional),
+        "pft_transformer_src": _channel_first(feats.src_p),
+        "pft_transformer_tgt": _channel_first(feats.tgt_p),
+        "pft_src": _channel_first(feats.phi_src),
+        "pft_tgt": _channel_first(feats.phi_tgt),
         "temperature": np.asarray(feats.temperature).reshape(1, 1),
         "scores": np.asarray(feats.scores)[None],
         "gmcce_corr_tgt": np.asarray(hard.tgt_soft)[None],
-        "predict_R": np.asarray(rot), "predict_t": np.asarray(trans),
+        "predict_R": np.asarray(rot),
+        "predict_t": np.asarray(trans),
     }
     for prefix, out in (("head_soft", soft), ("head_gmcce", hard)):
         ours[f"{prefix}_R"] = np.asarray(out.rotation)[None]
@@ -156,8 +161,7 @@ def compare(data: dict[str, np.ndarray], ours: dict[str, np.ndarray]) -> tuple[l
 
 
 def format_table(checks: list[Check], unchecked: list[str]) -> str:
-    lines = [f"{'activation':<22} {'measure':<16} {'value':>11} {'bound':>9}  result",
-             "-" * 68]
+    lines = [f"{'activation':<22} {'measure':<16} {'value':>11} {'bound':>9}  result", "-" * 68]
     for c in checks:
         measure = "max abs error" if c.kind == "error" else "agreement"
         value = f"{c.value:.3e}" if c.kind == "error" else f"{100 * c.value:.2f} %"
@@ -169,16 +173,24 @@ def format_table(checks: list[Check], unchecked: list[str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dit_jax.reference_check",
-                                     description="Compare dit-jax with the authors' recorded activations.")
+    parser = argparse.ArgumentParser(
+        prog="python -m dit_jax.reference_check", description="Compare dit-jax with the authors' recorded activations."
+    )
     parser.add_argument("file", help="reference .npz (format: docs/network.md)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     parser.add_argument("--x64", action="store_true", help="run dit-jax in float64 instead of float32")
-    parser.add_argument("--bfloat16", action="store_true",
-                        help="PFT's products in bfloat16 (expect failures: this measures the mode's error)")
-    parser.add_argument("--precision", default="highest", choices=("highest", "tf32", "bfloat16"),
-                        help="the network's matrix products (DITConfig.precision; default highest, the verified "
-                             "one; on an accelerator the others measure what they cost)")
+    parser.add_argument(
+        "--bfloat16",
+        action="store_true",
+        help="PFT's products in bfloat16 (expect failures: this measures the mode's error)",
+    )
+    parser.add_argument(
+        "--precision",
+        default="highest",
+        choices=("highest", "tf32", "bfloat16"),
+        help="the network's matrix products (DITConfig.precision; default highest, the verified "
+        "one; on an accelerator the others measure what they cost)",
+    )
     args = parser.parse_args(argv)
     if args.x64 and args.bfloat16:
         parser.error("--x64 and --bfloat16 exclude each other")

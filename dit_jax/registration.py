@@ -19,8 +19,17 @@ import jax
 
 from dit_jax import pipeline
 from dit_jax.configs import DITConfig
-from dit_jax.pipeline import (CENTRINGS, REFINEMENTS, VERDICTS, InferenceSettings, InputError, Result,  # noqa: F401
-                              SizeMismatchWarning, check_cloud, farthest_point_sample)
+from dit_jax.pipeline import (  # noqa: F401
+    CENTRINGS,
+    REFINEMENTS,
+    VERDICTS,
+    InferenceSettings,
+    InputError,
+    Result,
+    SizeMismatchWarning,
+    check_cloud,
+    farthest_point_sample,
+)
 
 #: Where the weights that ship with the package live (their runs: MODEL_CARD.md).
 SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
@@ -56,14 +65,22 @@ class Registrar:
         Registrar's settings for this call (None: keep them). Raises :class:`InputError` naming the cloud DIT cannot register."""
         return self.register_pairs([(src, tgt)], refine=refine, rotation_search=rotation_search, batch_size=1)[0]
 
-    def register_pairs(self, pairs, *, refine: str | None = None, rotation_search: bool | None = None,
-                       batch_size: int = 8, on_pair=None) -> list[Result]:
+    def register_pairs(
+        self,
+        pairs,
+        *,
+        refine: str | None = None,
+        rotation_search: bool | None = None,
+        batch_size: int = 8,
+        on_pair=None,
+    ) -> list[Result]:
         """:meth:`register` for many ``(src, tgt)`` pairs, batched through the network
         (:func:`dit_jax.pipeline.register_pairs`)."""
         changes = {k: v for k, v in (("refine", refine), ("rotation_search", rotation_search)) if v is not None}
         settings = self.settings.replace(**changes) if changes else self.settings
-        return pipeline.register_pairs(self.params, self.config, settings, pairs, batch_size=batch_size,
-                                       on_pair=on_pair)
+        return pipeline.register_pairs(
+            self.params, self.config, settings, pairs, batch_size=batch_size, on_pair=on_pair
+        )
 
 
 def shipped_weights() -> str:

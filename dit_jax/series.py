@@ -69,21 +69,25 @@ class SeriesResult:
         """(sum N_k, 3): every cloud moved into scan 0's frame, in order."""
         return np.concatenate(self.apply(clouds))
 
-    def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str] | None = None,
-             title: str | None = None) -> str:
+    def plot(
+        self, path, clouds: Sequence[np.ndarray], names: Sequence[str] | None = None, title: str | None = None
+    ) -> str:
         """Writes a PNG of the clouds moved into scan 0's frame, each in its own colour, from two sides,
         beside each link's agreement and verdict (:func:`dit_jax.plotting.plot_series`); returns the path."""
         from dit_jax import plotting
 
         names = [f"{k}: {name}" for k, name in enumerate(names)] if names is not None else None
-        links = [(f"{a} onto {b}", link.agreement, link.threshold, bool(link.verdict))
-                 for (a, b), link in zip(self.pairs, self.links)]
+        links = [
+            (f"{a} onto {b}", link.agreement, link.threshold, bool(link.verdict))
+            for (a, b), link in zip(self.pairs, self.links)
+        ]
         if not np.isnan(self.loop_gap_deg):
             line = f"{len(self.poses)} scans, loop closed (gap {self.loop_gap_deg:.2f} deg before closing)"
         else:
             line = f"{len(self.poses)} scans, chained"
-        return plotting.plot_series(path, self.apply(clouds), names=names, links=links,
-                                    title=f"{title}\n{line}" if title else line)
+        return plotting.plot_series(
+            path, self.apply(clouds), names=names, links=links, title=f"{title}\n{line}" if title else line
+        )
 
 
 def link_pairs(n_clouds: int, loop: bool) -> list[tuple[int, int]]:
@@ -102,8 +106,9 @@ def chain(motions: np.ndarray) -> np.ndarray:
     return np.stack(poses)
 
 
-def close_loop(motions: np.ndarray, centres: np.ndarray | None = None,
-               scale: float = 1.0) -> tuple[np.ndarray, float, float]:
+def close_loop(
+    motions: np.ndarray, centres: np.ndarray | None = None, scale: float = 1.0
+) -> tuple[np.ndarray, float, float]:
     """Poses of a closed series: K motions around the loop (motion k moves scan k + 1 onto scan k, the last
     scan 0 onto scan K-1), whose product would be the identity without error.
 
@@ -177,13 +182,18 @@ def _fit_links(motions: np.ndarray, poses: np.ndarray, centres: np.ndarray, scal
         return out
 
     start = np.concatenate([Rotation.from_matrix(poses[1:, :3, :3]).as_rotvec(), poses[1:, :3, 3]], axis=1)
-    fit = least_squares(lambda x: link_misfit(unpack(x), motions, centres, scale).ravel(), start.ravel(),
-                        method="lm")
+    fit = least_squares(lambda x: link_misfit(unpack(x), motions, centres, scale).ravel(), start.ravel(), method="lm")
     return unpack(fit.x)
 
 
-def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = False, refine: str | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> SeriesResult:
+def register_series(
+    registrar,
+    clouds: Sequence[np.ndarray],
+    *,
+    loop: bool = False,
+    refine: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> SeriesResult:
     """Registers each cloud onto the one before it and puts them all in the first one's frame.
 
     Args:
@@ -197,8 +207,9 @@ def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = Fal
     Returns :class:`SeriesResult`.
     """
     if len(clouds) < 2 or (loop and len(clouds) < 3):
-        raise ValueError(f"a series needs at least {3 if loop else 2} clouds{' for a loop' if loop else ''}, "
-                         f"got {len(clouds)}")
+        raise ValueError(
+            f"a series needs at least {3 if loop else 2} clouds{' for a loop' if loop else ''}, got {len(clouds)}"
+        )
     pairs = link_pairs(len(clouds), loop)
     links = []
     for done, (source, target) in enumerate(pairs, 1):
@@ -208,8 +219,14 @@ def register_series(registrar, clouds: Sequence[np.ndarray], *, loop: bool = Fal
     motions = np.stack([link.matrix for link in links])
     if loop:
         centres = np.stack([np.asarray(c, np.float64).mean(axis=0) for c in clouds])
-        scale = float(np.mean([np.sqrt(np.mean(np.sum((np.asarray(c, np.float64) - centre) ** 2, axis=1)))
-                               for c, centre in zip(clouds, centres)]))
+        scale = float(
+            np.mean(
+                [
+                    np.sqrt(np.mean(np.sum((np.asarray(c, np.float64) - centre) ** 2, axis=1)))
+                    for c, centre in zip(clouds, centres)
+                ]
+            )
+        )
         poses, gap_deg, gap = close_loop(motions, centres, scale)
         return SeriesResult(poses, tuple(links), gap_deg, gap)
     return SeriesResult(chain(motions), tuple(links))

@@ -13,7 +13,8 @@ import json
 import math
 import os
 import time
-from typing import Any, Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
 
 import jax
 import jax.flatten_util
@@ -27,7 +28,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from dit_jax import configs, losses, metrics, model, pft
 from dit_jax.configs import DITConfig
 from dit_jax.data import pairs as pairs_lib
-from dit_jax.data import pipeline, shapes as shapes_lib
+from dit_jax.data import pipeline
+from dit_jax.data import shapes as shapes_lib
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,14 +129,17 @@ class TrainConfig:
         return d
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> "TrainConfig":
+    def from_json(cls, d: Mapping[str, Any]) -> TrainConfig:
         """The config :meth:`to_json` (or a checkpoint's ``train_config``) wrote. Records that name the model
         by preset (``"model": "cpu"`` with ``model_overrides``) are read as that preset with the changes."""
         d = dict(d)
         overrides = dict(tuple(kv) for kv in d.pop("model_overrides", ()))
         model = d.get("model", "cpu")
-        d["model"] = (configs.get(model, d.get("setting", "clean")).replace(**overrides) if isinstance(model, str)
-                      else DITConfig.from_dict(model))
+        d["model"] = (
+            configs.get(model, d.get("setting", "clean")).replace(**overrides)
+            if isinstance(model, str)
+            else DITConfig.from_dict(model)
+        )
         d["lr_drops"] = tuple(d.get("lr_drops", ()))
         d["settings"] = tuple(d.get("settings", ()))
         d.setdefault("mix_one_size", False)  # records from before the field: each setting its own size
@@ -163,7 +168,7 @@ class TrainConfig:
         return ConfigDict(as_dict(self))
 
     @classmethod
-    def from_config_dict(cls, config) -> "TrainConfig":
+    def from_config_dict(cls, config) -> TrainConfig:
         """The TrainConfig of an ``ml_collections.ConfigDict`` made by :meth:`to_config_dict` (and changed)."""
         d = config.to_dict()
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(cls)})
@@ -218,8 +223,13 @@ def init_state(config: TrainConfig, optimizer: optax.GradientTransformation) -> 
     """A run's first state: fresh parameters from ``config.seed``, ``optimizer``'s state, step 0."""
     key = jax.random.PRNGKey(config.seed)
     params = model.init(jax.random.fold_in(key, 1), config.model_config())
-    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(_flat(params)),
-                      rng=key, skipped=jnp.zeros((), jnp.int32))
+    return TrainState(
+        step=jnp.zeros((), jnp.int32),
+        params=params,
+        opt_state=optimizer.init(_flat(params)),
+        rng=key,
+        skipped=jnp.zeros((), jnp.int32),
+    )
 
 
 def _flat(tree) -> jax.Array:
@@ -234,10 +244,18 @@ def _flat(tree) -> jax.Array:
 def _pair_loss(params, pair, model_config: DITConfig, config: TrainConfig):
     """One pair's loss and its terms and errors; ``pair`` is ``(src, tgt, R, t, dropout_key)``."""
     src, tgt, rotation_gt, translation_gt, pair_key = pair
-    its = model.unroll(params, src, tgt, model_config, config.train_iters,
-                       differentiable=config.differentiable, dropout_key=pair_key)
-    total, terms = losses.dit_loss(its, src, tgt, rotation_gt, translation_gt, match_radius=config.match_radius,
-                                   correspondence_weight=config.correspondence_weight)
+    its = model.unroll(
+        params, src, tgt, model_config, config.train_iters, differentiable=config.differentiable, dropout_key=pair_key
+    )
+    total, terms = losses.dit_loss(
+        its,
+        src,
+        tgt,
+        rotation_gt,
+        translation_gt,
+        match_radius=config.match_radius,
+        correspondence_weight=config.correspondence_weight,
+    )
     terms["rotation_error"] = metrics.rotation_error_deg(its.rotation[-1], rotation_gt)
     terms["translation_error"] = metrics.translation_error(its.translation[-1], translation_gt)
     return total, terms
@@ -263,9 +281,11 @@ def batch_loss_and_grads(params, batch, model_config: DITConfig, config: TrainCo
         return jax.vmap(part)(jax.tree.map(lambda a: a.reshape(devices, n_pairs // devices, *a.shape[1:]), pairs))
 
     if jax.default_backend() != "cpu":
+
         def mean_loss(p):
-            totals, terms = by_device(lambda part_pairs: jax.vmap(lambda *pair: _pair_loss(p, pair, model_config,
-                                                                                            config))(*part_pairs))
+            totals, terms = by_device(
+                lambda part_pairs: jax.vmap(lambda *pair: _pair_loss(p, pair, model_config, config))(*part_pairs)
+            )
             return jnp.mean(totals), jax.tree.map(jnp.mean, terms)
 
         return jax.value_and_grad(mean_loss, has_aux=True)(params)
@@ -296,8 +316,7 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
 
     def step(state: TrainState, batch):
         key = jax.random.fold_in(state.rng, state.step)
-        (loss, terms), grads = batch_loss_and_grads(state.params, batch, model_config, config, key,
-                                                    mesh.devices.size)
+        (loss, terms), grads = batch_loss_and_grads(state.params, batch, model_config, config, key, mesh.devices.size)
         flat_params, unflatten = jax.flatten_util.ravel_pytree(state.params)
         flat_grads = _flat(grads)
         updates, opt_state = optimizer.update(flat_grads, state.opt_state, flat_params)
@@ -314,8 +333,9 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
     return jax.jit(step, out_shardings=(replicated, replicated), donate_argnums=0)
 
 
-def initialize_distributed(coordinator: str | None = None, num_processes: int | None = None,
-                           process_id: int | None = None) -> None:
+def initialize_distributed(
+    coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None
+) -> None:
     """Joins a multi-process run (``jax.distributed.initialize``); call before anything touches a device.
 
     Each argument left None comes from the environment (``JAX_COORDINATOR_ADDRESS``, ``JAX_NUM_PROCESSES``,
@@ -371,20 +391,28 @@ def split_validation(shapes: shapes_lib.Shapes, fraction: float) -> tuple[shapes
     order = np.random.default_rng(20261122).permutation(len(shapes.labels))
     n_val = max(1, int(round(fraction * len(order)))) if fraction > 0 else 0
     val, train = np.sort(order[:n_val]), np.sort(order[n_val:])
-    take = lambda rows: shapes_lib.Shapes(shapes.points[rows], shapes.labels[rows], shapes.ids[rows],
-                                          shapes.shape_names)
+    take = lambda rows: shapes_lib.Shapes(
+        shapes.points[rows], shapes.labels[rows], shapes.ids[rows], shapes.shape_names
+    )
     return take(train), take(val)
 
 
-
-def validation_batches(data_dir: str | None, settings, *, count: int = 24, n_points: int = 1000,
-                       unseen: bool = True, prepared_dir: str | None = None) -> dict[str, dict]:
+def validation_batches(
+    data_dir: str | None,
+    settings,
+    *,
+    count: int = 24,
+    n_points: int = 1000,
+    unseen: bool = True,
+    prepared_dir: str | None = None,
+) -> dict[str, dict]:
     """Fixed validation pairs for choosing settings outside training (inference options, baselines' knobs):
     ``count`` pairs per setting from the training split's held-out shapes (:func:`split_validation`; only
     categories 0-19 with ``unseen``), spread over all of them. Returns ``{setting: batch}`` (see
     :meth:`dit_jax.data.pairs.PairDataset.batch`); never a test pair."""
-    shapes = shapes_lib.load_shapes(data_dir, "train", data_dir=prepared_dir,
-                                    n_points=pairs_lib.shape_points(data_dir, n_points, settings))
+    shapes = shapes_lib.load_shapes(
+        data_dir, "train", data_dir=prepared_dir, n_points=pairs_lib.shape_points(data_dir, n_points, settings)
+    )
     _, val_shapes = split_validation(shapes, TrainConfig().val_fraction)
     batches = {}
     for setting in settings:
@@ -394,14 +422,16 @@ def validation_batches(data_dir: str | None, settings, *, count: int = 24, n_poi
         batches[setting] = ds.batch(np.linspace(0, len(ds) - 1, count).astype(int))
     return batches
 
+
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress: bool = True):
     """(training pairs, validation pairs) from the training split of the chosen source: two
     :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
     ``config.settings``. ``progress``: TFDS's progress bars if the shapes are prepared now."""
     settings = config.settings or (config.setting,)
     n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
-    shapes = shapes_lib.load_shapes(config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir,
-                                    progress=progress)
+    shapes = shapes_lib.load_shapes(
+        config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir, progress=progress
+    )
     train_shapes, val_shapes = split_validation(shapes, config.val_fraction)
     common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
     train_config = pairs_lib.PairConfig(train=True, seed=config.seed, unseen=config.unseen, **common)
@@ -422,8 +452,13 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress
     return train, val
 
 
-def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, model_config: DITConfig,
-             n_pairs: int, batch_size: int = 8) -> dict[str, float]:
+def validate(
+    params,
+    dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs,
+    model_config: DITConfig,
+    n_pairs: int,
+    batch_size: int = 8,
+) -> dict[str, float]:
     """Mean isotropic errors on the first ``n_pairs`` validation pairs, two ways:
 
     * ``rotation_error`` (degrees) / ``translation_error``: full inference, ``register`` with its
@@ -445,8 +480,14 @@ def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, mode
         out = {}
         for setting in dataset.datasets:
             threshold = np.float32(configs.GMCCE_THRESHOLDS[setting])
-            errors = _validation_errors(params, functools.partial(dataset.setting_batch, setting),
-                                        min(n_pairs, len(dataset)), model_config, batch_size, threshold)
+            errors = _validation_errors(
+                params,
+                functools.partial(dataset.setting_batch, setting),
+                min(n_pairs, len(dataset)),
+                model_config,
+                batch_size,
+                threshold,
+            )
             out.update({f"{setting}/{k}": v for k, v in errors.items()})
         for key in [k for k in out if k.startswith(f"{dataset.settings[0]}/")]:
             name = key.split("/", 1)[1]
@@ -459,11 +500,25 @@ def validate(params, dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs, mode
 _batch_match_labels = jax.jit(jax.vmap(losses.match_labels))
 
 
-def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, model_config: DITConfig,
-                       batch_size: int, gmcce_threshold: np.ndarray | None = None) -> dict[str, float]:
+def _validation_errors(
+    params,
+    batch_of: Callable[[np.ndarray], dict],
+    n: int,
+    model_config: DITConfig,
+    batch_size: int,
+    gmcce_threshold: np.ndarray | None = None,
+) -> dict[str, float]:
     """:func:`validate`'s figures for pairs ``batch_of(indices)``, indices in ``range(n)``."""
-    errors: dict[str, list] = {k: [] for k in ("rotation_error", "translation_error", "network_rotation_error",
-                                               "network_translation_error", "network_match_accuracy")}
+    errors: dict[str, list] = {
+        k: []
+        for k in (
+            "rotation_error",
+            "translation_error",
+            "network_rotation_error",
+            "network_translation_error",
+            "network_match_accuracy",
+        )
+    }
     size = min(batch_size, n)
     for start in range(0, n, size):
         real = min(size, n - start)
@@ -471,13 +526,16 @@ def _validation_errors(params, batch_of: Callable[[np.ndarray], dict], n: int, m
         src, tgt = jnp.asarray(b["src"]), jnp.asarray(b["tgt"])
         # One program for both figures: the first iteration's increment is the network's own estimate.
         rotation, translation, extras = model.register(params, src, tgt, model_config, gmcce_threshold)
-        first = {"": (rotation, translation),
-                 "network_": (extras["step_rotation"][:, 0], extras["step_translation"][:, 0])}
+        first = {
+            "": (rotation, translation),
+            "network_": (extras["step_rotation"][:, 0], extras["step_translation"][:, 0]),
+        }
         for prefix, (r, t) in first.items():
             errors[prefix + "rotation_error"].append(np.asarray(metrics.rotation_error_deg(r, b["R"]))[:real])
             errors[prefix + "translation_error"].append(np.asarray(metrics.translation_error(t, b["t"]))[:real])
-        labels = _batch_match_labels(src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]),
-                                     jnp.asarray(b["t"]))
+        labels = _batch_match_labels(
+            src, tgt, extras["step_correspondences"][:, 0], jnp.asarray(b["R"]), jnp.asarray(b["t"])
+        )
         errors["network_match_accuracy"].append(np.asarray(labels)[:real].reshape(-1))
     return {k: float(np.mean(np.concatenate(v))) for k, v in errors.items()}
 
@@ -492,8 +550,7 @@ class TrainCheckpointError(RuntimeError):
 def _managers(workdir: str, keep: int):
     workdir = os.path.abspath(workdir)
     options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True, enable_async_checkpointing=False)
-    last = ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options,
-                                 item_names=("state", "meta"))
+    last = ocp.CheckpointManager(os.path.join(workdir, "checkpoints"), options=options, item_names=("state", "meta"))
     best_options = ocp.CheckpointManagerOptions(max_to_keep=1, create=True, enable_async_checkpointing=False)
     best = ocp.CheckpointManager(os.path.join(workdir, "best"), options=best_options, item_names=("state", "meta"))
     return last, best
@@ -501,8 +558,11 @@ def _managers(workdir: str, keep: int):
 
 def _save(manager, state: TrainState, meta: dict) -> None:
     host_state = jax.device_get(state)
-    manager.save(int(host_state.step), args=ocp.args.Composite(state=ocp.args.StandardSave(host_state),
-                                                                meta=ocp.args.JsonSave(meta)), force=True)
+    manager.save(
+        int(host_state.step),
+        args=ocp.args.Composite(state=ocp.args.StandardSave(host_state), meta=ocp.args.JsonSave(meta)),
+        force=True,
+    )
     manager.wait_until_finished()
 
 
@@ -511,22 +571,31 @@ def _restore(manager, step: int, abstract: TrainState, config: TrainConfig) -> t
     try:
         meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
     except Exception as err:
-        raise TrainCheckpointError(f"{where}: checkpoint metadata unreadable ({type(err).__name__}); "
-                                   "the checkpoint is damaged -- delete it to resume from an earlier one") from None
+        raise TrainCheckpointError(
+            f"{where}: checkpoint metadata unreadable ({type(err).__name__}); "
+            "the checkpoint is damaged -- delete it to resume from an earlier one"
+        ) from None
     saved = TrainConfig.from_json(meta["train_config"])
     if saved.model_config() != config.model_config():
-        raise TrainCheckpointError(f"{where}: made for model {saved.model_config()}, not "
-                                   f"{config.model_config()}; use another --workdir")
+        raise TrainCheckpointError(
+            f"{where}: made for model {saved.model_config()}, not {config.model_config()}; use another --workdir"
+        )
     try:
         state = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
     except Exception as err:
         # A state saved with the optimiser's state per parameter array (before it was one vector) holds the
         # params this run expects but not its optimiser state: the weights can still start a run.
-        hint = ("; a checkpoint with the optimiser's state per parameter array (saved before it became one "
-                "vector) does not resume: start a run from its weights (training.export_params, then "
-                "--config.init_from)" if "'opt_state'" in str(err) else "")
-        raise TrainCheckpointError(f"{where}: train state does not restore ({type(err).__name__}: "
-                                   f"{str(err).splitlines()[0][:200] if str(err) else ''}){hint}") from None
+        hint = (
+            "; a checkpoint with the optimiser's state per parameter array (saved before it became one "
+            "vector) does not resume: start a run from its weights (training.export_params, then "
+            "--config.init_from)"
+            if "'opt_state'" in str(err)
+            else ""
+        )
+        raise TrainCheckpointError(
+            f"{where}: train state does not restore ({type(err).__name__}: "
+            f"{str(err).splitlines()[0][:200] if str(err) else ''}){hint}"
+        ) from None
     return state, meta
 
 
@@ -548,9 +617,16 @@ def export_params(workdir: str, out_dir: str, *, latest: bool = False) -> str:
         meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
         config = TrainConfig.from_json(meta["train_config"])
         raw = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore())).state
-        extra = {"step": int(step), "chosen_by": sub, "n_points": config.n_points, "setting": config.setting,
-                 "data": config.data_dir or "embedded", "unseen": config.unseen, "variant": config.variant,
-                 "train_config": config.to_json()}
+        extra = {
+            "step": int(step),
+            "chosen_by": sub,
+            "n_points": config.n_points,
+            "setting": config.setting,
+            "data": config.data_dir or "embedded",
+            "unseen": config.unseen,
+            "variant": config.variant,
+            "train_config": config.to_json(),
+        }
         return checkpoint.save(out_dir, raw["params"], config.model_config(), overwrite=True, extra=extra)
     raise TrainCheckpointError(f"{workdir}: no checkpoints to export")
 
@@ -581,13 +657,14 @@ def plot_curves(runs: Mapping[str, str], path: str, title: str | None = None) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = (("network_rotation_error", "val", "network alone: rotation error (deg)", True),
-              ("rotation_error", "val", "full inference: rotation error (deg)", True),
-              ("network_match_accuracy", "val", "network alone: held-out match accuracy", False),
-              ("loss", "train", "training loss", True))
+    panels = (
+        ("network_rotation_error", "val", "network alone: rotation error (deg)", True),
+        ("rotation_error", "val", "full inference: rotation error (deg)", True),
+        ("network_match_accuracy", "val", "network alone: held-out match accuracy", False),
+        ("loss", "train", "training loss", True),
+    )
     records_of = {label: read_metrics(workdir) for label, workdir in runs.items()}
-    mixed = next((label for label, r in records_of.items()
-                  if any("/" in k for v in r["val"] for k in v)), None)
+    mixed = next((label for label, r in records_of.items() if any("/" in k for v in r["val"] for k in v)), None)
     n_panels = len(panels) + (mixed is not None)
     fig, axes = plt.subplots(1, n_panels, figsize=(4.2 * n_panels, 3.6))
     if mixed is not None:
@@ -607,9 +684,14 @@ def plot_curves(runs: Mapping[str, str], path: str, title: str | None = None) ->
         records = read_metrics(workdir)
         for ax, (key, split, _, _) in zip(axes, panels):
             rows = [r for r in records[split] if key in r]
-            ax.plot([r["step"] for r in rows], [r[key] for r in rows], marker="o" if split == "val" else None,
-                    markersize=3, label=label)
-    for ax, (_, _, name, log) in zip(axes[:len(panels)], panels):
+            ax.plot(
+                [r["step"] for r in rows],
+                [r[key] for r in rows],
+                marker="o" if split == "val" else None,
+                markersize=3,
+                label=label,
+            )
+    for ax, (_, _, name, log) in zip(axes[: len(panels)], panels):
         if log:
             ax.set_yscale("log")
         ax.set_title(name, fontsize=9)
@@ -661,8 +743,9 @@ def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTran
     return state.replace(params=params, opt_state=optimizer.init(_flat(params)))
 
 
-def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None,
-          progress: bool = True) -> dict:
+def train(
+    config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None, progress: bool = True
+) -> dict:
     """Trains DIT; returns the final validation metrics and where the results are.
 
     Writes to ``workdir``: ``checkpoints/`` (the last ``keep``), ``best/`` (lowest validation rotation
@@ -702,8 +785,10 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     latest = last_mgr.latest_step()
     if latest is not None:
         if not resume:
-            raise TrainCheckpointError(f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
-                                       "continue, or choose a new --workdir")
+            raise TrainCheckpointError(
+                f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
+                "continue, or choose a new --workdir"
+            )
         # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
         # overwritten, and a checkpoint of another model is refused before anything is compiled.
         abstract = jax.eval_shape(lambda: init_state(config, optimizer))
@@ -723,8 +808,12 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
     step_fn = make_train_step(config, optimizer, mesh)
 
     def meta(step):
-        return {"train_config": config.to_json(), "step": step, "best_val": best_val,
-                "steps_per_epoch": steps_per_epoch}
+        return {
+            "train_config": config.to_json(),
+            "step": step,
+            "best_val": best_val,
+            "steps_per_epoch": steps_per_epoch,
+        }
 
     start = int(state.step)
     bar = None
@@ -753,10 +842,12 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         params = jax.device_put(jax.device_get(state.params), jax.local_devices()[0])
         val_metrics = validate(params, val_ds, model_config, config.val_pairs)
         log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
-        line = (f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
-                f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
-                f"{val_metrics['network_match_accuracy']:.3f}), translation error "
-                f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})")
+        line = (
+            f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
+            f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
+            f"{val_metrics['network_match_accuracy']:.3f}), translation error "
+            f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})"
+        )
         if bar is not None:
             bar.write(line)
         elif primary:
@@ -775,15 +866,26 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         if step % config.log_every == 0 or step == total_steps:
             out = {k: float(v) for k, v in jax.device_get(out).items()}
             now = time.time()
-            record = {"step": step, "epoch": epoch, "split": "train", "skipped": int(state.skipped),
-                      "lr": float(lr_schedule(config, total_steps)(step - 1)), **out,
-                      "seconds_per_step": (now - t_last) / config.log_every}
+            record = {
+                "step": step,
+                "epoch": epoch,
+                "split": "train",
+                "skipped": int(state.skipped),
+                "lr": float(lr_schedule(config, total_steps)(step - 1)),
+                **out,
+                "seconds_per_step": (now - t_last) / config.log_every,
+            }
             t_last = now
             log(record)
             if bar is not None:
-                bar.set_postfix(loss=f"{out['loss']:.3f}", disc=f"{out['discrimination']:.3f}",
-                                acc=f"{out['match_accuracy']:.2f}", rot=f"{out['rotation_error']:.1f}",
-                                trans=f"{out['translation_error']:.3f}", refresh=False)
+                bar.set_postfix(
+                    loss=f"{out['loss']:.3f}",
+                    disc=f"{out['discrimination']:.3f}",
+                    acc=f"{out['match_accuracy']:.2f}",
+                    rot=f"{out['rotation_error']:.1f}",
+                    trans=f"{out['translation_error']:.3f}",
+                    refresh=False,
+                )
         if bar is not None:
             bar.update(1)
         if step % config.eval_every == 0 or step == total_steps:
@@ -794,11 +896,17 @@ def train(config: TrainConfig, workdir: str, *, resume: bool = False, prepared_d
         bar.close()
     last_mgr.close()
     best_mgr.close()
-    result = {"step": step, "total_steps": total_steps, "skipped": int(state.skipped), "val": val_metrics,
-              "best_val_network_rotation_error": best_val, "workdir": os.path.abspath(workdir),
-              "processes": jax.process_count(), "devices": n_dev}
+    result = {
+        "step": step,
+        "total_steps": total_steps,
+        "skipped": int(state.skipped),
+        "val": val_metrics,
+        "best_val_network_rotation_error": best_val,
+        "workdir": os.path.abspath(workdir),
+        "processes": jax.process_count(),
+        "devices": n_dev,
+    }
     if step >= total_steps:
         # Every process: orbax's managers synchronise the processes (process 0 writes).
         result["model"] = export_params(workdir, os.path.join(workdir, "model"))
     return result
-

@@ -18,8 +18,11 @@ import pytest
 # own passes are unchanged, so the programs are the same; only their machine code is generated with less work.
 # The whole suite passes with and without the flags, faster with them (docs/benchmarks.md, "The test suite").
 # Users run the defaults. A flag the environment already sets is left as it is.
-FAST_COMPILE_FLAGS = {"xla_backend_optimization_level": "0", "xla_llvm_disable_expensive_passes": "true",
-                      "xla_cpu_use_fusion_emitters": "false"}
+FAST_COMPILE_FLAGS = {
+    "xla_backend_optimization_level": "0",
+    "xla_llvm_disable_expensive_passes": "true",
+    "xla_cpu_use_fusion_emitters": "false",
+}
 for _flag, _value in FAST_COMPILE_FLAGS.items():
     if _flag not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --{_flag}={_value}".strip()
@@ -52,6 +55,7 @@ def pytest_sessionfinish(session, exitstatus):
     for folder in (_TEST_CACHE, _TEST_TFDS):
         if folder is not None:
             shutil.rmtree(folder, ignore_errors=True)
+
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = pathlib.Path(os.environ.get("DIT_SHARED", ROOT.parent / "shared"))
@@ -102,10 +106,19 @@ def tiny_checkpoint(tmp_path_factory) -> str:
 
     config = configs.tiny()
     path = tmp_path_factory.mktemp("ckpt") / "tiny"
-    return checkpoint.save(path, model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_settings": {"n_points": 128, "min_fitness": 0.0,
-                                                         "max_disagreement_network": 180.0,
-                                                         "max_disagreement_icp": 180.0}})
+    return checkpoint.save(
+        path,
+        model.init(jax.random.PRNGKey(0), config),
+        config,
+        extra={
+            "inference_settings": {
+                "n_points": 128,
+                "min_fitness": 0.0,
+                "max_disagreement_network": 180.0,
+                "max_disagreement_icp": 180.0,
+            }
+        },
+    )
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -183,8 +196,9 @@ def write_3dmatch_scene(scene, world, rng, fragments=(0, 1, 3)):
     for i in fragments:
         for j in fragments:
             if j > i:
-                log += f"{i} {j} 60\n" + "".join(" ".join(f"{v:.17g}" for v in row) + "\n"
-                                                 for row in np.linalg.inv(poses[i]) @ poses[j])
+                log += f"{i} {j} 60\n" + "".join(
+                    " ".join(f"{v:.17g}" for v in row) + "\n" for row in np.linalg.inv(poses[i]) @ poses[j]
+                )
                 sigma = np.diag([60.0, 60.0, 60.0, 8.0, 9.0, 10.0])
                 info += f"{i} {j} 60\n" + "".join(" ".join(f"{v:g}" for v in row) + "\n" for row in sigma)
     (scene / "3DMatch" / "gt.log").write_text(log)

@@ -12,8 +12,13 @@ pytest.importorskip("open3d", reason="the baselines need Open3D (pip install 'di
 
 # Global estimates alone are as good as their matches (possibly on a downsampled cloud); refined by ICP on
 # identical points they are exact.
-TOLERANCE = {"icp": (0.01, 1e-4), "fpfh_ransac": (2.0, 0.02), "fgr": (2.0, 0.02), "fpfh_ransac_icp": (0.01, 1e-4),
-             "fgr_icp": (0.01, 1e-4)}
+TOLERANCE = {
+    "icp": (0.01, 1e-4),
+    "fpfh_ransac": (2.0, 0.02),
+    "fgr": (2.0, 0.02),
+    "fpfh_ransac_icp": (0.01, 1e-4),
+    "fgr_icp": (0.01, 1e-4),
+}
 
 
 @pytest.mark.parametrize("name", baselines.NAMES)
@@ -47,7 +52,9 @@ def test_every_method_and_setting_has_tuned_options_recorded_in_docs():
         assert set(choice[name]) == {*SETTINGS, "any"}
         for setting in SETTINGS:
             assert baselines.tuned_options(name, setting) == baselines.Options.from_dict(choice[name][setting])
-        assert baselines.tuned_options(name, "a setting never tuned") == baselines.Options.from_dict(choice[name]["any"])
+        assert baselines.tuned_options(name, "a setting never tuned") == baselines.Options.from_dict(
+            choice[name]["any"]
+        )
     with pytest.raises(ValueError, match="unknown baseline"):
         baselines.tuned_options("ransac")
 

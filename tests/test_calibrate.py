@@ -40,7 +40,8 @@ def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results()
     agreement = np.r_[np.full(10, 0.2), np.full(10, 0.4), np.full(10, 0.9), np.full(10, 20.0)]
     errors = np.r_[np.full(8, 1.0), 30.0, 30.0, np.full(10, 1.0), np.full(7, 1.0), np.full(3, 30.0), np.full(10, 30.0)]
     report = calibrate.choose_from_evidence(
-        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
+        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"]
+    )
     assert report["verdict_max_disagreement"] == {"icp": 0.5} and report["verdict_fallback"] == ["icp"]
     # A threshold trusting fewer results than a band needs is not taken, however right they are.
     errors[8:10] = 1.0
@@ -48,7 +49,8 @@ def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results()
     agreement[10:20] = 0.9
     errors[10:13] = 30.0
     report = calibrate.choose_from_evidence(
-        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"])
+        {"icp": _evidence(errors, agreement, ["independent_clean"] * 40)}, ["independent_clean"]
+    )
     assert report["verdict_max_disagreement"] == {"icp": 0.5}  # 10 trusted, all right; 0.25 trusts only 5
     # Where every threshold trusts a few but fewer than a band needs, the smallest.
     assert calibrate.fallback_threshold([{"passed": 3, "passed_right": 1.0}] * 11) == 0.25
@@ -56,12 +58,19 @@ def test_fallback_takes_the_most_precise_threshold_with_enough_trusted_results()
 
 def test_record_writes_the_thresholds_into_the_inference_settings(tmp_path):
     config = configs.tiny()
-    path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config,
-                           extra={"note": "Trained somewhere.",
-                                  "inference_settings": {"max_disagreement_network": 1.0, "n_points": 128}})
+    path = checkpoint.save(
+        tmp_path / "m",
+        model.init(jax.random.key(0), config),
+        config,
+        extra={"note": "Trained somewhere.", "inference_settings": {"max_disagreement_network": 1.0, "n_points": 128}},
+    )
     before = {p.name: p.read_bytes() for p in (tmp_path / "m").rglob("*") if p.is_file() and "config" not in p.parts}
-    report = {"verdict_max_disagreement": {"none": 0.25, "icp": 0.5}, "verdict_pool": ["independent_clean"],
-              "pairs_per_setting": 128, "verdict_fallback": ["none"]}
+    report = {
+        "verdict_max_disagreement": {"none": 0.25, "icp": 0.5},
+        "verdict_pool": ["independent_clean"],
+        "pairs_per_setting": 128,
+        "verdict_fallback": ["none"],
+    }
     calibrate.record(str(path), report)
     extra = checkpoint.read_extra(path)
     settings = registration.settings_from_extra(extra)
@@ -80,13 +89,15 @@ def test_agreement_bands_count_each_band_and_agree_with_the_recorded_curve(tmp_p
     agreement = rng.exponential(3.0, 400)
     errors = np.where(rng.random(400) < np.exp(-agreement / 4), 1.0, 30.0)  # the closer, the likelier right
     settings = ["independent_clean"] * 400
-    report = calibrate.choose_from_evidence({"icp": _evidence(errors, agreement, settings)},
-                                                   ["independent_clean"])
+    report = calibrate.choose_from_evidence({"icp": _evidence(errors, agreement, settings)}, ["independent_clean"])
     bands = report["verdict_agreement_bands"]["icp"]
     assert [b[0] for b in bands] == [*calibrate.AGREEMENT_GRID, None]
     assert sum(b[1] for b in bands) == 400 and sum(b[2] for b in bands) == int((errors <= 5).sum())
-    assert bands[2] == [1.0, int(((agreement > 0.5) & (agreement <= 1)).sum()),
-                        int(((agreement > 0.5) & (agreement <= 1) & (errors <= 5)).sum())]
+    assert bands[2] == [
+        1.0,
+        int(((agreement > 0.5) & (agreement <= 1)).sum()),
+        int(((agreement > 0.5) & (agreement <= 1) & (errors <= 5)).sum()),
+    ]
     config = configs.tiny()
     path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config)
     report["pairs_per_setting"] = 400

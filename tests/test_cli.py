@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, cli, configs, io, model, pipeline, registration
+from dit_jax import checkpoint, cli, configs, io, model, pipeline
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -38,8 +38,9 @@ def run(capsys, *argv):
 
 def test_prints_matrix_and_writes_moved_source(capsys, tiny_checkpoint, pair):
     folder, src, _ = pair
-    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                         "--out", folder / "moved.xyz")
+    code, out, err = run(
+        capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--out", folder / "moved.xyz"
+    )
     assert code == 0, err
     rows = [line for line in out.splitlines() if line.strip().startswith("[")]
     assert len(rows) == 4 and "inlier ratio" in out and "128 of 600 source points" in out
@@ -56,8 +57,9 @@ def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
     assert code == 0 and np.shape(report["matrix"]) == (4, 4) and report["points_used"] == 128
     assert report["matrix"][3] == [0.0, 0.0, 0.0, 1.0] and 0.0 <= report["inlier_ratio"] <= 1.0
     assert report["refinement"] == "icp" and report["refine_seconds"] > 0
-    code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json",
-                       "--refine", "none")
+    code, out, _ = run(
+        capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--json", "--refine", "none"
+    )
     assert code == 0 and json.loads(out)["refinement"] is None and json.loads(out)["refine_seconds"] == 0
     # --help names where --best-direction's default lives: the checkpoint's inference settings.
     option_help = " ".join(cli._parser().format_help().split()).split("--best-direction")[-1]
@@ -76,12 +78,29 @@ def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, 
         return original(params, src, tgt, config)
 
     monkeypatch.setattr(pipeline, "_register", counting)
-    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none", "--any-rotation")
+    code, out, err = run(
+        capsys,
+        folder / "src.ply",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--any-rotation",
+    )
     assert code == 0, err
     assert batches == [24, 24] and "rotation search: went on from a start turned" in out
-    code, out, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                       "--refine", "none", "--any-rotation", "--json")
+    code, out, _ = run(
+        capsys,
+        folder / "src.ply",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--any-rotation",
+        "--json",
+    )
     assert code == 0 and json.loads(out)["start_turn_deg"] in {0.0, 90.0, 120.0, 180.0}
     batches.clear()
     run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--refine", "none")
@@ -144,12 +163,21 @@ def test_bad_checkpoint_and_output_path(capsys, tmp_path, pair):
 
 def test_large_clouds_are_downsampled_unless_refused(capsys, tmp_path, tiny_checkpoint, pair):
     folder, _, _ = pair
-    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                         "--max-points", 400)
+    code, out, err = run(
+        capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--max-points", 400
+    )
     assert code == 0 and "600 points, above --max-points; using a random 400" in err
     assert "128 of 400 source points" in out
-    code, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                       "--max-points", 400, "--no-downsample")
+    code, _, err = run(
+        capsys,
+        folder / "src.ply",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--max-points",
+        400,
+        "--no-downsample",
+    )
     assert code == 2 and "above the limit of 400" in err and err.count("\n") == 1
 
 
@@ -161,15 +189,36 @@ def test_nonfinite_points_refused_unless_left_out(capsys, tmp_path, tiny_checkpo
     io.write(tmp_path / "holes.pcd", holes)
     code, _, err = run(capsys, folder / "src.ply", tmp_path / "holes.pcd", "--checkpoint", tiny_checkpoint)
     assert code == 2 and "200 of 800 points have NaN or Inf" in err and "--drop-nonfinite" in err
-    code, out, err = run(capsys, folder / "src.ply", tmp_path / "holes.pcd", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none", "--drop-nonfinite", "--max-points", 500)
+    code, out, err = run(
+        capsys,
+        folder / "src.ply",
+        tmp_path / "holes.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--drop-nonfinite",
+        "--max-points",
+        500,
+    )
     assert code == 0 and "rotation" in out, err
     assert err.splitlines() == [
         f"dit-register: note: {folder / 'src.ply'}: 600 points, above --max-points; using a random 500",
         f"dit-register: note: {tmp_path / 'holes.pcd'}: left out 200 of 800 points with NaN or Inf coordinates",
-        f"dit-register: note: {tmp_path / 'holes.pcd'}: 600 points, above --max-points; using a random 500"]
-    code, out, err = run(capsys, tmp_path / "holes.pcd", folder / "src.ply", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none", "--drop-nonfinite", "--out", tmp_path / "moved.pcd")
+        f"dit-register: note: {tmp_path / 'holes.pcd'}: 600 points, above --max-points; using a random 500",
+    ]
+    code, out, err = run(
+        capsys,
+        tmp_path / "holes.pcd",
+        folder / "src.ply",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--drop-nonfinite",
+        "--out",
+        tmp_path / "moved.pcd",
+    )
     rows = [line for line in out.splitlines() if line.strip().startswith("[")]
     matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
     with pytest.warns(io.NonFiniteWarning):  # written whole, the holes where they were
@@ -183,32 +232,63 @@ def test_a_mesh_registers_as_points_sampled_over_its_surface(capsys, tmp_path, t
     """An OBJ mesh (a bumpy sphere as a latitude-longitude grid) as SRC: sampled at io.MESH_POINTS (capped by
     --max-points), registered, and --out writes the samples moved; a mesh cannot be an output."""
     folder, _, _ = pair
-    theta, phi = np.meshgrid(np.linspace(0.1, np.pi - 0.1, 20), np.linspace(0, 2 * np.pi, 40, endpoint=False),
-                             indexing="ij")
+    theta, phi = np.meshgrid(
+        np.linspace(0.1, np.pi - 0.1, 20), np.linspace(0, 2 * np.pi, 40, endpoint=False), indexing="ij"
+    )
     d = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
     vertices = d * (1 + 0.2 * np.sin(3 * d[:, :1]) * np.cos(2 * d[:, 1:2])) * 20.0 + 300.0
     index = np.arange(20 * 40).reshape(20, 40)
     quads = np.stack([index[:-1], np.roll(index, -1, 1)[:-1], np.roll(index, -1, 1)[1:], index[1:]], -1)
     faces = "".join(f"f {' '.join(str(i + 1) for i in q)}\n" for q in quads.reshape(-1, 4))
     (tmp_path / "mesh.obj").write_text("".join(f"v {x} {y} {z}\n" for x, y, z in vertices.tolist()) + faces)
-    code, out, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none", "--max-points", 3000, "--out", tmp_path / "moved.ply")
+    code, out, err = run(
+        capsys,
+        tmp_path / "mesh.obj",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--max-points",
+        3000,
+        "--out",
+        tmp_path / "moved.ply",
+    )
     assert code == 0 and "128 of 3000 source points" in out and err == "", err
     rows = [line for line in out.splitlines() if line.strip().startswith("[")]
     matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
     samples = io.read(tmp_path / "mesh.obj", max_points=3000)  # the same seed: the same samples
-    np.testing.assert_allclose(io.read(tmp_path / "moved.ply"), samples @ matrix[:3, :3].T + matrix[:3, 3],
-                               atol=1e-4)
-    code, out, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none", "--max-points", 3000, "--out", tmp_path / "moved.obj")
+    np.testing.assert_allclose(io.read(tmp_path / "moved.ply"), samples @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-4)
+    code, out, err = run(
+        capsys,
+        tmp_path / "mesh.obj",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--max-points",
+        3000,
+        "--out",
+        tmp_path / "moved.obj",
+    )
     assert code == 0 and f"wrote {tmp_path / 'moved.obj'}" in out, err
     moved_vertices, _ = io.read_mesh(tmp_path / "moved.obj")  # the same registration: the same matrix
     np.testing.assert_allclose(moved_vertices, vertices @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-4)
-    for other, fragment in (("moved.stl", "a .stl file is written only as SRC moved, where SRC is a .stl"),
-                            ("moved.las", "a .las file is written only as SRC moved"),
-                            ("moved.e57", "unknown output format")):
-        code, _, err = run(capsys, tmp_path / "mesh.obj", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                           "--out", tmp_path / other)
+    for other, fragment in (
+        ("moved.stl", "a .stl file is written only as SRC moved, where SRC is a .stl"),
+        ("moved.las", "a .las file is written only as SRC moved"),
+        ("moved.e57", "unknown output format"),
+    ):
+        code, _, err = run(
+            capsys,
+            tmp_path / "mesh.obj",
+            folder / "tgt.pcd",
+            "--checkpoint",
+            tiny_checkpoint,
+            "--out",
+            tmp_path / other,
+        )
         assert code == 2 and err.count("\n") == 1 and fragment in err, err
 
 
@@ -219,19 +299,32 @@ def test_a_ply_source_is_written_whole(capsys, tmp_path, tiny_checkpoint, pair):
     colours = np.arange(len(src)) % 256
     vertex = np.zeros(len(src), [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1")])
     vertex["x"], vertex["y"], vertex["z"], vertex["red"] = *src.T, colours
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(src)}\nproperty double x\n"
-              "property double y\nproperty double z\nproperty uchar red\nend_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(src)}\nproperty double x\n"
+        "property double y\nproperty double z\nproperty uchar red\nend_header\n"
+    )
     (tmp_path / "coloured.ply").write_bytes(header.encode() + vertex.tobytes())
     for out_name in ("moved.ply", "moved.npy"):
-        code, out, err = run(capsys, tmp_path / "coloured.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                             "--refine", "none", "--max-points", 400, "--out", tmp_path / out_name)
+        code, out, err = run(
+            capsys,
+            tmp_path / "coloured.ply",
+            folder / "tgt.pcd",
+            "--checkpoint",
+            tiny_checkpoint,
+            "--refine",
+            "none",
+            "--max-points",
+            400,
+            "--out",
+            tmp_path / out_name,
+        )
         assert code in (0, 3) and "using a random 400" in err
         rows = [line for line in out.splitlines() if line.strip().startswith("[")]
         matrix = np.array([[float(v) for v in row.replace("[", " ").replace("]", " ").split()] for row in rows])
         moved = io.read(tmp_path / out_name)
         if out_name == "moved.ply":
             np.testing.assert_allclose(moved, src @ matrix[:3, :3].T + matrix[:3, 3], atol=1e-6)
-            back = np.frombuffer((tmp_path / out_name).read_bytes()[len(header):], vertex.dtype)
+            back = np.frombuffer((tmp_path / out_name).read_bytes()[len(header) :], vertex.dtype)
             assert back["red"].tolist() == colours.tolist()
         else:
             assert moved.shape == (400, 3)
@@ -242,41 +335,68 @@ def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tin
     files; the transform is still printed and the status is the verdict's. Same-size clouds give none."""
     folder, _, tgt = pair
     io.write(tmp_path / "tgt_mm.pcd", tgt * 1000.0)
-    code, out, err = run(capsys, folder / "src.ply", tmp_path / "tgt_mm.pcd", "--checkpoint", tiny_checkpoint,
-                         "--refine", "none")
+    code, out, err = run(
+        capsys, folder / "src.ply", tmp_path / "tgt_mm.pcd", "--checkpoint", tiny_checkpoint, "--refine", "none"
+    )
     assert code == 0 and "rotation" in out
     (line,) = [line for line in err.splitlines() if "same units" in line]
-    assert line.startswith(f"dit-register: warning: {tmp_path / 'tgt_mm.pcd'} is 1,000 times the size of "
-                           f"{folder / 'src.ply'}")
-    _, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint,
-                    "--refine", "none")
+    assert line.startswith(
+        f"dit-register: warning: {tmp_path / 'tgt_mm.pcd'} is 1,000 times the size of {folder / 'src.ply'}"
+    )
+    _, _, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", tiny_checkpoint, "--refine", "none")
     assert "same units" not in err
 
 
 def test_console_script_exit_status(tmp_path):
     """The installed entry point, as a user runs it: no traceback, status 2."""
-    proc = subprocess.run([sys.executable, "-m", "dit_jax.cli", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "dit_jax.cli", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"dit-register: error: {tmp_path / 'a.ply'}: no such file"
 
 
-@pytest.mark.parametrize("rule,threshold,expected", [("agreement", -1.0, 3), ("agreement", 180.0, 0),
-                                                      ("fitness", 1.01, 3), ("fitness", 0.0, 0)])
-def test_a_probably_wrong_result_warns_and_exits_3_but_is_still_written(capsys, tmp_path, pair, rule, threshold,
-                                                                         expected):
+@pytest.mark.parametrize(
+    "rule,threshold,expected",
+    [("agreement", -1.0, 3), ("agreement", 180.0, 0), ("fitness", 1.01, 3), ("fitness", 0.0, 0)],
+)
+def test_a_probably_wrong_result_warns_and_exits_3_but_is_still_written(
+    capsys, tmp_path, pair, rule, threshold, expected
+):
     """The verdict's thresholds come with the checkpoint (agreement, the default, or --verdict fitness); a
     result they do not trust, with no validation band to say it is mostly right (this checkpoint records
     none), is "probably wrong": still printed and written, one warning line goes to stderr and the status is 3
     (0 with --no-verdict-status)."""
     config = configs.tiny()
-    ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_settings": {"n_points": 128, "min_fitness": threshold,
-                                                         "max_disagreement_network": threshold,
-                                                         "max_disagreement_icp": threshold}})
+    ckpt = checkpoint.save(
+        tmp_path / "m",
+        model.init(jax.random.PRNGKey(0), config),
+        config,
+        extra={
+            "inference_settings": {
+                "n_points": 128,
+                "min_fitness": threshold,
+                "max_disagreement_network": threshold,
+                "max_disagreement_icp": threshold,
+            }
+        },
+    )
     folder, _, _ = pair
-    code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
-                         "--out", tmp_path / "moved.ply", "--json", "--verdict", rule)
+    code, out, err = run(
+        capsys,
+        folder / "src.ply",
+        folder / "tgt.pcd",
+        "--checkpoint",
+        ckpt,
+        "--out",
+        tmp_path / "moved.ply",
+        "--json",
+        "--verdict",
+        rule,
+    )
     report = json.loads(out)
     assert code == expected and report["verdict"] == ("probably wrong" if expected else "trusted")
     assert report["verdict_rule"] == rule and 0.0 <= report["fitness"] <= 1.0
@@ -287,32 +407,54 @@ def test_a_probably_wrong_result_warns_and_exits_3_but_is_still_written(capsys, 
     assert (tmp_path / "moved.ply").exists()
     if expected:
         assert err.count("\n") == 1 and err.startswith("dit-register: warning: the result is probably wrong")
-        code, _, _ = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--no-verdict-status",
-                         "--verdict", rule)
+        code, _, _ = run(
+            capsys,
+            folder / "src.ply",
+            folder / "tgt.pcd",
+            "--checkpoint",
+            ckpt,
+            "--no-verdict-status",
+            "--verdict",
+            rule,
+        )
         assert code == 0
     else:
         assert err == ""
 
 
 @pytest.mark.parametrize("right,level,expected", [(19, "unconfirmed", 0), (2, "probably wrong", 3)])
-def test_an_untrusted_result_is_unconfirmed_where_its_band_was_mostly_right(capsys, tmp_path, pair, right, level,
-                                                                            expected):
+def test_an_untrusted_result_is_unconfirmed_where_its_band_was_mostly_right(
+    capsys, tmp_path, pair, right, level, expected
+):
     """Beyond the threshold, the agreement band the checkpoint records decides: a band where 19 of 20
     validation results were right makes the result "unconfirmed" (status 0, one note line quoting the band's
     rate); one where 2 of 20 were makes it "probably wrong" (status 3, one warning line)."""
     config = configs.tiny()
     bands = [[None, 20, right]]  # every agreement falls in this one band
-    ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_settings": {"n_points": 128, "max_disagreement_network": -1.0,
-                                                         "max_disagreement_icp": -1.0, "agreement_bands_network": bands,
-                                                         "agreement_bands_icp": bands}})
+    ckpt = checkpoint.save(
+        tmp_path / "m",
+        model.init(jax.random.PRNGKey(0), config),
+        config,
+        extra={
+            "inference_settings": {
+                "n_points": 128,
+                "max_disagreement_network": -1.0,
+                "max_disagreement_icp": -1.0,
+                "agreement_bands_network": bands,
+                "agreement_bands_icp": bands,
+            }
+        },
+    )
     folder, _, _ = pair
     code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--refine", "none")
     assert code == expected and f"\n{level}: registering the target onto the source" in out
     rate = f"of the 20 validation results that disagreed by more than 0 deg, {5 * right} % were within 5 deg"
     assert err.count("\n") == 1 and rate in err, err
-    assert err.startswith("dit-register: note: the result is not confirmed" if expected == 0 else
-                          "dit-register: warning: the result is probably wrong")
+    assert err.startswith(
+        "dit-register: note: the result is not confirmed"
+        if expected == 0
+        else "dit-register: warning: the result is probably wrong"
+    )
 
 
 def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, pair):
@@ -320,20 +462,36 @@ def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, 
     a checkpoint that trusts nothing (-1) trusts the same result at 180 (status 0, the threshold reported).
     A value outside 0-180, or beside --verdict fitness, is refused with status 2 before any work."""
     config = configs.tiny()
-    ckpt = checkpoint.save(tmp_path / "m", model.init(jax.random.PRNGKey(0), config), config,
-                           extra={"inference_settings": {"n_points": 128, "max_disagreement_network": -1.0,
-                                                         "max_disagreement_icp": -1.0}})
+    ckpt = checkpoint.save(
+        tmp_path / "m",
+        model.init(jax.random.PRNGKey(0), config),
+        config,
+        extra={"inference_settings": {"n_points": 128, "max_disagreement_network": -1.0, "max_disagreement_icp": -1.0}},
+    )
     folder, _, _ = pair
     for refine in ("none", "icp"):
-        code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--json",
-                             "--refine", refine, "--max-disagreement", 180)
+        code, out, err = run(
+            capsys,
+            folder / "src.ply",
+            folder / "tgt.pcd",
+            "--checkpoint",
+            ckpt,
+            "--json",
+            "--refine",
+            refine,
+            "--max-disagreement",
+            180,
+        )
         report = json.loads(out)
         assert code == 0 and err == "" and report["verdict"] == "trusted" and report["threshold"] == 180
-    for argv, fragment in ((("--max-disagreement", -0.5), "between 0 and 180"),
-                           (("--max-disagreement", 181), "between 0 and 180"),
-                           (("--max-disagreement", 1, "--verdict", "fitness"), "cannot go with --verdict fitness")):
-        code, out, err = run(capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt,
-                             "--out", tmp_path / "x.ply", *argv)
+    for argv, fragment in (
+        (("--max-disagreement", -0.5), "between 0 and 180"),
+        (("--max-disagreement", 181), "between 0 and 180"),
+        (("--max-disagreement", 1, "--verdict", "fitness"), "cannot go with --verdict fitness"),
+    ):
+        code, out, err = run(
+            capsys, folder / "src.ply", folder / "tgt.pcd", "--checkpoint", ckpt, "--out", tmp_path / "x.ply", *argv
+        )
         assert code == 2 and fragment in err and err.count("\n") == 1 and out == ""
         assert not (tmp_path / "x.ply").exists()
 
@@ -348,10 +506,13 @@ def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_cl
     from dit_jax.data import scans
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
-    for source, target, right in (("dragonStandRight_312", "dragonStandRight_336", True),
-                                  ("dragonStandRight_48", "dragonStandRight_72", False)):
-        code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json",
-                             "--refine", "none")
+    for source, target, right in (
+        ("dragonStandRight_312", "dragonStandRight_336", True),
+        ("dragonStandRight_48", "dragonStandRight_72", False),
+    ):
+        code, out, err = run(
+            capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json", "--refine", "none"
+        )
         report = json.loads(out)
         truth, _ = scans.relative_motion(series[source], series[target])
         rotation = np.asarray(report["matrix"])[:3, :3]
@@ -379,8 +540,16 @@ def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     truth = np.loadtxt(os.path.join(examples, "chair_truth.txt"))
     errors = {}
     for refine, status in (("none", 3), ("icp", 0)):
-        code, out, err = run(capsys, os.path.join(examples, "chair_src.ply"), os.path.join(examples, "chair_tgt.pcd"),
-                             "--refine", refine, "--plot", tmp_path / f"{refine}.png", "--json")
+        code, out, err = run(
+            capsys,
+            os.path.join(examples, "chair_src.ply"),
+            os.path.join(examples, "chair_tgt.pcd"),
+            "--refine",
+            refine,
+            "--plot",
+            tmp_path / f"{refine}.png",
+            "--json",
+        )
         assert code == status, err
         report = json.loads(out)
         errors[refine] = rotation_angle_deg(np.asarray(report["matrix"])[:3, :3].T @ truth[:3, :3])
@@ -408,11 +577,19 @@ def test_real_scans_refined_by_default_land_within_a_few_degrees(capsys, dragon_
     from dit_jax.geometry import rotation_angle_deg
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
-    for source, target, bound in (("dragonStandRight_0", "dragonStandRight_24", 0.5),
-                                  ("dragonStandRight_48", "dragonStandRight_72", 3.0)):
+    for source, target, bound in (
+        ("dragonStandRight_0", "dragonStandRight_24", 0.5),
+        ("dragonStandRight_48", "dragonStandRight_72", 3.0),
+    ):
         first = source == "dragonStandRight_0"
-        code, out, err = run(capsys, dragon_dir / f"{source}.ply", dragon_dir / f"{target}.ply", "--json",
-                             "--verdict", "agreement" if first else "fitness")
+        code, out, err = run(
+            capsys,
+            dragon_dir / f"{source}.ply",
+            dragon_dir / f"{target}.ply",
+            "--json",
+            "--verdict",
+            "agreement" if first else "fitness",
+        )
         truth, _ = scans.relative_motion(series[source], series[target])
         error = rotation_angle_deg(np.asarray(json.loads(out)["matrix"])[:3, :3].T @ truth)
         assert error < bound and json.loads(out)["refinement"] == "gicp", (source, error)
@@ -427,12 +604,24 @@ def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_pa
     a last line cut short by a kill is registered again."""
     folder, _, _ = pair
     listing = tmp_path / "pairs.txt"
-    listing.write_text(f"# source target\n{folder / 'src.ply'} {folder / 'tgt.pcd'}\n\n"
-                       f"{folder / 'tgt.pcd'} {folder / 'src.ply'}  # the other way\n"
-                       f"{folder / 'src.ply'} missing.ply\n")
+    listing.write_text(
+        f"# source target\n{folder / 'src.ply'} {folder / 'tgt.pcd'}\n\n"
+        f"{folder / 'tgt.pcd'} {folder / 'src.ply'}  # the other way\n"
+        f"{folder / 'src.ply'} missing.ply\n"
+    )
     results = tmp_path / "results.jsonl"
-    common = ["--pairs", listing, "--results", results, "--checkpoint", tiny_checkpoint, "--refine", "none",
-              "--no-progress", "--no-verdict-status"]
+    common = [
+        "--pairs",
+        listing,
+        "--results",
+        results,
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--no-progress",
+        "--no-verdict-status",
+    ]
     code, out, err = run(capsys, *common, "--shard", "1/2")
     assert code == 0 and out == "", err
     records = [json.loads(line) for line in results.read_text().splitlines()]
@@ -451,12 +640,24 @@ def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_pa
     lines = results.read_text().splitlines()
     assert len(lines) == 3 and all(json.loads(line) for line in lines)
     # Without --results the lines go to stdout; bad combinations are refused before any work.
-    code, out, _ = run(capsys, "--pairs", listing, "--checkpoint", tiny_checkpoint, "--refine", "none",
-                       "--no-progress", "--shard", "0/3")
+    code, out, _ = run(
+        capsys,
+        "--pairs",
+        listing,
+        "--checkpoint",
+        tiny_checkpoint,
+        "--refine",
+        "none",
+        "--no-progress",
+        "--shard",
+        "0/3",
+    )
     assert code == 0 and [json.loads(line)["index"] for line in out.splitlines()] == [0]
-    for argv, fragment in (((folder / "src.ply", "--pairs", listing), "cannot go with SRC TGT"),
-                           (("--pairs", listing, "--shard", "2/2"), "expected I/N"),
-                           (("--pairs", tmp_path / "none.txt"), "none.txt"),
-                           ((folder / "src.ply", folder / "tgt.pcd", "--shard", "0/2"), "go with --pairs")):
+    for argv, fragment in (
+        ((folder / "src.ply", "--pairs", listing), "cannot go with SRC TGT"),
+        (("--pairs", listing, "--shard", "2/2"), "expected I/N"),
+        (("--pairs", tmp_path / "none.txt"), "none.txt"),
+        ((folder / "src.ply", folder / "tgt.pcd", "--shard", "0/2"), "go with --pairs"),
+    ):
         code, out, err = run(capsys, *argv)
         assert code == 2 and fragment in err and out == "", err

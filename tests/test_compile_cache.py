@@ -1,4 +1,3 @@
-import os
 import pathlib
 import subprocess
 import sys
@@ -28,8 +27,19 @@ def test_a_directory_that_cannot_be_made_leaves_the_cache_off(tmp_path, capsys):
 
 
 def _register(cache_args):
-    command = [sys.executable, "-m", "dit_jax.cli", "examples/chair_src.ply", "examples/chair_tgt.pcd",
-               "--points", "256", "--no-verdict-status", "--verdict", "fitness", *cache_args]  # one direction
+    command = [
+        sys.executable,
+        "-m",
+        "dit_jax.cli",
+        "examples/chair_src.ply",
+        "examples/chair_tgt.pcd",
+        "--points",
+        "256",
+        "--no-verdict-status",
+        "--verdict",
+        "fitness",
+        *cache_args,
+    ]  # one direction
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
     return done.stdout.splitlines()[:4]  # the matrix
@@ -42,8 +52,9 @@ def test_a_second_dit_register_reuses_the_first_ones_programs(tmp_path):
     first = _register(["--compile-cache", str(cache)])
     entries = {p.relative_to(cache) for p in cache.rglob("*")}
     assert len(entries) >= 3  # the registration and the small programs around it
-    assert [p.name for p in (cache / "exported").iterdir() if p.name.startswith("register-")], \
+    assert [p.name for p in (cache / "exported").iterdir() if p.name.startswith("register-")], (
         "the network's traced program is kept too"
+    )
     second = _register(["--compile-cache", str(cache)])
     assert {p.relative_to(cache) for p in cache.rglob("*")} == entries
     assert second == first

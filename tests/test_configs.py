@@ -8,7 +8,10 @@ def test_paper_config_matches_the_paper():
     assert (c.emb_dims, c.token_dim, c.n_blocks, c.ff_dims, c.n_heads, c.k, c.n_iters) == (512, 64, 12, 1024, 4, 20, 3)
     assert (c.gmcce_k, c.gmcce_sharpness) == (10, 30.0)
     assert [configs.paper(s).gmcce_threshold for s in ("clean", "low_noise_partial", "high_noise_partial")] == [
-        0.99, 0.9, 0.6]
+        0.99,
+        0.9,
+        0.6,
+    ]
 
 
 def test_configs_are_hashable_values():
@@ -26,6 +29,7 @@ def test_invalid_configs_say_what_is_wrong():
 
 
 def test_from_authors_reads_their_argument_names():
-    c = configs.from_authors("{'n_emb_dims': 128, 'token_dim': 16, 'n_blocks': 2, 'n_ff_dims': 256, "
-                             "'n_heads': 4, 'k': 20, 'n_points': 256}")
+    c = configs.from_authors(
+        "{'n_emb_dims': 128, 'token_dim': 16, 'n_blocks': 2, 'n_ff_dims': 256, 'n_heads': 4, 'k': 20, 'n_points': 256}"
+    )
     assert (c.emb_dims, c.token_dim, c.n_blocks, c.ff_dims) == (128, 16, 2, 256)

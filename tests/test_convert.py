@@ -1,8 +1,8 @@
 import jax
 import numpy as np
 import pytest
-
 from conftest import TEST_DATA
+
 from dit_jax import checkpoint, configs, convert, model, torch_pickle
 
 
@@ -24,11 +24,10 @@ def test_round_trip_through_the_authors_names():
 
 def test_reference_file_weights_convert_and_unused_ones_are_dropped(reference_data):
     config = configs.from_authors(str(reference_data["config"]))
-    sd = {k[len("param/"):]: v for k, v in reference_data.items() if k.startswith("param/")}
+    sd = {k[len("param/") :]: v for k, v in reference_data.items() if k.startswith("param/")}
     params = convert.from_torch_state_dict(sd, config)
     # Linear weights are transposed: PyTorch's (out, in) becomes Flax's (in, out).
-    np.testing.assert_array_equal(params["positional_encoding"]["fc0"]["kernel"],
-                                  sd["Position_encoding.PE.0.weight"].T)
+    np.testing.assert_array_equal(params["positional_encoding"]["fc0"]["kernel"], sd["Position_encoding.PE.0.weight"].T)
     assert "project" not in params["pse"]
     assert convert.infer_config(sd) == config.replace(gmcce_threshold=configs.DITConfig().gmcce_threshold)
 

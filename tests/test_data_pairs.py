@@ -4,8 +4,8 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import MODELNET_DIR
+
 from dit_jax.data import pairs
 
 
@@ -93,8 +93,9 @@ def _test_pair_digest(n):
 def test_test_pair_is_bit_identical_across_runs(modelnet_test, prepared_dir):
     pair = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="high_noise_partial"))[17]
     digest = hashlib.sha256(b"".join(pair[k].tobytes() for k in sorted(pair))).hexdigest()
-    other_run = subprocess.run([sys.executable, "-c", _test_pair_digest(17), prepared_dir],
-                               capture_output=True, text=True, timeout=300)
+    other_run = subprocess.run(
+        [sys.executable, "-c", _test_pair_digest(17), prepared_dir], capture_output=True, text=True, timeout=300
+    )
     assert other_run.returncode == 0, other_run.stderr
     assert other_run.stdout.strip() == digest
 
@@ -254,8 +255,9 @@ def test_a_mix_of_one_size_thins_every_setting_to_its_smallest_clouds(modelnet_t
         assert 0.7 < (clean["correspondence"][i] >= 0).mean() < 0.9
     partial = mix.setting_batch("low_noise_partial", np.arange(6))
     np.testing.assert_array_equal(partial["src"], mix.datasets["low_noise_partial"].batch(np.arange(6))["src"])
-    assert pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(
-        np.arange(2))["src"].shape[1] in (800, 1000)
+    assert pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(np.arange(2))["src"].shape[
+        1
+    ] in (800, 1000)
 
 
 def test_samplers_keep_distinct_patterns():
@@ -271,23 +273,32 @@ def test_samplers_keep_distinct_patterns():
 
     shift = {s: [float(np.linalg.norm(kept(s, seed).mean(axis=0))) for seed in range(4)] for s in pairs.SAMPLERS}
     assert min(shift["density"]) > 2 * max(shift["uniform"]), shift
-    closest = {s: min(float(cKDTree(c).query(c, k=2)[0][:, 1].min()) for c in [kept(s, 0)])
-               for s in ("uniform", "farthest")}
+    closest = {
+        s: min(float(cKDTree(c).query(c, k=2)[0][:, 1].min()) for c in [kept(s, 0)]) for s in ("uniform", "farthest")
+    }
     assert closest["farthest"] > 5 * closest["uniform"], closest
     with pytest.raises(ValueError, match="unknown sampler"):
         pairs.sample_points(cloud, 10, np.random.default_rng(0), "voxel")
 
 
 def test_a_varied_mix_thins_each_cloud_its_own_way_and_keeps_counterparts(modelnet_test):
-    mix = pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
-                           one_size=True, points=300, sampling="varied")
+    mix = pairs.MixedPairs(
+        modelnet_test,
+        pairs.PairConfig(n_points=1000),
+        ("clean", "low_noise_partial"),
+        one_size=True,
+        points=300,
+        sampling="varied",
+    )
     assert mix.cloud_points == 300
     _thinned_clean_pairs(mix, 8, 300)
     with pytest.raises(ValueError, match="points"):
-        pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
-                         one_size=True, points=900)
+        pairs.MixedPairs(
+            modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"), one_size=True, points=900
+        )
     # Without one size, points caps each setting: larger clouds are thinned, smaller ones keep their size.
-    capped = pairs.MixedPairs(modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"),
-                              points=900, sampling="varied")
+    capped = pairs.MixedPairs(
+        modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"), points=900, sampling="varied"
+    )
     assert capped.setting_batch("clean", np.arange(2))["src"].shape == (2, 900, 3)
     assert capped.setting_batch("low_noise_partial", np.arange(2))["src"].shape == (2, 800, 3)

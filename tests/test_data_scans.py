@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-
 from conftest import SHARED, random_rotation, write_3dmatch_scene, write_scan_series
+
 from dit_jax.data import scans
 from dit_jax.data.shapes import DataError
 
@@ -51,8 +51,9 @@ def test_dragon_truth_agrees_with_icp(dragon_dir):
     truth = np.eye(4)
     truth[:3, :3], truth[:3, 3] = pair.rotation, pair.translation
     reg = o3d.pipelines.registration
-    icp = reg.registration_icp(cloud(pair.source), cloud(pair.target), 0.005, truth,
-                               reg.TransformationEstimationPointToPoint())
+    icp = reg.registration_icp(
+        cloud(pair.source), cloud(pair.target), 0.005, truth, reg.TransformationEstimationPointToPoint()
+    )
     correction = icp.transformation @ np.linalg.inv(truth)
     moved = np.degrees(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1) / 2, -1, 1)))
     assert moved < 0.5 and icp.fitness > 0.6, (moved, icp.fitness)
@@ -138,9 +139,8 @@ def test_kitchen_fragments_truth_lays_the_overlap_on_itself():
     points lie within a few centimetres of the target (the overlap), far fewer before it."""
     import pathlib
 
-    from scipy.spatial import cKDTree
-
     from conftest import SHARED
+    from scipy.spatial import cKDTree
 
     folder = pathlib.Path(SHARED) / "data" / "3dmatch_redkitchen"
     if not (folder / "3DMatch" / "gt.log").exists():
@@ -170,8 +170,11 @@ def test_a_folder_of_3dmatch_scenes_gives_one_set_per_list_with_the_benchmarks_e
     sets = scans.load_pair_sets(tmp_path)
     assert list(sets) == ["3DMatch"] and sets["3DMatch"].kind == "gt.log"
     pairs = sets["3DMatch"].pairs
-    assert [p.name for p in pairs[:3]] == ["kitchen/cloud_bin_1->cloud_bin_0", "kitchen/cloud_bin_3->cloud_bin_0",
-                                          "kitchen/cloud_bin_3->cloud_bin_1"]
+    assert [p.name for p in pairs[:3]] == [
+        "kitchen/cloud_bin_1->cloud_bin_0",
+        "kitchen/cloud_bin_3->cloud_bin_0",
+        "kitchen/cloud_bin_3->cloud_bin_1",
+    ]
     assert [p.scene for p in pairs] == ["kitchen"] * 3 + ["office"] * 3
     assert [p.consecutive for p in pairs[:3]] == [True, False, False]
     pair = pairs[1]
@@ -179,8 +182,9 @@ def test_a_folder_of_3dmatch_scenes_gives_one_set_per_list_with_the_benchmarks_e
     assert scans.benchmark_rmse(pair.rotation, pair.translation, pair) < 1e-9
     turn = Rotation.from_rotvec([0.05, -0.02, 0.1]).as_matrix()
     rotation, translation = pair.rotation @ turn, pair.translation + [0.1, 0.0, -0.05]
-    error = np.linalg.inv(np.vstack([np.c_[pair.rotation, pair.translation], [0, 0, 0, 1]])) @ \
-        np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]])
+    error = np.linalg.inv(np.vstack([np.c_[pair.rotation, pair.translation], [0, 0, 0, 1]])) @ np.vstack(
+        [np.c_[rotation, translation], [0, 0, 0, 1]]
+    )
     xi = np.concatenate([error[:3, 3], Rotation.from_matrix(error[:3, :3]).as_quat()[:3]])
     expected = np.sqrt(xi @ pair.info @ xi / pair.info[0, 0])
     assert scans.benchmark_rmse(rotation, translation, pair) == pytest.approx(expected, rel=1e-9)
@@ -188,7 +192,8 @@ def test_a_folder_of_3dmatch_scenes_gives_one_set_per_list_with_the_benchmarks_e
     half = Rotation.from_rotvec([0.0, 0.0, np.pi - 1e-4]).as_matrix()
     xi = np.concatenate([np.zeros(3), Rotation.from_matrix(half).as_quat()[:3]])
     assert scans.benchmark_rmse(pair.rotation @ half, pair.translation, pair) == pytest.approx(
-        np.sqrt(xi @ pair.info @ xi / pair.info[0, 0]), rel=1e-6)
+        np.sqrt(xi @ pair.info @ xi / pair.info[0, 0]), rel=1e-6
+    )
     (tmp_path / "office" / "3DMatch" / "gt.info").write_text("0 1 60\n1 2 3\n")
     with pytest.raises(DataError, match="gt.info: expected entries of seven lines"):
         scans.load_pair_sets(tmp_path)
@@ -206,5 +211,6 @@ def test_the_shared_3dmatch_scenes_hold_the_benchmarks_pairs():
     errors = np.array([scans.benchmark_rmse(p.rotation, p.translation, p) for p in sets["3DLoMatch"].pairs])
     # One information matrix of the benchmark's own 3DLoMatch list is all zeros: no error, never registered.
     assert [p.name for p, e in zip(sets["3DLoMatch"].pairs, errors) if np.isnan(e)] == [
-        "home_md/cloud_bin_25->cloud_bin_23"]
+        "home_md/cloud_bin_25->cloud_bin_23"
+    ]
     assert np.nanmax(errors) < 1e-6

@@ -4,8 +4,8 @@ import re
 import h5py
 import numpy as np
 import pytest
-
 from conftest import MODELNET_DIR
+
 from dit_jax.data import shapes
 
 
@@ -47,15 +47,18 @@ def _write_h5_dir(path, points, labels, names=True, key="data"):
     return path
 
 
-@pytest.mark.parametrize("problem,pattern", [
-    ("no_dir", r"no such directory"),
-    ("no_files", r"no ply_data_train\*\.h5 files"),
-    ("missing_key", r"ply_data_train0\.h5: missing key data"),
-    ("few_points", r"holds 64 points per shape, fewer than the 1000 asked"),
-    ("not_finite", r"ply_data_train0\.h5: shape 1 has non-finite coordinates"),
-    ("no_names", r"no shape_names\.txt"),
-    ("not_h5", r"ply_data_train0\.h5: not a readable HDF5 file"),
-])
+@pytest.mark.parametrize(
+    "problem,pattern",
+    [
+        ("no_dir", r"no such directory"),
+        ("no_files", r"no ply_data_train\*\.h5 files"),
+        ("missing_key", r"ply_data_train0\.h5: missing key data"),
+        ("few_points", r"holds 64 points per shape, fewer than the 1000 asked"),
+        ("not_finite", r"ply_data_train0\.h5: shape 1 has non-finite coordinates"),
+        ("no_names", r"no shape_names\.txt"),
+        ("not_h5", r"ply_data_train0\.h5: not a readable HDF5 file"),
+    ],
+)
 def test_bad_sources_give_one_line_errors(tmp_path, problem, pattern):
     points = np.random.default_rng(0).normal(size=(3, 1024, 3)).astype(np.float32)
     labels = np.zeros((3, 1), np.uint8)
@@ -87,6 +90,7 @@ def test_changed_source_is_prepared_again(tmp_path):
     with h5py.File(source / "ply_data_test0.h5", "a") as f:
         f["data"][0] = points[0] + 1.0
     import os
+
     os.utime(source / "ply_data_test0.h5", (1, 1))  # make the change visible even within one second
     second = shapes.load_shapes(source, "test", n_points=16, data_dir=str(tmp_path / "p"))
     np.testing.assert_allclose(second.points[0], first.points[0] + 1.0)
@@ -113,9 +117,14 @@ def test_processes_preparing_the_same_data_at_once_all_get_it(tmp_path):
     import time
 
     start = time.time() + 10.0  # after both interpreters have imported TFDS
-    procs = [subprocess.Popen([sys.executable, "-c", _PREPARE, str(tmp_path / "prepared"), str(start),
-                               str(tmp_path / f"out{i}.npy")], stderr=subprocess.PIPE, text=True)
-             for i in range(3)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _PREPARE, str(tmp_path / "prepared"), str(start), str(tmp_path / f"out{i}.npy")],
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(3)
+    ]
     errors = [p.communicate(timeout=600)[1] for p in procs]
     for p, err in zip(procs, errors):
         assert p.returncode == 0, err[-2000:]

@@ -30,7 +30,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import DRAGON_DIR, MODELNET_DIR, SHARED
 
 THREEDMATCH_DIR = SHARED / "data" / "3dmatch"
@@ -65,7 +64,7 @@ def read_blocks(page: str) -> list[Block]:
             continue
         start, language = i, fence.group(1)
         end = next(j for j in range(i + 1, len(lines)) if lines[j].startswith("```"))
-        code = "\n".join(lines[start + 1:end])
+        code = "\n".join(lines[start + 1 : end])
         i = end + 1
         if language == "text":
             if after_code is not None:  # the output of the block just before (blank lines between at most)
@@ -106,7 +105,9 @@ def same_output(shown: str, printed: str) -> tuple[bool, str]:
 
 
 def _environment(block: Block, work: pathlib.Path) -> dict:
-    env = dict(os.environ, WORK=str(work), PATH=f"{pathlib.Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    env = dict(
+        os.environ, WORK=str(work), PATH=f"{pathlib.Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"
+    )
     needs = block.directives.get("needs", "")
     if "modelnet40" in needs:
         if not MODELNET_DIR.exists():
@@ -181,8 +182,14 @@ def test_every_python_block_runs_and_prints_what_the_page_shows(tmp_path):
     payload = []
     for k, block in enumerate(blocks):
         payload.append({"id": block.id, "code": block.code, "cwd": str(reader_root(tmp_path / f"block{k}"))})
-    proc = subprocess.run([sys.executable, "-c", _DRIVER], input=json.dumps(payload), capture_output=True, text=True,
-                          timeout=900, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", _DRIVER],
+        input=json.dumps(payload),
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads(proc.stdout.strip().split("\n")[-1])
     for block in blocks:
@@ -209,8 +216,7 @@ def test_every_command_runs_and_prints_what_the_page_shows(block, tmp_path):
             # A set-up line: the venv and the install are this session's; the job after them runs here.
             command = command.split(" && ")[-1]
         command = f"{command} {block.directives.get('args', '')}".strip()
-        proc = subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True,
-                              timeout=600)
+        proc = subprocess.run(["bash", "-c", command], cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
         assert proc.returncode == 0, f"{command}: {proc.stderr[-3000:]}"
         printed += proc.stdout
     if block.output is not None:
@@ -231,8 +237,13 @@ def test_the_pages_have_blocks_and_their_outputs():
 
 def test_the_site_builds_in_strict_mode(tmp_path):
     """mkdocs.yml sets strict: a broken link, a missing page or a docstring the API page cannot render fails."""
-    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (tmp_path / "site" / "api" / "index.html").read_text().count("doc-function") > 50
 
@@ -257,5 +268,6 @@ def test_the_generated_tables_are_current():
 
     for name in results_page.TABLES:
         now, generated = results_page.render(name)
-        assert now == generated, f"{results_page.PAGES[name].name}: table {name} is stale; run " \
-                                 "python -m dit_jax.release.results_page"
+        assert now == generated, (
+            f"{results_page.PAGES[name].name}: table {name} is stale; run python -m dit_jax.release.results_page"
+        )

@@ -5,7 +5,8 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, evaluators as evaluation, model, pipeline, registration
+from dit_jax import checkpoint, configs, model, pipeline, registration
+from dit_jax import evaluators as evaluation
 from dit_jax.data import scans as scans_lib
 from dit_jax.evaluators import common, report, synthetic
 from dit_jax.evaluators import scans as scans_evaluator
@@ -15,18 +16,33 @@ from dit_jax.evaluators import scans as scans_evaluator
 def tiny_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "model"
     config = configs.tiny()
-    checkpoint.save(path, model.init(jax.random.key(0), config), config, extra={"inference_settings": {"n_points": 128}})
+    checkpoint.save(
+        path, model.init(jax.random.key(0), config), config, extra={"inference_settings": {"n_points": 128}}
+    )
     return str(path)
 
 
 def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_path, prepared_dir):
     names = ["icp"] if __import__("dit_jax.baselines").baselines.available() else []
     out = tmp_path / "eval"
-    results = evaluation.evaluate(tiny_checkpoint, str(out), settings=("clean", "high_noise_partial"),
-                                  max_pairs=4, baselines=names, prepared_dir=prepared_dir, progress=False,
-                                  gmcce_threshold="authors")
-    assert sorted(os.listdir(out)) == ["registrations.png", "results.json", "results.md", "success_ratio.png",
-                                       "worst_clean.png", "worst_high_noise_partial.png"]
+    evaluation.evaluate(
+        tiny_checkpoint,
+        str(out),
+        settings=("clean", "high_noise_partial"),
+        max_pairs=4,
+        baselines=names,
+        prepared_dir=prepared_dir,
+        progress=False,
+        gmcce_threshold="authors",
+    )
+    assert sorted(os.listdir(out)) == [
+        "registrations.png",
+        "results.json",
+        "results.md",
+        "success_ratio.png",
+        "worst_clean.png",
+        "worst_high_noise_partial.png",
+    ]
     saved = json.loads((out / "results.json").read_text())
     assert saved["n_points"] == 128, "the checkpoint's inference point count is the default"
     for setting in ("clean", "high_noise_partial"):
@@ -68,9 +84,15 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
 def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpoint, tmp_path, prepared_dir):
     """By default one inference setting for every data setting (the checkpoint's own); settings whose clouds
     share no point read every point of the shapes. (Run here with DIT+ICP keeping its better direction.)"""
-    results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean", "scan_high_noise"),
-                                  max_pairs=3, prepared_dir=prepared_dir, progress=False,
-                                  inference={"best_direction": True})
+    results = evaluation.evaluate(
+        tiny_checkpoint,
+        str(tmp_path / "e"),
+        settings=("independent_clean", "scan_high_noise"),
+        max_pairs=3,
+        prepared_dir=prepared_dir,
+        progress=False,
+        inference={"best_direction": True},
+    )
     for setting in ("independent_clean", "scan_high_noise"):
         assert results["setting_info"][setting]["gmcce_threshold"] == configs.tiny().gmcce_threshold
         assert results["settings"][setting]["DIT"]["pairs"] == 3
@@ -80,21 +102,29 @@ def test_evaluate_runs_the_model_as_shipped_on_independent_settings(tiny_checkpo
 
 
 def test_evaluate_scans_writes_a_row_per_pair(tiny_checkpoint, tmp_path):
-    from conftest import random_rotation, write_scan_series
     import numpy as np
+    from conftest import random_rotation, write_scan_series
 
     rng = np.random.default_rng(0)
     write_scan_series(tmp_path, [(random_rotation(rng), rng.normal(size=3)) for _ in range(3)], rng, n_points=300)
-    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path), str(tmp_path / "out"), skips=(1,),
-                                        progress=False)
+    results = evaluation.evaluate_scans(
+        tiny_checkpoint, str(tmp_path), str(tmp_path / "out"), skips=(1,), progress=False
+    )
     rows = results["pair_sets"]["skip1"]["DIT"]["rows"]
     assert [r["pair"] for r in rows] == ["s0->s1", "s1->s2", "s2->s0"]
     assert all(0 <= r["rot_err"] <= 180 and 0 <= r["fitness"] <= 1 for r in rows)
-    assert sorted(os.listdir(tmp_path / "out")) == ["results.json", "results.md", "success_ratio.png", "worst_skip1.png"]
+    assert sorted(os.listdir(tmp_path / "out")) == [
+        "results.json",
+        "results.md",
+        "success_ratio.png",
+        "worst_skip1.png",
+    ]
     assert "| DIT |" in results["table"] and "| DIT+ICP |" in results["table"] and "3 pairs" in results["table"]
     saved = json.loads((tmp_path / "out" / "results.json").read_text())
     strict = evaluation.rescore_agreement(saved, {"none": -1.0, "icp": -1.0})["pair_sets"]["skip1"]
-    assert not any(r["verdict"] for r in strict["DIT"]["rows"]) and strict["DIT+ICP"]["summary"]["verdict"]["passed"] == 0
+    assert (
+        not any(r["verdict"] for r in strict["DIT"]["rows"]) and strict["DIT+ICP"]["summary"]["verdict"]["passed"] == 0
+    )
     assert [r["rot_err"] for r in strict["DIT"]["rows"]] == [r["rot_err"] for r in rows]
 
 
@@ -102,8 +132,8 @@ def test_evaluate_scans_reads_a_single_pair_with_its_benchmark_criterion(tiny_ch
     """A folder of source, target and T_target_source.txt (the LiDAR layout): one pair set, and the table
     counts the pairs registered by the benchmark's criterion (5 degrees, 2 m) beside the error columns."""
     import numpy as np
-
     from conftest import random_rotation
+
     from dit_jax import io
 
     rng = np.random.default_rng(2)
@@ -112,8 +142,14 @@ def test_evaluate_scans_reads_a_single_pair_with_its_benchmark_criterion(tiny_ch
     io.write(tmp_path / "source.ply", cloud)
     io.write(tmp_path / "target.ply", cloud @ rotation.T + translation)
     np.savetxt(tmp_path / "T_target_source.txt", np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]))
-    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path), str(tmp_path / "out"), progress=False,
-                                        inference={"refine": "none"}, worst_pairs=False)
+    results = evaluation.evaluate_scans(
+        tiny_checkpoint,
+        str(tmp_path),
+        str(tmp_path / "out"),
+        progress=False,
+        inference={"refine": "none"},
+        worst_pairs=False,
+    )
     summary = results["pair_sets"]["pair"]["DIT"]["summary"]
     row = results["pair_sets"]["pair"]["DIT"]["rows"][0]
     assert summary["registered"] == int(row["rot_err"] <= 5.0 and row["trans_err"] <= 2.0)
@@ -126,14 +162,16 @@ def test_evaluate_scans_scores_a_folder_of_3dmatch_scenes_as_the_benchmark_does(
     consecutive; the summary's recall counts the non-consecutive pairs within 0.2 (pooled and per scene), the
     pipeline's levels how often each was right; a seeded sample takes pairs from every scene."""
     from conftest import write_3dmatch_scene
+
     from dit_jax.data.scans import BENCHMARK_RMSE
 
     rng = np.random.default_rng(5)
     world = rng.normal(size=(300, 3)) * [2.0, 1.5, 1.0]
     for scene in ("a", "b"):
         write_3dmatch_scene(tmp_path / "scenes" / scene, world, rng)
-    results = evaluation.evaluate_scans(tiny_checkpoint, str(tmp_path / "scenes"), str(tmp_path / "out"),
-                                        progress=False, worst_pairs=False)
+    results = evaluation.evaluate_scans(
+        tiny_checkpoint, str(tmp_path / "scenes"), str(tmp_path / "out"), progress=False, worst_pairs=False
+    )
     done = results["pair_sets"]["3DMatch"]
     for method in ("DIT", "pipeline"):
         rows, bench = done[method]["rows"], done[method]["summary"]["benchmark"]
@@ -153,21 +191,46 @@ def test_evaluate_scans_scores_a_folder_of_3dmatch_scenes_as_the_benchmark_does(
 
 def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, tmp_path, capsys):
     """--n-points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
-    import evaluate
-    from conftest import random_rotation, write_scan_series
     import numpy as np
+    from conftest import random_rotation, write_scan_series
+
+    import evaluate
 
     rng = np.random.default_rng(1)
     write_scan_series(tmp_path, [(random_rotation(rng), rng.normal(size=3)) for _ in range(2)], rng, n_points=300)
     out = tmp_path / "out"
-    assert evaluate.main(["--checkpoint", tiny_checkpoint, "--scans", str(tmp_path), "--skips", "1", "--n-points",
-                          "96", "--iters", "2", "--refine", "none", "--out", str(out), "--no-progress"]) == 0
+    assert (
+        evaluate.main(
+            [
+                "--checkpoint",
+                tiny_checkpoint,
+                "--scans",
+                str(tmp_path),
+                "--skips",
+                "1",
+                "--n-points",
+                "96",
+                "--iters",
+                "2",
+                "--refine",
+                "none",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     dit = json.loads((out / "results.json").read_text())["dit"]
     assert (dit["n_points"], dit["n_iters"], dit["inference_settings"]["refine"]) == (96, 2, "none")
     assert "DIT sees 96 points of each scan" in (out / "results.md").read_text()
-    for argv in (["--scans", str(tmp_path), "--no-verdict"], ["--scans", str(tmp_path), "--unseen"],
-                 ["--scans", str(tmp_path), "--angle-sweep"],
-                 ["--angle-sweep", "--iters", "2"], ["--skips", "3"]):
+    for argv in (
+        ["--scans", str(tmp_path), "--no-verdict"],
+        ["--scans", str(tmp_path), "--unseen"],
+        ["--scans", str(tmp_path), "--angle-sweep"],
+        ["--angle-sweep", "--iters", "2"],
+        ["--skips", "3"],
+    ):
         with pytest.raises(SystemExit):
             evaluate.main(argv + ["--out", str(tmp_path / "refused")])
         assert "does not apply" in capsys.readouterr().err
@@ -178,8 +241,9 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
 
 
 def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
-    results = evaluation.angle_sweep(tiny_checkpoint, str(tmp_path), angles=(0, 90), pairs_per_angle=2,
-                                     unseen=False, progress=False)
+    results = evaluation.angle_sweep(
+        tiny_checkpoint, str(tmp_path), angles=(0, 90), pairs_per_angle=2, unseen=False, progress=False
+    )
     assert set(results["angles"]) == {0.0, 90.0} and all(len(r["errors"]) == 2 for r in results["angles"].values())
     assert all(len(r["icp"]["errors"]) == 2 for r in results["angles"].values())
     assert (tmp_path / "angle_sweep.png").exists() and "| 90 |" in results["table"] and "DIT+ICP" in results["table"]
@@ -205,19 +269,43 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
 
 def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch, prepared_dir):
     pytest.importorskip("open3d", reason="the baselines need Open3D")
-    first = evaluation.evaluate(None, str(tmp_path / "a"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                                prepared_dir=prepared_dir, progress=False)
+    first = evaluation.evaluate(
+        None,
+        str(tmp_path / "a"),
+        settings=("clean",),
+        max_pairs=3,
+        baselines=["icp"],
+        prepared_dir=prepared_dir,
+        progress=False,
+    )
 
     def never(*args, **kwargs):
         raise AssertionError("a reused baseline was run again")
 
     monkeypatch.setattr(synthetic, "predict_baseline", never)
-    again = evaluation.evaluate(None, str(tmp_path / "b"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                                prepared_dir=prepared_dir, progress=False, reuse=str(tmp_path / "a"))
+    again = evaluation.evaluate(
+        None,
+        str(tmp_path / "b"),
+        settings=("clean",),
+        max_pairs=3,
+        baselines=["icp"],
+        prepared_dir=prepared_dir,
+        progress=False,
+        reuse=str(tmp_path / "a"),
+    )
     assert again["settings"]["clean"]["icp"] == json.loads(json.dumps(first["settings"]["clean"]["icp"]))
     with pytest.raises(ValueError, match="made on other pairs"):
-        evaluation.evaluate(None, str(tmp_path / "c"), settings=("clean",), max_pairs=3, baselines=["icp"],
-                            prepared_dir=prepared_dir, progress=False, reuse=str(tmp_path / "a"), unseen=True)
+        evaluation.evaluate(
+            None,
+            str(tmp_path / "c"),
+            settings=("clean",),
+            max_pairs=3,
+            baselines=["icp"],
+            prepared_dir=prepared_dir,
+            progress=False,
+            reuse=str(tmp_path / "a"),
+            unseen=True,
+        )
 
 
 def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_path, prepared_dir):
@@ -227,9 +315,17 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
 
     baselines = __import__("dit_jax.baselines").baselines
     names = ["fpfh_ransac_icp"] if baselines.available() else []
-    results = evaluation.evaluate(registration.shipped_weights(), str(tmp_path / "e"), settings=("clean",),
-                                  max_pairs=4, baselines=names, prepared_dir=prepared_dir, progress=False,
-                                  worst_pairs=False, inference={"verdict_rule": "fitness"})
+    results = evaluation.evaluate(
+        registration.shipped_weights(),
+        str(tmp_path / "e"),
+        settings=("clean",),
+        max_pairs=4,
+        baselines=names,
+        prepared_dir=prepared_dir,
+        progress=False,
+        worst_pairs=False,
+        inference={"verdict_rule": "fitness"},
+    )
     rows = results["settings"]["clean"]
     assert rows["DIT"]["rot_iso"] < 0.01
     assert rows["DIT+ICP"]["rot_iso"] <= rows["DIT"]["rot_iso"] + 1e-6
@@ -241,11 +337,13 @@ def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_
 
 
 def test_refinement_summary_counts_the_pairs_dit_had_close():
-    summary = common.refinement_summary(__import__("numpy").array([2.0, 20.0, 8.0]),
-                                            __import__("numpy").array([0.5, 30.0, 1.5]))
+    summary = common.refinement_summary(
+        __import__("numpy").array([2.0, 20.0, 8.0]), __import__("numpy").array([0.5, 30.0, 1.5])
+    )
     assert (summary["good"], summary["good_within_goal"], summary["good_worst_after"]) == (2, 1, 1.5)
-    assert summary["mean_before"] == 10.0 and "2 pairs DIT alone had within 10 deg, 1 end" in \
-        report.refinement_line(summary)
+    assert summary["mean_before"] == 10.0 and "2 pairs DIT alone had within 10 deg, 1 end" in report.refinement_line(
+        summary
+    )
 
 
 def test_refinement_summary_tells_misses_the_data_place_elsewhere():
@@ -264,8 +362,10 @@ def test_worst_pairs_picture_leaves_out_reused_methods_without_their_worst_pair(
 
     rng = np.random.default_rng(0)
     pair = {"src": rng.normal(size=(32, 3)), "tgt": rng.normal(size=(32, 3)), "R": np.eye(3), "t": np.zeros(3)}
-    scored = {"DIT": {"worst": {"pair": 0, "rot_err": 3.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}},
-              "icp": {"rot_iso": 1.0}}
+    scored = {
+        "DIT": {"worst": {"pair": 0, "rot_err": 3.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}},
+        "icp": {"rot_iso": 1.0},
+    }
     path = tmp_path / "worst.png"
     missing = report.plot_worst_pairs([pair], scored, str(path), "worst pairs")
     assert missing == ["icp"]
@@ -280,19 +380,30 @@ def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_pa
     import jax.numpy as jnp
 
     from dit_jax import metrics
-    from dit_jax.data import pairs as pairs_lib, shapes as shapes_lib
+    from dit_jax.data import pairs as pairs_lib
+    from dit_jax.data import shapes as shapes_lib
 
     registrar = registration.load(tiny_checkpoint)
-    results = evaluation.evaluate(tiny_checkpoint, str(tmp_path / "e"), settings=("independent_clean",),
-                                  max_pairs=1, prepared_dir=prepared_dir, progress=False, worst_pairs=False)
+    results = evaluation.evaluate(
+        tiny_checkpoint,
+        str(tmp_path / "e"),
+        settings=("independent_clean",),
+        max_pairs=1,
+        prepared_dir=prepared_dir,
+        progress=False,
+        worst_pairs=False,
+    )
     n_points = registrar.settings.n_points
-    shapes = shapes_lib.load_shapes(None, "test", data_dir=prepared_dir,
-                                    n_points=pairs_lib.shape_points(None, n_points, ["independent_clean"]))
+    shapes = shapes_lib.load_shapes(
+        None, "test", data_dir=prepared_dir, n_points=pairs_lib.shape_points(None, n_points, ["independent_clean"])
+    )
     pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=n_points))[0]
     result = registrar.register(pair["src"], pair["tgt"])
     rows = results["settings"]["independent_clean"]
     for method, motion in (("DIT+ICP", result), ("DIT", result.network)):
         # the metric evaluate.py scores with, on the motion register returned
-        expected = float(metrics.rotation_error_deg(jnp.asarray(motion.rotation[None]), jnp.asarray(pair["R"][None]))[0])
+        expected = float(
+            metrics.rotation_error_deg(jnp.asarray(motion.rotation[None]), jnp.asarray(pair["R"][None]))[0]
+        )
         assert rows[method]["per_pair"]["rot_err"][0] == pytest.approx(expected, abs=1e-4), method
     assert rows["DIT+ICP"]["per_pair"]["agreement"][0] == pytest.approx(result.agreement, abs=1e-4)

@@ -2,8 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import random_rotation
+
 from dit_jax import geometry
 
 
@@ -116,8 +116,11 @@ def test_compose_and_apply_transform_agree():
     ta, tb = (jnp.asarray(rng.normal(size=3), jnp.float32) for _ in range(2))
     x = jnp.asarray(rng.normal(size=(10, 3)), jnp.float32)
     r, t = geometry.compose(ra, ta, rb, tb)
-    np.testing.assert_allclose(geometry.apply_transform(r, t, x),
-                               geometry.apply_transform(ra, ta, geometry.apply_transform(rb, tb, x)), atol=1e-5)
+    np.testing.assert_allclose(
+        geometry.apply_transform(r, t, x),
+        geometry.apply_transform(ra, ta, geometry.apply_transform(rb, tb, x)),
+        atol=1e-5,
+    )
 
 
 def test_rotation_derivative_matches_finite_differences_and_stays_finite():
@@ -147,6 +150,7 @@ def test_cube_rotations_are_the_24_proper_turns_of_a_cube_and_cover_every_rotati
     flat = {tuple(t.ravel()) for t in turns}
     assert len(flat) == 24 and all(tuple((a @ b).ravel()) in flat for a in turns for b in turns)
     rng = np.random.default_rng(0)
-    nearest = [min(geometry.rotation_angle_deg(t.T @ r) for t in turns)
-               for r in (random_rotation(rng) for _ in range(2000))]
+    nearest = [
+        min(geometry.rotation_angle_deg(t.T @ r) for t in turns) for r in (random_rotation(rng) for _ in range(2000))
+    ]
     assert max(nearest) <= 62.8 and max(nearest) > 50.0

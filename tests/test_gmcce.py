@@ -1,8 +1,8 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-
 from conftest import random_rotation
+
 from dit_jax import gmcce
 
 #: GMCCE's weights as the registration's program computes them, jitted: one compiled program for the

@@ -53,8 +53,13 @@ def test_matches_open3d_point_to_point():
     start = np.eye(4)
     reg = o3d.pipelines.registration
     clouds = [o3d.geometry.PointCloud(o3d.utility.Vector3dVector(x)) for x in (src, tgt)]
-    theirs = reg.registration_icp(*clouds, 0.3, start, reg.TransformationEstimationPointToPoint(),
-                                  reg.ICPConvergenceCriteria(1e-10, 1e-10, max_iteration=500)).transformation
+    theirs = reg.registration_icp(
+        *clouds,
+        0.3,
+        start,
+        reg.TransformationEstimationPointToPoint(),
+        reg.ICPConvergenceCriteria(1e-10, 1e-10, max_iteration=500),
+    ).transformation
     ours = icp.icp(src, tgt, distances=0.3, max_iterations=500, tolerance=1e-10)
     assert rotation_angle_deg(ours.rotation.T @ theirs[:3, :3]) < 1e-3
     assert np.abs(ours.translation - theirs[:3, 3]).max() < 1e-4
@@ -135,8 +140,9 @@ def test_refine_refuses_to_move_points_further_than_max_shift():
     kept = icp.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3), max_shift=moved / 2)
     np.testing.assert_array_equal(kept.rotation, start)
     assert kept.iterations == 0 and np.isfinite(kept.rmse)
-    scaled = icp.refine(points[:2000] * 10, (points[2000:] @ truth.T) * 10, start, np.zeros(3), scale=10.0,
-                        max_shift=2 * moved)  # the limit is in radii: 10x larger clouds, same decision
+    scaled = icp.refine(
+        points[:2000] * 10, (points[2000:] @ truth.T) * 10, start, np.zeros(3), scale=10.0, max_shift=2 * moved
+    )  # the limit is in radii: 10x larger clouds, same decision
     assert rotation_angle_deg(scaled.rotation.T @ truth) < 1.5 and scaled.iterations > 0
 
 
@@ -200,8 +206,7 @@ def test_refine_never_hands_back_a_worse_fit_than_its_start():
     for angle in (0.0, 2.0, 15.0):
         start = euler_zyx_to_matrix([angle, 0.0, 0.0]) @ truth
         result = icp.refine(src, tgt, start, t)
-        assert (icp.trimmed_fit(src, tree, result.rotation, result.translation)
-                <= icp.trimmed_fit(src, tree, start, t))
+        assert icp.trimmed_fit(src, tree, result.rotation, result.translation) <= icp.trimmed_fit(src, tree, start, t)
 
 
 def _box_views(seed: int):
@@ -242,8 +247,11 @@ def test_searched_descents_side_by_side_give_the_serial_result():
         threaded = icp.refine(src, tgt, start, shifted, workers=workers)
         np.testing.assert_array_equal(threaded.rotation, serial.rotation)
         np.testing.assert_array_equal(threaded.translation, serial.translation)
-        assert (threaded.fitness, threaded.rmse, threaded.iterations) == (serial.fitness, serial.rmse,
-                                                                          serial.iterations)
+        assert (threaded.fitness, threaded.rmse, threaded.iterations) == (
+            serial.fitness,
+            serial.rmse,
+            serial.iterations,
+        )
 
 
 def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
@@ -258,7 +266,7 @@ def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
     np.testing.assert_allclose(together, [icp.trimmed_fit(src, tree, rotation, s) for s in shifts], rtol=1e-12)
     capped = icp.trimmed_fit(src, tree, rotation, shifts, cap=0.1)
     np.testing.assert_allclose(capped[:2], together[:2], rtol=1e-12)  # every counted gap is under the cap
-    assert together[2] > capped[2] and capped[2] <= 0.1 ** 2  # half a radius off: far gaps count as the cap
+    assert together[2] > capped[2] and capped[2] <= 0.1**2  # half a radius off: far gaps count as the cap
 
 
 def test_best_start_keeps_the_first_unless_another_fits_clearly_better():
@@ -310,7 +318,8 @@ def test_gicp_refinement_never_fits_worse_than_its_start():
     result = icp.refine_gicp(src, tgt, start, np.zeros(3), threads=1)
     tree = cKDTree(tgt)
     assert icp.trimmed_fit(src, tree, result.rotation, result.translation) <= icp.trimmed_fit(
-        src, tree, start, np.zeros(3))
+        src, tree, start, np.zeros(3)
+    )
     if result.iterations == 0:
         np.testing.assert_array_equal(result.rotation, start)
 

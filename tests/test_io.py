@@ -15,9 +15,21 @@ def cloud() -> np.ndarray:
     return np.random.default_rng(0).normal(size=(257, 3)) * [3.0, 0.5, 100.0] + [1000.0, -2.0, 0.25]
 
 
-@pytest.mark.parametrize("name,binary", [("a.ply", True), ("a.ply", False), ("a.pcd", True), ("a.pcd", False),
-                                         ("a.xyz", False), ("a.txt", False), ("a.csv", False), ("a.asc", False),
-                                         ("a.pts", False), ("a.npy", True)])
+@pytest.mark.parametrize(
+    "name,binary",
+    [
+        ("a.ply", True),
+        ("a.ply", False),
+        ("a.pcd", True),
+        ("a.pcd", False),
+        ("a.xyz", False),
+        ("a.txt", False),
+        ("a.csv", False),
+        ("a.asc", False),
+        ("a.pts", False),
+        ("a.npy", True),
+    ],
+)
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_round_trip_every_format(tmp_path, cloud, name, binary, dtype):
     points = cloud.astype(dtype)
@@ -33,9 +45,16 @@ def test_round_trip_every_format(tmp_path, cloud, name, binary, dtype):
     assert os.stat(path).st_mode & 0o777 == 0o666 & ~mask  # an ordinary file, not mkstemp's private one
 
 
-@pytest.mark.parametrize("name,kwargs", [("o.ply", {"write_ascii": True}), ("o.ply", {"write_ascii": False}),
-                                         ("o.pcd", {"write_ascii": True}), ("o.pcd", {"write_ascii": False}),
-                                         ("o.xyz", {})])
+@pytest.mark.parametrize(
+    "name,kwargs",
+    [
+        ("o.ply", {"write_ascii": True}),
+        ("o.ply", {"write_ascii": False}),
+        ("o.pcd", {"write_ascii": True}),
+        ("o.pcd", {"write_ascii": False}),
+        ("o.xyz", {}),
+    ],
+)
 def test_reads_files_written_by_open3d(tmp_path, cloud, name, kwargs):
     o3d = pytest.importorskip("open3d", reason="cross-checking file formats needs open3d (the test extra)")
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud))
@@ -56,15 +75,21 @@ def test_open3d_reads_our_files(tmp_path, cloud, name):
 def test_ply_extra_properties_and_elements_are_skipped(tmp_path):
     """Properties around x, y, z are skipped, and so are other elements; faces that list no vertices (an
     ``element face 0``, as MeshLab writes clouds, or a face element without ``vertex_indices``) leave a cloud."""
-    for faces in ("element face 0\nproperty list uchar int vertex_indices\n",
-                  "element face 1\nproperty list uchar int other_list\n"):
-        text = ("ply\nformat ascii 1.0\ncomment a cloud\nelement vertex 3\nproperty float nx\nproperty float x\n"
-                "property float y\nproperty float z\nproperty uchar red\n" + faces + "end_header\n"
-                "9 1 2 3 255\n9 4 5 6 0\n9 7 8 9 1\n" + ("3 0 1 2\n" if "1" in faces.split()[2] else ""))
+    for faces in (
+        "element face 0\nproperty list uchar int vertex_indices\n",
+        "element face 1\nproperty list uchar int other_list\n",
+    ):
+        text = (
+            "ply\nformat ascii 1.0\ncomment a cloud\nelement vertex 3\nproperty float nx\nproperty float x\n"
+            "property float y\nproperty float z\nproperty uchar red\n" + faces + "end_header\n"
+            "9 1 2 3 255\n9 4 5 6 0\n9 7 8 9 1\n" + ("3 0 1 2\n" if "1" in faces.split()[2] else "")
+        )
         (tmp_path / "m.ply").write_text(text)
         np.testing.assert_array_equal(io.read(tmp_path / "m.ply"), [[1, 2, 3], [4, 5, 6], [7, 8, 9]])
-    header = (b"ply\nformat binary_little_endian 1.0\nelement face 0\nproperty list uchar int vertex_indices\n"
-              b"element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    header = (
+        b"ply\nformat binary_little_endian 1.0\nelement face 0\nproperty list uchar int vertex_indices\n"
+        b"element vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
     (tmp_path / "b.ply").write_bytes(header + np.eye(3, dtype="<f4").tobytes())  # an empty list element first
     np.testing.assert_array_equal(io.read(tmp_path / "b.ply"), np.eye(3))
 
@@ -78,18 +103,21 @@ def test_an_ascii_range_scan_reads_its_vertices_as_plyfile_does(tmp_path):
     rng = np.random.default_rng(0)
     points = rng.normal(size=(50, 3)).astype(np.float32) * 0.1
     rows = "".join(f"{x:.7g} {y:.7g} {z:.7g} \n" for x, y, z in points)
-    grid = "".join("1 %d\n" % i if i % 3 else "0\n" for i in range(60))
-    header = ("ply\nformat ascii 1.0\nobj_info num_cols 10\nelement vertex 50\nproperty float x\n"
-              "property float y\nproperty float z\nelement range_grid 60\nproperty list uchar int vertex_indices\n"
-              "end_header\n")
+    grid = "".join(f"1 {i}\n" if i % 3 else "0\n" for i in range(60))
+    header = (
+        "ply\nformat ascii 1.0\nobj_info num_cols 10\nelement vertex 50\nproperty float x\n"
+        "property float y\nproperty float z\nelement range_grid 60\nproperty list uchar int vertex_indices\n"
+        "end_header\n"
+    )
     (tmp_path / "scan.ply").write_text(header + rows + grid)
     data = PlyData.read(str(tmp_path / "scan.ply"))["vertex"].data
     expected = np.stack([data[a] for a in "xyz"], axis=1).astype(np.float64)
     np.testing.assert_array_equal(io.read(tmp_path / "scan.ply"), expected)
     assert io.read(tmp_path / "scan.ply", max_points=20, return_count=True)[1] == 50
     first_grid = header.replace("element vertex 50\nproperty float x\nproperty float y\nproperty float z\n", "")
-    first_grid = first_grid.replace("end_header", "element vertex 50\nproperty float x\nproperty float y\n"
-                                                  "property float z\nend_header")
+    first_grid = first_grid.replace(
+        "end_header", "element vertex 50\nproperty float x\nproperty float y\nproperty float z\nend_header"
+    )
     (tmp_path / "grid_first.ply").write_text(first_grid + grid + rows)
     np.testing.assert_array_equal(io.read(tmp_path / "grid_first.ply"), expected)
     (tmp_path / "short.ply").write_text(header + rows.replace(" \n", "\n", 1).split("\n", 1)[1] + grid)
@@ -98,8 +126,10 @@ def test_an_ascii_range_scan_reads_its_vertices_as_plyfile_does(tmp_path):
 
 
 def test_big_endian_ply(tmp_path, cloud):
-    header = "ply\nformat binary_big_endian 1.0\nelement vertex 257\nproperty double x\nproperty double y\n" \
-             "property double z\nend_header\n"
+    header = (
+        "ply\nformat binary_big_endian 1.0\nelement vertex 257\nproperty double x\nproperty double y\n"
+        "property double z\nend_header\n"
+    )
     (tmp_path / "b.ply").write_bytes(header.encode() + cloud.astype(">f8").tobytes())
     np.testing.assert_array_equal(io.read(tmp_path / "b.ply"), cloud)
 
@@ -112,9 +142,11 @@ def test_text_with_comments_commas_and_extra_columns(tmp_path):
 def test_text_headers_as_other_tools_write_them(tmp_path):
     """A first line of column names (CSV, CloudCompare's ``//X,Y,Z``) or a lone point count (.pts) is
     skipped; the same on a later line, or a first line of one or two numbers, is an error."""
-    for name, text in [("names.csv", "x,y,z,intensity\n1,2,3,7\n4,5,6,8\n"),
-                       ("cc.asc", "//X,Y,Z,R,G,B\n1 2 3 0 0 0\n4 5 6 0 0 0\n"),
-                       ("scan.pts", "2\n1 2 3 -1500 10 20 30\n4 5 6 -1400 10 20 30\n")]:
+    for name, text in [
+        ("names.csv", "x,y,z,intensity\n1,2,3,7\n4,5,6,8\n"),
+        ("cc.asc", "//X,Y,Z,R,G,B\n1 2 3 0 0 0\n4 5 6 0 0 0\n"),
+        ("scan.pts", "2\n1 2 3 -1500 10 20 30\n4 5 6 -1400 10 20 30\n"),
+    ]:
         (tmp_path / name).write_text(text)
         np.testing.assert_array_equal(io.read(tmp_path / name), [[1, 2, 3], [4, 5, 6]], err_msg=name)
     (tmp_path / "two_headers.csv").write_text("x,y,z\nX,Y,Z\n1,2,3\n")
@@ -197,6 +229,7 @@ def test_nonfinite_points_are_left_out_on_request(tmp_path, cloud, name):
     assert sub.shape == (100, 3) and total == finite.sum() and np.isfinite(sub).all()
     assert (sub[:, None] == back[None]).all(axis=2).any(axis=1).all()
     import warnings
+
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no warning where nothing is left out
         io.write(tmp_path / ("whole" + name[1:]), cloud)
@@ -216,8 +249,10 @@ def test_compressed_pcd_as_open3d_writes_it(tmp_path, cloud):
     assert o3d.io.write_point_cloud(path, o3d_cloud, write_ascii=False, compressed=True)
     assert b"DATA binary_compressed" in open(path, "rb").read(400)
     np.testing.assert_array_equal(io.read(path), points.astype(np.float32))
-    np.testing.assert_array_equal(io.read(path, max_points=20, seed=3), io.read(path)[
-        np.sort(np.random.default_rng(3).choice(len(points), 20, replace=False))])
+    np.testing.assert_array_equal(
+        io.read(path, max_points=20, seed=3),
+        io.read(path)[np.sort(np.random.default_rng(3).choice(len(points), 20, replace=False))],
+    )
 
 
 @pytest.mark.parametrize("version,point_format", [("1.2", 0), ("1.2", 3), ("1.4", 6), ("1.4", 8)])
@@ -245,8 +280,9 @@ def test_las_files_as_laspy_writes_them(tmp_path, cloud, version, point_format):
         io.write(tmp_path / "e.las", cloud)  # read only
 
 
-@pytest.mark.parametrize("kwargs", [{"write_ascii": True}, {"write_ascii": False},
-                                    {"write_ascii": False, "compressed": True}])
+@pytest.mark.parametrize(
+    "kwargs", [{"write_ascii": True}, {"write_ascii": False}, {"write_ascii": False, "compressed": True}]
+)
 def test_a_moved_pcd_keeps_its_fields_and_moves_its_viewpoint(tmp_path, cloud, kwargs):
     o3d = pytest.importorskip("open3d", reason="cross-checking PCD files needs open3d (the test extra)")
     from dit_jax.data.pairs import euler_zyx_to_matrix
@@ -266,8 +302,9 @@ def test_a_moved_pcd_keeps_its_fields_and_moves_its_viewpoint(tmp_path, cloud, k
     rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([5.0, -1.0, 0.25])
     io.move_file(tmp_path / "a.pcd", tmp_path / "m.pcd", rotation, translation)
     moved = o3d.io.read_point_cloud(str(tmp_path / "m.pcd"))
-    np.testing.assert_allclose(np.asarray(moved.points), np.asarray(original.points) @ rotation.T + translation,
-                               atol=1e-4)  # float32 fields
+    np.testing.assert_allclose(
+        np.asarray(moved.points), np.asarray(original.points) @ rotation.T + translation, atol=1e-4
+    )  # float32 fields
     np.testing.assert_allclose(np.asarray(moved.normals), np.asarray(original.normals) @ rotation.T, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(moved.colors), np.asarray(original.colors))
     header = (tmp_path / "m.pcd").read_bytes().split(b"\nDATA ")[0].decode().splitlines()
@@ -286,8 +323,10 @@ def test_files_that_cannot_be_moved_are_refused_and_nothing_is_written(tmp_path)
     bad = {
         "short_row.ply": (head.format("float") + "1 2 3\n4 5\n", "row 1: property 'z': early end-of-line"),
         "integers.ply": (head.format("int") + "1 2 3\n4 5 6\n", "stored as integers would be rounded"),
-        "flat.pcd": ("VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\n"
-                     "DATA ascii\n1 2\n", "no z field"),
+        "flat.pcd": (
+            "VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n",
+            "no z field",
+        ),
         "word.ply": (head.format("float") + "1 2 3\n4 5 a\n", "malformed input"),
     }
     for name, (text, fragment) in bad.items():
@@ -344,26 +383,36 @@ def _box_mesh_files(tmp_path):
     off += "".join(f"4 {' '.join(map(str, quad))} 255 0 0\n" for quad in quads)  # with a colour
     (tmp_path / "box.off").write_text(off)
     triangles = np.array([[q[0], q[i], q[i + 1]] for q in quads for i in (1, 2)])
-    stl = "solid box\n" + "".join("facet normal 0 0 0\nouter loop\n" + "".join(
-        f"vertex {x:g} {y:g} {z:g}\n" for x, y, z in corners[t]) + "endloop\nendfacet\n" for t in triangles)
+    stl = "solid box\n" + "".join(
+        "facet normal 0 0 0\nouter loop\n"
+        + "".join(f"vertex {x:g} {y:g} {z:g}\n" for x, y, z in corners[t])
+        + "endloop\nendfacet\n"
+        for t in triangles
+    )
     (tmp_path / "box_ascii.stl").write_text(stl + "endsolid box\n")
     record = np.zeros(len(triangles), [("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attribute", "<u2")])
     record["corners"] = corners[triangles]
-    (tmp_path / "box.stl").write_bytes(b"solid: binary files may start so too".ljust(80) +
-                                       np.uint32(len(triangles)).tobytes() + record.tobytes())
+    (tmp_path / "box.stl").write_bytes(
+        b"solid: binary files may start so too".ljust(80) + np.uint32(len(triangles)).tobytes() + record.tobytes()
+    )
     # PLY: the first quad as two triangles (lists of two lengths), normals, colours, a flag before the list
     faces = [quads[0][:3], [quads[0][0], quads[0][2], quads[0][3]]] + quads[1:]
-    header = ("ply\nformat {} 1.0\nelement vertex 8\nproperty {} x\nproperty {} y\nproperty {} z\n"
-              "property float nx\nproperty float ny\nproperty float nz\nproperty uchar red\n"
-              f"element face {len(faces)}\nproperty uchar flags\nproperty list uchar int vertex_indices\n"
-              "element note 1\nproperty int mark\nend_header\n")
+    header = (
+        "ply\nformat {} 1.0\nelement vertex 8\nproperty {} x\nproperty {} y\nproperty {} z\n"
+        "property float nx\nproperty float ny\nproperty float nz\nproperty uchar red\n"
+        f"element face {len(faces)}\nproperty uchar flags\nproperty list uchar int vertex_indices\n"
+        "element note 1\nproperty int mark\nend_header\n"
+    )
     rows = "".join(f"{x:g} {y:g} {z:g} 0 0 1 {i}\n" for i, (x, y, z) in enumerate(corners))
     rows += "".join(f"7 {len(f)} {' '.join(map(str, f))}\n" for f in faces) + "42\n"
     (tmp_path / "box_ascii.ply").write_text(header.format("ascii", *["double"] * 3) + rows)
     vertex = np.zeros(8, [("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("n", ">f4", 3), ("red", "u1")])
     vertex["x"], vertex["y"], vertex["z"], vertex["n"], vertex["red"] = *corners.T, [0, 0, 1], np.arange(8)
-    data = vertex.tobytes() + b"".join(np.array([7, len(f)], "u1").tobytes() + np.array(f, ">i4").tobytes()
-                                       for f in faces) + np.array([42], ">i4").tobytes()
+    data = (
+        vertex.tobytes()
+        + b"".join(np.array([7, len(f)], "u1").tobytes() + np.array(f, ">i4").tobytes() for f in faces)
+        + np.array([42], ">i4").tobytes()
+    )
     (tmp_path / "box.ply").write_bytes(header.format("binary_big_endian", *["float"] * 3).encode() + data)
     return corners, ["box.obj", "box.off", "box_ascii.stl", "box.stl", "box_ascii.ply", "box.ply"]
 
@@ -401,20 +450,21 @@ def test_a_moved_mesh_keeps_all_but_its_coordinates(tmp_path):
         np.testing.assert_allclose(moved_vertices, vertices @ rotation.T + translation, atol=1e-12 if exact else 1e-5)
     text = (tmp_path / "moved_box.obj").read_text().splitlines()
     original = (tmp_path / "box.obj").read_text().splitlines()
-    assert [line for line in text if not line.startswith(("v ", "vn "))] == \
-        [line for line in original if not line.startswith(("v ", "vn "))]  # faces, groups, texture coordinates
+    assert [line for line in text if not line.startswith(("v ", "vn "))] == [
+        line for line in original if not line.startswith(("v ", "vn "))
+    ]  # faces, groups, texture coordinates
     (normal,) = [np.array(line.split()[1:], float) for line in text if line.startswith("vn ")]
     np.testing.assert_allclose(normal, rotation @ [0, 0, 1], atol=1e-12)  # turned, not moved
     assert all(line.endswith(" 255 0 0") for line in (tmp_path / "moved_box.off").read_text().splitlines()[-6:])
     assert (tmp_path / "moved_box.stl").read_bytes()[:84] == (tmp_path / "box.stl").read_bytes()[:84]
     for name in ("box.ply", "box_ascii.ply"):  # PLY: normals turned; colours, flags, faces and the rest kept
         before, after = (tmp_path / name).read_bytes(), (tmp_path / f"moved_{name}").read_bytes()
-        assert len(after) == len(before) if name == "box.ply" else after.endswith(before[before.rindex(b" 7\n"):])
+        assert len(after) == len(before) if name == "box.ply" else after.endswith(before[before.rindex(b" 7\n") :])
         if name == "box.ply":
             start = before.index(b"end_header\n") + 11
-            table = np.frombuffer(after[start:start + 8 * 25], [("xyz", ">f4", 3), ("n", ">f4", 3), ("red", "u1")])
+            table = np.frombuffer(after[start : start + 8 * 25], [("xyz", ">f4", 3), ("n", ">f4", 3), ("red", "u1")])
             np.testing.assert_allclose(table["n"], np.tile(rotation @ [0, 0, 1], (8, 1)), atol=1e-6)
-            assert table["red"].tolist() == list(range(8)) and after[start + 200:] == before[start + 200:]
+            assert table["red"].tolist() == list(range(8)) and after[start + 200 :] == before[start + 200 :]
     lines = (tmp_path / "moved_box_ascii.ply").read_text().splitlines()
     np.testing.assert_allclose(np.array(lines[16].split()[3:6], float), rotation @ [0, 0, 1], atol=1e-6)
     assert lines[16].split()[6] == "0" and lines[:16] == (tmp_path / "box_ascii.ply").read_text().splitlines()[:16]
@@ -435,10 +485,12 @@ def test_text_meshes_with_comments_colours_and_odd_spacing_read_and_move(tmp_pat
     expected = [[0, 1, 2], [0, 2, 3], [0, 1, 4], [1, 2, 4]]
     (tmp_path / "odd.obj").write_text(
         "# top\nv 0 0 0\nv\t1 0 0 # a comment\nv 1  1 0 1.0\nvn 0 0 1\nv 0\u00a01 0\nf 1/1/1 2/2/2 3/3/3 4/4/4\n"
-        "\nv 0.5 0.5 1\nf -5 -4 -1\nf 2//1 3//1 5//1\nl 1 2\n")
+        "\nv 0.5 0.5 1\nf -5 -4 -1\nf 2//1 3//1 5//1\nl 1 2\n"
+    )
     (tmp_path / "odd.off").write_text(
         "COFF\n# counts next\n5 3 0\n0 0 0 9 9 9 1\n\n1 0 0 9 9 9 1 # x\n1 1 0 9 9 9 1\n0\u00a01 0 9 9 9 1\n"
-        "0.5 0.5 1 9 9 9 1\n4 0 1 2 3 255 0 0\n3\t0 1 4\n3 1 2 4 # last\n")
+        "0.5 0.5 1 9 9 9 1\n4 0 1 2 3 255 0 0\n3\t0 1 4\n3 1 2 4 # last\n"
+    )
     rotation, translation = euler_zyx_to_matrix([40.0, 10.0, -25.0]), np.array([0.5, -2.0, 3.0])
     for name in ("odd.obj", "odd.off"):
         vertices, triangles = io.read_mesh(tmp_path / name)
@@ -466,9 +518,24 @@ def test_ascii_stl_and_obj_read_and_move_whatever_their_indentation_case_and_lin
     from dit_jax.data.pairs import euler_zyx_to_matrix
 
     triangles = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 1], [2, 0, 1], [0, 3, 1]]], float)
-    stl = ["solid part", "  facet normal 0 0 1", "    outer loop", "      vertex 0 0 0", "\tvertex 1 0 0",
-           "      vertex 0 1 0", "    endloop", "  endfacet", "FACET NORMAL 0 0 1", "OUTER LOOP",
-           "VERTEX 0 0 1", "VERTEX 2.0e0 0 1", "VERTEX 0 3 1", "ENDLOOP", "ENDFACET", "endsolid part"]
+    stl = [
+        "solid part",
+        "  facet normal 0 0 1",
+        "    outer loop",
+        "      vertex 0 0 0",
+        "\tvertex 1 0 0",
+        "      vertex 0 1 0",
+        "    endloop",
+        "  endfacet",
+        "FACET NORMAL 0 0 1",
+        "OUTER LOOP",
+        "VERTEX 0 0 1",
+        "VERTEX 2.0e0 0 1",
+        "VERTEX 0 3 1",
+        "ENDLOOP",
+        "ENDFACET",
+        "endsolid part",
+    ]
     obj = ["# part", "v 0 0 0", "v 1 0 0", "v 0 1 0", "vn 0 0 1", "f 1 2 3"]
     rotation, translation = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([1.0, 2.0, 3.0])
     for name, lines, unchanged in (("part.stl", stl, [0, 2, 6, 7, 9, 13, 14, 15]), ("part.obj", obj, [0, 5])):
@@ -485,21 +552,26 @@ def test_ascii_stl_and_obj_read_and_move_whatever_their_indentation_case_and_lin
     normal = (tmp_path / "moved_part.stl").read_bytes().decode().split(end)[8].split()
     assert normal[:2] == ["FACET", "NORMAL"]
     np.testing.assert_allclose(np.array(normal[2:], float), rotation @ [0, 0, 1], atol=1e-12)
-    (tmp_path / "short.stl").write_text("solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0\nvertex 1 0 0\n"
-                                        "vertex 0 1 0\nendloop\nendfacet\nendsolid s\n")
+    (tmp_path / "short.stl").write_text(
+        "solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0\nvertex 1 0 0\n"
+        "vertex 0 1 0\nendloop\nendfacet\nendsolid s\n"
+    )
     _bad(tmp_path / "short.stl", "an STL vertex has fewer than three coordinates")
 
 
 def test_an_ascii_stl_with_old_mac_line_ends_is_moved(tmp_path):
     """Lines ended by a lone "\r" are lines too, for reading and for moving alike."""
-    stl = "solid s\rfacet normal 0 0 1\r outer loop\r  vertex 0 0 0\r  vertex 1 0 0\r  vertex 0 1 0\r endloop\r" \
-          "endfacet\rendsolid s\r"
+    stl = (
+        "solid s\rfacet normal 0 0 1\r outer loop\r  vertex 0 0 0\r  vertex 1 0 0\r  vertex 0 1 0\r endloop\r"
+        "endfacet\rendsolid s\r"
+    )
     (tmp_path / "cr.stl").write_bytes(stl.encode())
     rotation, translation = np.eye(3)[[1, 2, 0]], np.array([1.0, 2.0, 3.0])
     io.move_file(tmp_path / "cr.stl", tmp_path / "moved.stl", rotation, translation)
     vertices, faces = io.read_mesh(tmp_path / "moved.stl")
-    np.testing.assert_array_equal(vertices[faces][0], np.array(
-        [[0, 0, 0], [1, 0, 0], [0, 1, 0]]) @ rotation.T + translation)
+    np.testing.assert_array_equal(
+        vertices[faces][0], np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) @ rotation.T + translation
+    )
     assert (tmp_path / "moved.stl").read_bytes().count(b"\r") == stl.count("\r")
 
 
@@ -507,15 +579,17 @@ def test_an_ascii_stl_with_old_mac_line_ends_is_moved(tmp_path):
 def test_a_moved_ascii_ply_finds_its_vertices_after_other_elements(tmp_path, end):
     """Reading and moving an ASCII PLY locate its vertex rows alike: after the header and one line per item
     of every element before them, whatever the line ends."""
-    text = ("ply|format ascii 1.0|element camera 2|property float f|element vertex 3|property double x|"
-            "property double y|property double z|end_header|5|6|1 0 0|0 2 0|0 0 3|").replace("|", end)
+    text = (
+        "ply|format ascii 1.0|element camera 2|property float f|element vertex 3|property double x|"
+        "property double y|property double z|end_header|5|6|1 0 0|0 2 0|0 0 3|"
+    ).replace("|", end)
     (tmp_path / "a.ply").write_bytes(text.encode())
     points = io.read(tmp_path / "a.ply")
     np.testing.assert_array_equal(points, np.diag([1.0, 2.0, 3.0]))
     io.move_file(tmp_path / "a.ply", tmp_path / "m.ply", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
     np.testing.assert_allclose(io.read(tmp_path / "m.ply"), points[:, [1, 2, 0]] + [1.0, 2.0, 3.0])
     after = (tmp_path / "m.ply").read_bytes().decode()
-    assert after.startswith(text[:text.index("1 0 0")]) and after.endswith(end) and after.count(end) == 14
+    assert after.startswith(text[: text.index("1 0 0")]) and after.endswith(end) and after.count(end) == 14
 
 
 def test_meshes_written_by_open3d(tmp_path):
@@ -526,16 +600,22 @@ def test_meshes_written_by_open3d(tmp_path):
         assert o3d.io.write_triangle_mesh(str(tmp_path / name), mesh, write_ascii="ascii" in name)
         vertices, triangles = io.read_mesh(tmp_path / name)
         back = o3d.io.read_triangle_mesh(str(tmp_path / name))
-        np.testing.assert_allclose(vertices[triangles], np.asarray(back.vertices)[np.asarray(back.triangles)],
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            vertices[triangles], np.asarray(back.vertices)[np.asarray(back.triangles)], atol=1e-6
+        )
         io.move_file(tmp_path / name, tmp_path / f"moved_{name}", np.eye(3)[[1, 2, 0]], [1.0, 2.0, 3.0])
         moved = o3d.io.read_triangle_mesh(str(tmp_path / f"moved_{name}"))  # Open3D still reads it
-        np.testing.assert_allclose(np.asarray(moved.vertices)[np.asarray(moved.triangles)],
-                                   vertices[triangles][..., [1, 2, 0]] + [1.0, 2.0, 3.0], atol=1e-5)
+        np.testing.assert_allclose(
+            np.asarray(moved.vertices)[np.asarray(moved.triangles)],
+            vertices[triangles][..., [1, 2, 0]] + [1.0, 2.0, 3.0],
+            atol=1e-5,
+        )
 
 
-_PLY_TRIANGLE = ("ply\nformat {} 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-                 "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+_PLY_TRIANGLE = (
+    "ply\nformat {} 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+)
 
 
 def test_an_obj_of_vertices_alone_is_a_cloud_and_bad_meshes_are_refused(tmp_path, cloud):
@@ -598,11 +678,13 @@ def test_not_three_coordinates(tmp_path):
     _bad(tmp_path / "flat.npy", "not three coordinates")
     (tmp_path / "two.xyz").write_text("1 2 3\n4 5\n")
     _bad(tmp_path / "two.xyz", "not three coordinates", "line 2")
-    (tmp_path / "xy.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
-                                     "property float y\nend_header\n1 2\n")
+    (tmp_path / "xy.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n"
+    )
     _bad(tmp_path / "xy.ply", "not three coordinates", "no z")
-    (tmp_path / "xy.pcd").write_text("VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nWIDTH 1\n"
-                                     "HEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n")
+    (tmp_path / "xy.pcd").write_text(
+        "VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nCOUNT 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n1 2\n"
+    )
     _bad(tmp_path / "xy.pcd", "not three coordinates")
 
 
@@ -621,9 +703,11 @@ def test_malformed_and_truncated_files(tmp_path, cloud):
     header = b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary_compressed\n"
     (tmp_path / "c.pcd").write_bytes(header)
     _bad(tmp_path / "c.pcd", "malformed PCD file")  # no compressed data at all
-    for broken in (np.array([13, 12], "<u4").tobytes() + b"\x0f" + bytes(12),  # a literal run past the data
-                   np.array([2, 12], "<u4").tobytes() + b"\x20\x05",  # a reference before the start
-                   np.array([13, 16], "<u4").tobytes() + b"\x0b" + bytes(12)):  # 16 bytes, not 1 point of 12
+    for broken in (
+        np.array([13, 12], "<u4").tobytes() + b"\x0f" + bytes(12),  # a literal run past the data
+        np.array([2, 12], "<u4").tobytes() + b"\x20\x05",  # a reference before the start
+        np.array([13, 16], "<u4").tobytes() + b"\x0b" + bytes(12),
+    ):  # 16 bytes, not 1 point of 12
         (tmp_path / "c.pcd").write_bytes(header + broken)
         _bad(tmp_path / "c.pcd", "malformed PCD file")
     (tmp_path / "noend.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\n")

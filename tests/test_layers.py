@@ -5,11 +5,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from flax import linen as nn
 
 from dit_jax import layers
-
 
 #: attention as a caller jits it: one compiled program per setting, where op-by-op dispatch would compile
 #: each of its operations.
@@ -49,8 +47,9 @@ def test_attention_gradients_are_those_of_the_formula(head_dims, chunk):
     v = jax.random.normal(keys[2], (33, 4, 5))
     weights = jax.random.normal(keys[3], (40, 4, 5))  # a loss whose cotangent differs per output
     divisor = float(head_dims) ** 0.5
-    ours = lambda q, k, v: jnp.sum(weights * jnp.tanh(layers.attention(q, k, v, divisor, chunk=chunk,
-                                                                        precision="highest")))
+    ours = lambda q, k, v: jnp.sum(
+        weights * jnp.tanh(layers.attention(q, k, v, divisor, chunk=chunk, precision="highest"))
+    )
     plain = lambda q, k, v: jnp.sum(weights * jnp.tanh(_plain_attention(q, k, v, divisor)))
     out = _attention(q, k, v, divisor, chunk=chunk, precision="highest")
     np.testing.assert_allclose(np.asarray(out), np.asarray(_plain_attention(q, k, v, divisor)), atol=1e-5)
@@ -65,8 +64,9 @@ def test_attention_gradients_are_those_of_the_formula(head_dims, chunk):
 def test_bfloat16_attention_gradients_are_bfloat16_and_close():
     q = jax.random.normal(jax.random.PRNGKey(4), (24, 2, 8))
     low = q.astype(jnp.bfloat16)
-    grad = lambda x: jax.grad(lambda a: jnp.sum(jnp.sin(layers.attention(a, a, a, 8.0 ** 0.5, precision="highest")
-                                                      .astype(jnp.float32))))(x)
+    grad = lambda x: jax.grad(
+        lambda a: jnp.sum(jnp.sin(layers.attention(a, a, a, 8.0**0.5, precision="highest").astype(jnp.float32)))
+    )(x)
     got, exact = grad(low), grad(q)
     assert got.dtype == jnp.bfloat16
     np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(exact), atol=5e-2)
@@ -74,9 +74,10 @@ def test_bfloat16_attention_gradients_are_bfloat16_and_close():
 
 def test_bfloat16_inputs_keep_float32_softmax():
     q = jax.random.normal(jax.random.PRNGKey(1), (20, 2, 8))
-    exact = layers.attention(q, q, q, 8.0 ** 0.5, precision="highest")
-    low = layers.attention(q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0 ** 0.5,
-                           precision="highest")
+    exact = layers.attention(q, q, q, 8.0**0.5, precision="highest")
+    low = layers.attention(
+        q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), q.astype(jnp.bfloat16), 8.0**0.5, precision="highest"
+    )
     assert low.dtype == jnp.bfloat16
     np.testing.assert_allclose(np.asarray(low, np.float32), np.asarray(exact), atol=5e-2)
 
@@ -107,9 +108,16 @@ class _Stack(nn.Module):
 
     @nn.compact
     def __call__(self, x, deterministic=True):
-        return layers.stack_of_layers(self, _Layer(parent=None), ["a", "b", "c"], x,
-                                      lambda layer, x: layer(x, deterministic), remat=self.remat,
-                                      dropout=not deterministic, collect=True)
+        return layers.stack_of_layers(
+            self,
+            _Layer(parent=None),
+            ["a", "b", "c"],
+            x,
+            lambda layer, x: layer(x, deterministic),
+            remat=self.remat,
+            dropout=not deterministic,
+            collect=True,
+        )
 
 
 def test_a_stack_of_layers_is_its_layers_applied_in_turn_each_with_its_own_parameters():
@@ -132,5 +140,6 @@ def test_a_stack_of_layers_is_its_layers_applied_in_turn_each_with_its_own_param
     hidden = np.diff(np.concatenate([np.asarray(x)[None], dropped]), axis=0)  # each layer's own branch
     assert (hidden == 0).any() and not np.array_equal(hidden[0] == 0, hidden[1] == 0)
     grads, grads_remat = (jax.grad(loss)(params, remat) for remat in (False, True))
-    jax.tree.map(lambda g, h: np.testing.assert_allclose(np.asarray(h), np.asarray(g), rtol=1e-5, atol=1e-6),
-                 grads, grads_remat)
+    jax.tree.map(
+        lambda g, h: np.testing.assert_allclose(np.asarray(h), np.asarray(g), rtol=1e-5, atol=1e-6), grads, grads_remat
+    )

@@ -24,7 +24,7 @@ def test_summary_matches_hand_computed_values():
     assert s["rot_mae"] == pytest.approx(3.0 / 6)
     assert s["rot_rmse"] == pytest.approx(np.sqrt(5.0 / 6))
     assert s["trans_mae"] == pytest.approx(0.06 / 6)
-    assert s["trans_rmse"] == pytest.approx(np.sqrt(0.06 ** 2 / 6))
+    assert s["trans_rmse"] == pytest.approx(np.sqrt(0.06**2 / 6))
     assert s["rot_iso"] == pytest.approx(1.5, abs=1e-4)
     assert s["trans_iso"] == pytest.approx(0.03)
     # Success (Euler MAE <= 1 deg and translation MAE <= 0.01): pair 1 fails on translation (0.02), pair 2
@@ -66,12 +66,14 @@ def test_symmetric_errors_count_as_right_and_others_do_not():
     box = rng.uniform(-1, 1, (800, 3)) * [1.0, 0.6, 0.3]  # three distinct extents: no symmetry but the box's
     truth_r, truth_t = euler_zyx_to_matrix(np.array([20.0, -10.0, 35.0])), np.array([0.1, -0.2, 0.3])
     # (estimate as a turn applied before the truth, translation offset): whether right up to symmetry
-    cases = [(vase, axis_angle_matrix([0, 0, 1], 60), 0.0, True),   # the vase's symmetry: 60 degrees off
-             (vase, axis_angle_matrix([1, 0, 0], 30), 0.0, False),  # not a symmetry of it
-             (vase, np.eye(3), 0.2, False),                          # a translation error is not forgiven
-             (box, axis_angle_matrix([1, 2, 3], 3), 0.0, True),      # within 5 degrees
-             (box, axis_angle_matrix([0, 0, 1], 30), 0.0, False),
-             (box, axis_angle_matrix([1, 2, 3], 12), 0.0, False)]
+    cases = [
+        (vase, axis_angle_matrix([0, 0, 1], 60), 0.0, True),  # the vase's symmetry: 60 degrees off
+        (vase, axis_angle_matrix([1, 0, 0], 30), 0.0, False),  # not a symmetry of it
+        (vase, np.eye(3), 0.2, False),  # a translation error is not forgiven
+        (box, axis_angle_matrix([1, 2, 3], 3), 0.0, True),  # within 5 degrees
+        (box, axis_angle_matrix([0, 0, 1], 30), 0.0, False),
+        (box, axis_angle_matrix([1, 2, 3], 12), 0.0, False),
+    ]
     for shape, turn, offset, expected in cases:
         r, t = truth_r @ turn, truth_t + offset
         surface = metrics.surface_error(shape[None], r[None], t[None], truth_r[None], truth_t[None])
@@ -79,11 +81,13 @@ def test_symmetric_errors_count_as_right_and_others_do_not():
         rotation_error = metrics.rotation_error_deg(jnp.asarray(r[None]), jnp.asarray(truth_r[None]))
         got = metrics.within_up_to_symmetry(rotation_error, [np.linalg.norm(t - truth_t)], surface, tolerance)
         assert got.tolist() == [expected]
-    error = metrics.surface_error(vase[None], (truth_r @ axis_angle_matrix([0, 0, 1], 60))[None], truth_t[None],
-                                  truth_r[None], truth_t[None])
+    error = metrics.surface_error(
+        vase[None], (truth_r @ axis_angle_matrix([0, 0, 1], 60))[None], truth_t[None], truth_r[None], truth_t[None]
+    )
     assert error[0] < 1e-9  # the samples land on each other
     tolerance = metrics.symmetry_tolerance(box[None], truth_r[None], truth_t[None])
     assert metrics.surface_error(box[None], truth_r[None], truth_t[None], truth_r[None], truth_t[None])[0] == 0.0
-    turned_5 = metrics.surface_error(box[None], (truth_r @ axis_angle_matrix([1, 0, 0], 5))[None], truth_t[None],
-                                     truth_r[None], truth_t[None])
+    turned_5 = metrics.surface_error(
+        box[None], (truth_r @ axis_angle_matrix([1, 0, 0], 5))[None], truth_t[None], truth_r[None], truth_t[None]
+    )
     assert 0.3 * tolerance[0] < turned_5[0] < 3 * tolerance[0]  # the tolerance is what a 5-degree turn does

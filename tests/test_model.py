@@ -2,8 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import shared_point_pairs
+
 from dit_jax import configs, convert, metrics, model
 
 CONFIG = configs.tiny()
@@ -47,7 +47,7 @@ def test_register_under_jit_and_vmap_with_n_not_m(shipped):
     assert float(jnp.max(metrics.rotation_error_deg(rot, turns))) < 0.1  # registered: GMCCE's sets are clear
     # Batching changes nothing: each pair alone gives the same answer.
     for b in range(2):
-        rot_b, trans_b, _ = model.register(params, src[b:b + 1], tgt[b:b + 1], config)
+        rot_b, trans_b, _ = model.register(params, src[b : b + 1], tgt[b : b + 1], config)
         np.testing.assert_allclose(np.asarray(rot_b[0]), np.asarray(rot[b]), atol=1e-5)
         np.testing.assert_allclose(np.asarray(trans_b[0]), np.asarray(trans[b]), atol=1e-5)
     # vmap over an extra axis of pairs works on the user's side too.
@@ -119,7 +119,7 @@ def test_reference_weights_register_their_pair_with_part_of_the_target(reference
     # The authors' small (partly trained) network registers its own pair exactly; dropping 16 target points
     # (N = 256, M = 240) must not change that.
     config = configs.from_authors(str(reference_data["config"]), gmcce_threshold=0.99)
-    sd = {k[len("param/"):]: v for k, v in reference_data.items() if k.startswith("param/")}
+    sd = {k[len("param/") :]: v for k, v in reference_data.items() if k.startswith("param/")}
     params = convert.from_torch_state_dict(sd, config)
     keep = np.random.default_rng(0).permutation(len(reference_data["tgt"]))[:240]
     src, tgt = reference_data["src"][None], reference_data["tgt"][keep][None]
@@ -143,15 +143,13 @@ def test_cached_embeddings_give_the_uncached_iterations(shipped):
         total_r, total_t = out.rotation @ total_r, out.rotation @ total_t + out.translation
         moved = moved @ out.rotation.T + out.translation
         np.testing.assert_allclose(np.asarray(out.rotation), np.asarray(extras["step_rotation"][0, i]), atol=1e-5)
-        np.testing.assert_allclose(np.asarray(out.translation), np.asarray(extras["step_translation"][0, i]),
-                                   atol=1e-5)
+        np.testing.assert_allclose(np.asarray(out.translation), np.asarray(extras["step_translation"][0, i]), atol=1e-5)
         # Each iteration's matches are recorded: the first's are the network's own (training's validation).
         # Each source point's best score leads its second by far more than float32 rounding here, so the
         # argmax is the same in both programs.
         best_two = jnp.sort(feats.scores, axis=-1)[:, -2:]
         assert float(jnp.min(best_two[:, 1] - best_two[:, 0])) > 1e-3
-        np.testing.assert_array_equal(np.asarray(out.correspondences),
-                                      np.asarray(extras["step_correspondences"][0, i]))
+        np.testing.assert_array_equal(np.asarray(out.correspondences), np.asarray(extras["step_correspondences"][0, i]))
     np.testing.assert_allclose(np.asarray(rot[0]), np.asarray(total_r), atol=1e-5)
     np.testing.assert_allclose(np.asarray(trans[0]), np.asarray(total_t), atol=1e-5)
 
@@ -166,14 +164,22 @@ def test_attention_in_blocks_changes_nothing(params):
     np.testing.assert_allclose(np.asarray(f_blocked.scores), np.asarray(f_whole.scores), atol=1e-5)
 
 
-
 def test_configs_that_hold_the_same_parameters_initialise_alike_from_one_program(params):
     """Fields that change only what the network computes leave the initial parameters bit for bit, and do not
     compile init again; a field that shapes them does."""
     before = model._init._cache_size()
-    computing = CONFIG.replace(n_iters=1, gmcce_k=5, gmcce_threshold=0.5, guard_iterations=True, temp_factor=50.0,
-                               dropout=0.0, attention_chunk=16, compute_dtype="bfloat16", precision="tf32",
-                               remat=True)
+    computing = CONFIG.replace(
+        n_iters=1,
+        gmcce_k=5,
+        gmcce_threshold=0.5,
+        guard_iterations=True,
+        temp_factor=50.0,
+        dropout=0.0,
+        attention_chunk=16,
+        compute_dtype="bfloat16",
+        precision="tf32",
+        remat=True,
+    )
     jax.tree.map(np.testing.assert_array_equal, model.init(jax.random.key(0), computing), params)
     assert model._init._cache_size() == before
     wider = jax.eval_shape(lambda: model.init(jax.random.key(0), CONFIG.replace(k=CONFIG.k + 1)))
@@ -189,11 +195,13 @@ def test_remat_gives_the_same_gradients_with_dropout(params):
 
     def loss(p, config):
         its = model.unroll(p, src[0], tgt[0], config, 1, differentiable=True, dropout_key=key)
-        return jnp.sum(its.rotation ** 2) + jnp.sum(its.soft_weights)
+        return jnp.sum(its.rotation**2) + jnp.sum(its.soft_weights)
 
     plain = CONFIG.replace(dropout=0.2)
     remat = plain.replace(remat=True)
-    assert jax.tree.structure(jax.eval_shape(lambda: model.init(jax.random.key(0), remat))) == jax.tree.structure(params)
+    assert jax.tree.structure(jax.eval_shape(lambda: model.init(jax.random.key(0), remat))) == jax.tree.structure(
+        params
+    )
     value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=1)  # under jit, as training runs it
     value, grads = value_and_grad(params, plain)
     value_r, grads_r = value_and_grad(params, remat)
@@ -228,13 +236,13 @@ def test_guarded_iterations_never_lower_the_fitness(params):
     # The estimate is the composition of the accepted steps only.
     for b in range(4):
         total_r, total_t = np.eye(3), np.zeros(3)
-        for ok, r_i, t_i in zip(accepted[b], np.asarray(extras["step_rotation"][b]),
-                                np.asarray(extras["step_translation"][b])):
+        for ok, r_i, t_i in zip(
+            accepted[b], np.asarray(extras["step_rotation"][b]), np.asarray(extras["step_translation"][b])
+        ):
             if ok:
                 total_r, total_t = r_i @ total_r, r_i @ total_t + t_i
         np.testing.assert_allclose(np.asarray(rot[b]), total_r, atol=1e-5)
         np.testing.assert_allclose(np.asarray(trans[b]), total_t, atol=1e-5)
-
 
 
 def test_fitness_measures_how_much_of_the_source_lands_on_the_target():

@@ -12,5 +12,5 @@ def test_the_cuda_extra_brings_jax_with_cuda_12_at_the_projects_jax_version():
     base = next(d for d in project["dependencies"] if re.match(r"jax[<>=!~ ]", d))
     (cuda,) = project["optional-dependencies"]["cuda"]
     assert cuda.startswith("jax[cuda12]")
-    assert cuda[len("jax[cuda12]"):] == base[len("jax"):]  # the same version bound: no second JAX
+    assert cuda[len("jax[cuda12]") :] == base[len("jax") :]  # the same version bound: no second JAX
     assert "pip install -e '.[cuda]'" in (ROOT / "README.md").read_text()

@@ -58,18 +58,22 @@ def test_deepen_adds_layers_that_change_nothing_until_trained():
     small = pft.PFT(shallow).init(jax.random.key(2), f_x, f_y)["params"]
     fresh = pft.PFT(deep).init(jax.random.key(3), f_x, f_y)["params"]
     grown = pft.deepen(small, fresh)
-    for before, after in zip(pft.PFT(shallow).apply({"params": small}, f_x, f_y),
-                             pft.PFT(deep).apply({"params": grown}, f_x, f_y)):
+    for before, after in zip(
+        pft.PFT(shallow).apply({"params": small}, f_x, f_y), pft.PFT(deep).apply({"params": grown}, f_x, f_y)
+    ):
         np.testing.assert_allclose(np.asarray(after), np.asarray(before), atol=1e-6)
     new = grown["decoder"]["layers_2"]
     assert not np.any(np.asarray(new["src_attn"]["o"]["kernel"]))
     assert not np.any(np.asarray(new["feed_forward"]["w_2"]["bias"]))
-    np.testing.assert_array_equal(np.asarray(new["src_attn"]["q"]["kernel"]),
-                                  np.asarray(fresh["decoder"]["layers_2"]["src_attn"]["q"]["kernel"]))
+    np.testing.assert_array_equal(
+        np.asarray(new["src_attn"]["q"]["kernel"]), np.asarray(fresh["decoder"]["layers_2"]["src_attn"]["q"]["kernel"])
+    )
     # Training moves the new layers off identity: the deeper network then differs.
     moved = jax.tree.map(lambda a: a + 0.1, grown)
-    assert not np.allclose(np.asarray(pft.PFT(deep).apply({"params": moved}, f_x, f_y)[0]),
-                           np.asarray(pft.PFT(shallow).apply({"params": small}, f_x, f_y)[0]))
+    assert not np.allclose(
+        np.asarray(pft.PFT(deep).apply({"params": moved}, f_x, f_y)[0]),
+        np.asarray(pft.PFT(shallow).apply({"params": small}, f_x, f_y)[0]),
+    )
     wider = configs.tiny().replace(emb_dims=64, token_dim=8, n_blocks=2)
     g_x = jax.random.normal(jax.random.key(0), (20, 64))
     with pytest.raises(ValueError, match="shape"):

@@ -11,14 +11,21 @@ from dit_jax import checkpoint, configs, model, pipeline, registration
 
 
 def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
-    settings = pipeline.InferenceSettings(n_points=512, refine="none", agreement_bands_icp=[[1.0, 20, 19], [None, 5, 1]])
+    settings = pipeline.InferenceSettings(
+        n_points=512, refine="none", agreement_bands_icp=[[1.0, 20, 19], [None, 5, 1]]
+    )
     assert settings.agreement_bands_icp == ((1.0, 20, 19), (None, 5, 1)), "bands are stored immutable"
     assert pipeline.InferenceSettings.from_dict(settings.to_dict()) == settings
     with pytest.raises(dataclasses.FrozenInstanceError):
         settings.n_points = 3
-    for bad, fragment in (({"refine": "ndt"}, "refine must be one of"), ({"centring": "middle"}, "centring"),
-                          ({"verdict_rule": "vote"}, "verdict_rule"), ({"precision": "half"}, "precision"),
-                          ({"n_iters": 0}, "n_iters"), ({"n_points": 0}, "positive")):
+    for bad, fragment in (
+        ({"refine": "ndt"}, "refine must be one of"),
+        ({"centring": "middle"}, "centring"),
+        ({"verdict_rule": "vote"}, "verdict_rule"),
+        ({"precision": "half"}, "precision"),
+        ({"n_iters": 0}, "n_iters"),
+        ({"n_points": 0}, "positive"),
+    ):
         with pytest.raises(ValueError, match=fragment):
             pipeline.InferenceSettings(**bad)
     with pytest.raises(ValueError, match="unknown InferenceSettings fields: bogus"):
@@ -30,15 +37,21 @@ def test_settings_override_only_the_model_options_they_set():
     assert pipeline.InferenceSettings().model_config(config) == config
     changed = pipeline.InferenceSettings(n_iters=5, gmcce_threshold=0.5, precision="tf32").model_config(config)
     assert (changed.n_iters, changed.gmcce_threshold, changed.precision) == (5, 0.5, "tf32")
-    assert changed.replace(n_iters=config.n_iters, gmcce_threshold=config.gmcce_threshold,
-                           precision=config.precision) == config
+    assert (
+        changed.replace(n_iters=config.n_iters, gmcce_threshold=config.gmcce_threshold, precision=config.precision)
+        == config
+    )
 
 
 def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
     config = configs.tiny()
     stored = pipeline.InferenceSettings(n_points=128, max_disagreement_icp=2.0, min_fitness=0.8)
-    path = checkpoint.save(tmp_path / "m", model.init(jax.random.key(0), config), config,
-                           extra={registration.SETTINGS_KEY: stored.to_dict()})
+    path = checkpoint.save(
+        tmp_path / "m",
+        model.init(jax.random.key(0), config),
+        config,
+        extra={registration.SETTINGS_KEY: stored.to_dict()},
+    )
     assert registration.load(path).settings == stored
     assert registration.load(path, refine="none").settings == stored.replace(refine="none")
     bare = checkpoint.save(tmp_path / "bare", model.init(jax.random.key(0), config), config)
@@ -47,8 +60,9 @@ def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
 
 def test_the_verdict_stage_judges_by_agreement_or_fitness():
     quarter_turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    settings = pipeline.InferenceSettings(max_disagreement_network=1.0, max_disagreement_icp=100.0,
-                                          agreement_bands_icp=[[10.0, 50, 45], [None, 40, 2]])
+    settings = pipeline.InferenceSettings(
+        max_disagreement_network=1.0, max_disagreement_icp=100.0, agreement_bands_icp=[[10.0, 50, 45], [None, 40, 2]]
+    )
     verdict, threshold, agreement, band = pipeline.judge(settings, "none", 0.0, quarter_turn, quarter_turn.T)
     assert verdict and threshold == 1.0 and agreement == pytest.approx(0.0, abs=1e-6) and band is None
     verdict, threshold, agreement, band = pipeline.judge(settings, "icp", 0.0, quarter_turn, quarter_turn)
@@ -103,5 +117,6 @@ def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
     assert np.abs(tgt_n.mean(axis=0)).max() < 1e-9
     rotation = np.eye(3)
     # A motion found between the normalised clouds maps back into the caller's frame.
-    assert np.allclose(pipeline.to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0),
-                       tgt_centre - src_centre)
+    assert np.allclose(
+        pipeline.to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0), tgt_centre - src_centre
+    )

@@ -18,9 +18,11 @@ def _file_for(config, authors_config, n, m, seed):
     """A check file in the authors' format for another config, with the activations dit-jax computes."""
     rng = np.random.default_rng(seed)
     params = model.init(jax.random.key(seed), config)
-    data = {"config": np.array(repr(authors_config)),
-            "src": rng.uniform(-1, 1, (n, 3)).astype(np.float32),
-            "tgt": rng.uniform(-1, 1, (m, 3)).astype(np.float32)}
+    data = {
+        "config": np.array(repr(authors_config)),
+        "src": rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+        "tgt": rng.uniform(-1, 1, (m, 3)).astype(np.float32),
+    }
     data.update({f"param/{k}": v for k, v in convert.to_torch_state_dict(params, config).items()})
     for i in range(config.n_iters):  # the checker reads the iteration count off these names
         data[f"iter{i}_R"] = np.eye(3, dtype=np.float32)[None]
@@ -29,9 +31,19 @@ def _file_for(config, authors_config, n, m, seed):
 
 
 def test_other_widths_depths_and_point_counts_are_checked(tmp_path, capsys):
-    authors = {"n_emb_dims": 64, "token_dim": 8, "n_blocks": 3, "n_ff_dims": 96, "n_heads": 2, "k": 12,
-               "gmcce_k": 6, "gmcce_sharpness": 30.0, "gmcce_threshold": 0.9, "temp_factor": 100.0,
-               "n_points": 96}
+    authors = {
+        "n_emb_dims": 64,
+        "token_dim": 8,
+        "n_blocks": 3,
+        "n_ff_dims": 96,
+        "n_heads": 2,
+        "k": 12,
+        "gmcce_k": 6,
+        "gmcce_sharpness": 30.0,
+        "gmcce_threshold": 0.9,
+        "temp_factor": 100.0,
+        "n_points": 96,
+    }
     config = configs.from_authors(authors, n_iters=3)
     data = _file_for(config, authors, n=96, m=80, seed=1)
     assert data["scores"].shape == (1, 96, 80) and data["pft_tgt"].shape == (1, 64, 80)
@@ -62,7 +74,11 @@ def test_command_line_exit_status(reference_file):
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-m", "dit_jax.reference_check", str(reference_file)],
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-m", "dit_jax.reference_check", str(reference_file)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
     assert "PASSED: 26/26 checks" in done.stdout

@@ -19,8 +19,12 @@ def tiny_registrar() -> registration.Registrar:
 
 def _rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
     cos = (np.trace(a.T @ b) - 1) / 2
-    sin = np.linalg.norm([(a.T @ b)[2, 1] - (a.T @ b)[1, 2], (a.T @ b)[0, 2] - (a.T @ b)[2, 0],
-                          (a.T @ b)[1, 0] - (a.T @ b)[0, 1]]) / 2
+    sin = (
+        np.linalg.norm(
+            [(a.T @ b)[2, 1] - (a.T @ b)[1, 2], (a.T @ b)[0, 2] - (a.T @ b)[2, 0], (a.T @ b)[1, 0] - (a.T @ b)[0, 1]]
+        )
+        / 2
+    )
     return float(np.degrees(np.arctan2(sin, cos)))
 
 
@@ -55,27 +59,32 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
     from dit_jax import io
 
     scan = io.read(dragon_dir / "dragonStandRight_0.ply") + np.array([1000.0, -200.0, 50.0])
-    np.testing.assert_array_equal(registration.farthest_point_sample(scan, 1000, seed=3),
-                                  _farthest_point_sample_float64(scan, 1000, 3))
+    np.testing.assert_array_equal(
+        registration.farthest_point_sample(scan, 1000, seed=3), _farthest_point_sample_float64(scan, 1000, 3)
+    )
     cloud = np.random.default_rng(1).uniform(size=(3001, 3))
-    np.testing.assert_array_equal(registration.farthest_point_sample(cloud, 200, seed=0),
-                                  _farthest_point_sample_float64(cloud, 200, 0))
+    np.testing.assert_array_equal(
+        registration.farthest_point_sample(cloud, 200, seed=0), _farthest_point_sample_float64(cloud, 200, 0)
+    )
     before = pipeline._farthest_points._cache_size()
     registration.farthest_point_sample(cloud[:2990], 200, seed=0)
     assert pipeline._farthest_points._cache_size() == before
 
 
-@pytest.mark.parametrize("bad,fragment", [
-    (np.zeros((100, 2)), "N x 3"),
-    (np.zeros((100, 3, 1)), "N x 3"),
-    (np.full((100, 3), "a"), "real coordinates"),
-    (np.where(np.arange(300).reshape(100, 3) == 7, np.nan, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
-    (np.where(np.arange(300).reshape(100, 3) == 7, np.inf, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
-    (np.random.default_rng(0).normal(size=(5, 3)), "needs at least"),
-    (np.tile([[1000.0, 2.0, 3.0]], (100, 1)), "same point"),
-    (np.linspace(0, 1, 100)[:, None] * [3.0, -1.0, 2.0] + [1000.0, 2.0, 3.0], "lie on one line"),
-    (np.repeat([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 50, axis=0), "lie on one line"),
-])
+@pytest.mark.parametrize(
+    "bad,fragment",
+    [
+        (np.zeros((100, 2)), "N x 3"),
+        (np.zeros((100, 3, 1)), "N x 3"),
+        (np.full((100, 3), "a"), "real coordinates"),
+        (np.where(np.arange(300).reshape(100, 3) == 7, np.nan, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
+        (np.where(np.arange(300).reshape(100, 3) == 7, np.inf, 1.0) + np.arange(100)[:, None], "NaN or Inf"),
+        (np.random.default_rng(0).normal(size=(5, 3)), "needs at least"),
+        (np.tile([[1000.0, 2.0, 3.0]], (100, 1)), "same point"),
+        (np.linspace(0, 1, 100)[:, None] * [3.0, -1.0, 2.0] + [1000.0, 2.0, 3.0], "lie on one line"),
+        (np.repeat([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], 50, axis=0), "lie on one line"),
+    ],
+)
 def test_bad_clouds_are_refused_with_their_name(tiny_registrar, bad, fragment):
     good = np.random.default_rng(1).normal(size=(100, 3))
     with pytest.raises(registration.InputError, match=fragment) as info:
@@ -155,7 +164,9 @@ def test_shipped_weights_load_by_default():
     # the model options the calibration chose are settings; the stored config keeps what training used
     assert registrar.config == registrar.settings.model_config(checkpoint.read_config(path))
     assert (registrar.config.gmcce_threshold, registrar.config.guard_iterations) == (
-        registrar.settings.gmcce_threshold, registrar.settings.guard_iterations)
+        registrar.settings.gmcce_threshold,
+        registrar.settings.guard_iterations,
+    )
 
 
 def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
@@ -179,8 +190,10 @@ def test_metres_scale_round_trip_matches_unit_scale(modelnet_shapes):
         unit_r = _rotation_error_deg(unit.rotation, rotation)
         metric_r = _rotation_error_deg(metric.rotation, rotation)
         unit_d = np.sqrt(np.mean(np.sum((unit.apply(shape) - truth) ** 2, axis=1)))
-        metric_d = np.sqrt(np.mean(np.sum((metric.apply(shape * scale + offset) - (truth * scale + offset)) ** 2,
-                                          axis=1))) / scale
+        metric_d = (
+            np.sqrt(np.mean(np.sum((metric.apply(shape * scale + offset) - (truth * scale + offset)) ** 2, axis=1)))
+            / scale
+        )
         assert metric_r <= unit_r + 0.05, (metric_r, unit_r)
         assert metric_d <= unit_d + 1e-4, (metric_d, unit_d)
         assert unit_r < 1.0  # the shipped model registers these clean pairs in the first place
@@ -263,8 +276,13 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
     results = {}
     bands = [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]  # how often right, by agreement
     for best in (False, True):
-        registrar = registration.Registrar(tiny_registrar.params, tiny_registrar.config, n_points=96,
-                                           best_direction=best, agreement_bands_icp=bands if best else None)
+        registrar = registration.Registrar(
+            tiny_registrar.params,
+            tiny_registrar.config,
+            n_points=96,
+            best_direction=best,
+            agreement_bands_icp=bands if best else None,
+        )
         results[best] = registrar.register(src, tgt)
     assert results[False].direction == "forward" and _rotation_error_deg(results[False].rotation, off) < 1e-6
     assert results[True].direction == "backward" and _rotation_error_deg(results[True].rotation, truth) < 1e-6
@@ -274,10 +292,17 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
     assert results[True].to_json()["direction"] == "backward"
     # 20 degrees from agreeing: the band (10, 30] of the validation results quoted beside the verdict
     assert results[True].agreement_band == (10.0, 30.0, 20, 6) and results[False].agreement_band is None
-    assert results[True].evidence().endswith("of the 20 validation results that agreed within 10-30 deg, "
-                                             "30 % were within 5 deg")
-    assert results[True].to_json()["agreement_band"] == {"low_deg": 10.0, "high_deg": 30.0,
-                                                         "validation_pairs": 20, "within_5_deg": 6}
+    assert (
+        results[True]
+        .evidence()
+        .endswith("of the 20 validation results that agreed within 10-30 deg, 30 % were within 5 deg")
+    )
+    assert results[True].to_json()["agreement_band"] == {
+        "low_deg": 10.0,
+        "high_deg": 30.0,
+        "validation_pairs": 20,
+        "within_5_deg": 6,
+    }
     assert pipeline.agreement_band(bands, 5.0) is None  # a band of 5 results: not quoted
     assert pipeline.agreement_band(bands, 90.0) == (30.0, None, 40, 2)
     shipped = registration.load(refine="none")
@@ -285,7 +310,8 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
     # the shipped record's bands hold every validation result of the pool they were chosen on
     evidence = checkpoint.read_extra(registration.shipped_weights())["calibration"]
     assert sum(pairs for _, pairs, _ in shipped.settings.agreement_bands_icp) == (
-        evidence["pairs_per_setting"] * len(evidence["verdict_pool"]))
+        evidence["pairs_per_setting"] * len(evidence["verdict_pool"])
+    )
 
 
 def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registrar, monkeypatch):
@@ -296,12 +322,19 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     from dit_jax import geometry
 
     def exact_network(params, src, tgt, config):
-        rotations, translations = zip(*(pipeline.icp_lib.procrustes(np.asarray(s, np.float64),
-                                                                         np.asarray(t, np.float64))
-                                        for s, t in zip(src, tgt)))
+        rotations, translations = zip(
+            *(
+                pipeline.icp_lib.procrustes(np.asarray(s, np.float64), np.asarray(t, np.float64))
+                for s, t in zip(src, tgt)
+            )
+        )
         b, n = src.shape[:2]
-        extras = {"fitness": np.ones(b), "correspondences": np.tile(np.arange(n), (b, 1)),
-                  "weights": np.ones((b, n)), "inlier_ratio": np.ones(b)}
+        extras = {
+            "fitness": np.ones(b),
+            "correspondences": np.tile(np.arange(n), (b, 1)),
+            "weights": np.ones((b, n)),
+            "inlier_ratio": np.ones(b),
+        }
         return np.stack(rotations), np.stack(translations), extras
 
     rng = np.random.default_rng(1)
@@ -350,7 +383,9 @@ def test_gicp_refinement_registers_a_real_scan_pair_through_the_pipeline(dragon_
     result = registration.load(refine="gicp").register(pair.source, pair.target)
     assert result.refinement == "gicp" and result.network is not None and result.refine_seconds > 0
     assert _rotation_error_deg(result.rotation, pair.rotation) < 0.5
-    assert result.verdict and result.agreement <= result.threshold == registration.load().settings.max_disagreement("icp")
+    assert result.verdict and result.agreement <= result.threshold == registration.load().settings.max_disagreement(
+        "icp"
+    )
 
 
 def test_the_feature_candidate_replaces_a_wrong_network_result_on_views_48_degrees_apart(dragon_dir):
@@ -361,15 +396,17 @@ def test_the_feature_candidate_replaces_a_wrong_network_result_on_views_48_degre
     pytest.importorskip("kiss_matcher")
     from dit_jax.data import scans
 
-    pair = next(p for p in scans.scan_pairs(scans.load_scans(dragon_dir), skip=2)
-                if p.name.endswith("_48->dragonStandRight_96"))
+    pair = next(
+        p for p in scans.scan_pairs(scans.load_scans(dragon_dir), skip=2) if p.name.endswith("_48->dragonStandRight_96")
+    )
     result = registration.load().register(pair.source, pair.target)
     assert result.candidate == "features" and result.label == "features + GICP"
     assert _rotation_error_deg(result.rotation, pair.rotation) < 2.0
     assert result.first is not None and result.first.candidate == "network" and not result.first.verdict
     assert _rotation_error_deg(result.first.rotation, pair.rotation) > 10.0
     assert result.candidate_seconds > 0 and result.total_seconds == pytest.approx(
-        result.seconds + result.refine_seconds + result.candidate_seconds)
+        result.seconds + result.refine_seconds + result.candidate_seconds
+    )
     assert "local features" in result.evidence() and result.to_json()["candidate"] == "features"
     alone = registration.load(feature_candidate="off").register(pair.source, pair.target)
     assert alone.candidate == "network" and alone.first is None and np.isnan(alone.candidate_agreement)

@@ -65,8 +65,10 @@ def test_closing_the_loop_spreads_one_wrong_link_over_all():
     fitted, fitted_gap_deg, _ = series.close_loop(wrong, centres, scale=1.0)
     assert fitted_gap_deg == gap_deg
     np.testing.assert_array_equal(fitted[0], np.eye(4))
-    misfit = {name: float(np.sum(series.link_misfit(p, wrong, centres, 1.0) ** 2))
-              for name, p in (("fitted", fitted), ("closed", poses))}
+    misfit = {
+        name: float(np.sum(series.link_misfit(p, wrong, centres, 1.0) ** 2))
+        for name, p in (("fitted", fitted), ("closed", poses))
+    }
     assert misfit["fitted"] < misfit["closed"], misfit  # (here the closed form is within 1 % of the best)
     assert np.abs(series.link_misfit(truth, motions, centres, 1.0)).max() < 1e-9
     exact, _, _ = series.close_loop(motions, centres, scale=1.0)
@@ -86,11 +88,28 @@ class _ExactRegistrar:
         b = next(i for i, c in enumerate(self.clouds) if c is tgt)
         self.calls.append((a, b, refine))
         motion = np.linalg.inv(self.poses[b]) @ self.poses[a]
-        return registration.Result(motion[:3, :3], motion[:3, 3], motion, np.arange(3), np.arange(3),
-                                   np.ones(3), 1.0, 1.0, 0.0, refinement=None, refine_seconds=0.0,
-                                   verdict=a != 3, level="trusted" if a != 3 else "probably wrong",
-                                   verdict_rule="agreement", threshold=1.0, agreement=0.5,
-                                   direction="forward", start_turn=0.0, agreement_band=None, network=None)
+        return registration.Result(
+            motion[:3, :3],
+            motion[:3, 3],
+            motion,
+            np.arange(3),
+            np.arange(3),
+            np.ones(3),
+            1.0,
+            1.0,
+            0.0,
+            refinement=None,
+            refine_seconds=0.0,
+            verdict=a != 3,
+            level="trusted" if a != 3 else "probably wrong",
+            verdict_rule="agreement",
+            threshold=1.0,
+            agreement=0.5,
+            direction="forward",
+            start_turn=0.0,
+            agreement_band=None,
+            network=None,
+        )
 
 
 def test_register_series_links_neighbours_and_merges_into_the_first_frame():
@@ -100,8 +119,9 @@ def test_register_series_links_neighbours_and_merges_into_the_first_frame():
     registrar = _ExactRegistrar(truth)
     registrar.clouds = clouds
     done = []
-    result = series.register_series(registrar, clouds, loop=True, refine="none",
-                                    progress=lambda d, n: done.append((d, n)))
+    result = series.register_series(
+        registrar, clouds, loop=True, refine="none", progress=lambda d, n: done.append((d, n))
+    )
     assert [c[:2] for c in registrar.calls] == [(1, 0), (2, 1), (3, 2), (4, 3), (0, 4)] == result.pairs
     assert {c[2] for c in registrar.calls} == {"none"} and done[-1] == (5, 5)
     np.testing.assert_allclose(result.poses, truth, atol=1e-9)
@@ -125,17 +145,37 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
         path = tmp_path / f"scan{k}.ply"
         io.write(path, surface @ euler_zyx_to_matrix([10.0 * k, 0.0, 0.0]).T + [k, 0.0, 0.0])
         paths.append(str(path))
-    code = cli.series_main(paths + ["--checkpoint", tiny_checkpoint, "--loop", "--refine", "none", "--json",
-                                    "--out", str(tmp_path / "merged.ply"), "--out-dir", str(tmp_path / "aligned"),
-                                    "--plot", str(tmp_path / "series.png")])
+    code = cli.series_main(
+        paths
+        + [
+            "--checkpoint",
+            tiny_checkpoint,
+            "--loop",
+            "--refine",
+            "none",
+            "--json",
+            "--out",
+            str(tmp_path / "merged.ply"),
+            "--out-dir",
+            str(tmp_path / "aligned"),
+            "--plot",
+            str(tmp_path / "series.png"),
+        ]
+    )
     out, err = capsys.readouterr()
     report = json.loads(out)
     for path, pose in zip(paths, np.array(report["poses"])):  # each scan in the first one's frame, its own file
-        np.testing.assert_allclose(io.read(tmp_path / "aligned" / os.path.basename(path)),
-                                   io.read(path) @ pose[:3, :3].T + pose[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(
+            io.read(tmp_path / "aligned" / os.path.basename(path)),
+            io.read(path) @ pose[:3, :3].T + pose[:3, 3],
+            atol=1e-9,
+        )
     assert len(report["poses"]) == 3 and len(report["links"]) == 3
     assert [(link["source"], link["target"]) for link in report["links"]] == [
-        (paths[1], paths[0]), (paths[2], paths[1]), (paths[0], paths[2])]
+        (paths[1], paths[0]),
+        (paths[2], paths[1]),
+        (paths[0], paths[2]),
+    ]
     assert report["loop_gap_deg"] is not None
     assert report["plot"] == str(tmp_path / "series.png")
     assert (tmp_path / "series.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -155,5 +195,8 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     io.write(tmp_path / "scan1_mm.ply", io.read(paths[1]) * 1000.0)  # a unit slip: one line naming both scans
     cli.series_main([paths[0], str(tmp_path / "scan1_mm.ply"), "--checkpoint", tiny_checkpoint, "--refine", "none"])
     warned = [line for line in capsys.readouterr().err.splitlines() if "times the size" in line]
-    assert warned and all(line.startswith(f"dit-register-series: warning: {tmp_path / 'scan1_mm.ply'} is 1,0")
-                          and f"times the size of {paths[0]} (radius" in line for line in warned), warned
+    assert warned and all(
+        line.startswith(f"dit-register-series: warning: {tmp_path / 'scan1_mm.ply'} is 1,0")
+        and f"times the size of {paths[0]} (radius" in line
+        for line in warned
+    ), warned

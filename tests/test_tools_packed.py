@@ -5,13 +5,13 @@ import subprocess
 import sys
 
 import numpy as np
+import packed
 import pytest
-
 from conftest import ROOT
+from test_data_shapes import _write_h5_dir
+
 from dit_jax import training
 from dit_jax.data import shapes
-import packed
-from test_data_shapes import _write_h5_dir
 
 
 def _source(tmp_path):
@@ -32,9 +32,12 @@ def test_packed_split_keeps_the_shapes_rows_and_validation_split(tmp_path):
     np.testing.assert_allclose(got.points[kept], points[kept, :24], atol=0.5 / packed.QUANT + 1e-7)
     assert not got.points[~kept].any(), "shapes of other categories do not travel"
     # the same validation shapes as the source read directly
-    original = shapes.Shapes(points, labels.astype(np.int64),
-                             np.array([r[0] for r in shapes._read_h5_split(source, "train", 32)]),
-                             got.shape_names)
+    original = shapes.Shapes(
+        points,
+        labels.astype(np.int64),
+        np.array([r[0] for r in shapes._read_h5_split(source, "train", 32)]),
+        got.shape_names,
+    )
     _, val_original = training.split_validation(original, 0.1)
     _, val_packed = training.split_validation(got, 0.1)
     keep = val_original.labels < 20
@@ -54,9 +57,16 @@ def test_points_beyond_the_unit_cube_are_refused(tmp_path):
 def test_shapes_module_imports_without_tfds(tmp_path):
     """The lent GPU machine has no tensorflow_datasets; the data modules must still import there."""
     (tmp_path / "tensorflow_datasets.py").write_text("raise ImportError('not installed here')\n")
-    code = ("import packed; assert packed.allow_without_tfds(); "
-            "from dit_jax.data import pairs, shapes; from dit_jax import training; print('ok')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                         env={"PYTHONPATH": f"{tmp_path}:{ROOT}:{ROOT / 'tools'}", "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"})
+    code = (
+        "import packed; assert packed.allow_without_tfds(); "
+        "from dit_jax.data import pairs, shapes; from dit_jax import training; print('ok')"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={"PYTHONPATH": f"{tmp_path}:{ROOT}:{ROOT / 'tools'}", "PATH": "/usr/bin:/bin", "JAX_PLATFORMS": "cpu"},
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "ok"

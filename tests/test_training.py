@@ -14,18 +14,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import random_rotation, shared_point_pairs
+
 from dit_jax import losses, metrics, model, training
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY_RECIPE = training.load_config(ROOT / "configs" / "tiny.py")
 # No validation before the first step: the run that validates at step 0 (the default) is the resumed one.
-TINY = dataclasses.replace(TINY_RECIPE, max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4,
-                           validate_at_start=False)
+TINY = dataclasses.replace(TINY_RECIPE, max_steps=12, ckpt_every=4, eval_every=6, val_pairs=4, validate_at_start=False)
 #: train.py's arguments for TINY but validate_at_start (the default, True).
-TINY_ARGS_VALIDATING = ["--config", str(ROOT / "configs" / "tiny.py"), "--config.max_steps=12",
-                        "--config.ckpt_every=4", "--config.eval_every=6", "--config.val_pairs=4"]
+TINY_ARGS_VALIDATING = [
+    "--config",
+    str(ROOT / "configs" / "tiny.py"),
+    "--config.max_steps=12",
+    "--config.ckpt_every=4",
+    "--config.eval_every=6",
+    "--config.val_pairs=4",
+]
 #: train.py's arguments for TINY.
 TINY_ARGS = [*TINY_ARGS_VALIDATING, "--config.validate_at_start=False"]
 
@@ -67,8 +72,9 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     steps = 30
     from dit_jax import configs
 
-    base = dataclasses.replace(TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), settings=(), n_points=128,
-                               max_steps=steps, train_iters=1)
+    base = dataclasses.replace(
+        TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), settings=(), n_points=128, max_steps=steps, train_iters=1
+    )
     optimizer = training.make_optimizer(base, steps)
     mesh = training.make_mesh()
     step = training.make_train_step(base, optimizer, mesh)
@@ -159,8 +165,12 @@ def test_a_lease_brings_its_compilation_cache_back_within_the_tools_file_limit(t
 
     cache = tmp_path / "cache"
     cache.mkdir()
-    for name, size in (("jit_step-a-cache", 600), ("jit_step-b-cache", 500), ("jit_register-c-cache", 300),
-                       ("jit_sign-d-cache", 50)):
+    for name, size in (
+        ("jit_step-a-cache", 600),
+        ("jit_step-b-cache", 500),
+        ("jit_register-c-cache", 300),
+        ("jit_sign-d-cache", 50),
+    ):
         (cache / name).write_bytes(bytes(size))
     device_stage._cache_out(str(cache), str(tmp_path / "xla_cache.tar"), limit=1000)
     device_stage._cache_in(str(tmp_path / "xla_cache.tar"), str(tmp_path / "next"))
@@ -189,8 +199,10 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run)
     assert any(n.startswith("checkpoints/12") for n in names) and not any(n.startswith("best") for n in names)
     from dit_jax import checkpoint
 
-    assert checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))[
-        "chosen_by"] == "checkpoints"
+    assert (
+        checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))["chosen_by"]
+        == "checkpoints"
+    )
     latest = checkpoint.read_extra(training.export_params(str(tiny_run.workdir), str(tmp_path / "end"), latest=True))
     assert (latest["chosen_by"], latest["step"]) == ("checkpoints", 12)
     device_stage._bundle(str(tiny_run.workdir), str(tmp_path / "validated.tar"))
@@ -203,8 +215,16 @@ def test_resume_after_kill_9_ends_with_the_same_params(tmp_path, prepared, tiny_
     """The run killed after its step-4 checkpoint and resumed ends at tiny_run's parameters (the same run,
     uninterrupted, and without the step-0 validation this one makes: validating changes no step)."""
     workdir = tmp_path / "killed"
-    cmd = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS_VALIDATING, "--workdir", str(workdir),
-           "--no-progress", "--prepared-dir", prepared]
+    cmd = [
+        sys.executable,
+        str(ROOT / "train.py"),
+        *TINY_ARGS_VALIDATING,
+        "--workdir",
+        str(workdir),
+        "--no-progress",
+        "--prepared-dir",
+        prepared,
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and not (workdir / "checkpoints" / "4").exists():
@@ -232,8 +252,13 @@ def test_damaged_checkpoint_gives_a_clear_error(tmp_path, prepared, tiny_run):
         if f.is_file() and f.stat().st_size > 0 and "metadata" not in f.name:
             f.write_bytes(b"\0" * 7)
     with pytest.raises(training.TrainCheckpointError, match="does not restore"):
-        training.train(dataclasses.replace(config, max_steps=8), str(tmp_path / "run"), resume=True,
-                       prepared_dir=prepared, progress=False)
+        training.train(
+            dataclasses.replace(config, max_steps=8),
+            str(tmp_path / "run"),
+            resume=True,
+            prepared_dir=prepared,
+            progress=False,
+        )
     other = dataclasses.replace(config, model=config.model.replace(n_blocks=2))
     with pytest.raises(training.TrainCheckpointError, match="made for model"):
         training.train(other, str(tmp_path / "run"), resume=True, prepared_dir=prepared, progress=False)
@@ -246,23 +271,32 @@ def test_a_checkpoint_with_the_optimiser_state_per_array_says_how_to_go_on(tmp_p
 
     shutil.copytree(tiny_run.workdir, tmp_path / "run")
     manager = ocp.CheckpointManager(os.path.abspath(tmp_path / "run" / "checkpoints"), item_names=("state", "meta"))
-    raw = manager.restore(12, args=ocp.args.Composite(state=ocp.args.StandardRestore(),
-                                                      meta=ocp.args.JsonRestore()))
+    raw = manager.restore(12, args=ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()))
     optimizer = training.make_optimizer(TINY, TINY.max_steps)
-    per_array = training.TrainState(step=raw.state["step"], params=raw.state["params"],
-                                    opt_state=optimizer.init(raw.state["params"]), rng=raw.state["rng"],
-                                    skipped=raw.state["skipped"])
+    per_array = training.TrainState(
+        step=raw.state["step"],
+        params=raw.state["params"],
+        opt_state=optimizer.init(raw.state["params"]),
+        rng=raw.state["rng"],
+        skipped=raw.state["skipped"],
+    )
     shutil.rmtree(tmp_path / "run" / "checkpoints" / "12")  # saved again in the older layout
     manager.reload()
     training._save(manager, per_array, raw.meta)
     with pytest.raises(training.TrainCheckpointError, match="per parameter array") as error:
-        training.train(dataclasses.replace(TINY, max_steps=16), str(tmp_path / "run"), resume=True,
-                       prepared_dir=prepared, progress=False)
+        training.train(
+            dataclasses.replace(TINY, max_steps=16),
+            str(tmp_path / "run"),
+            resume=True,
+            prepared_dir=prepared,
+            progress=False,
+        )
     assert "\n" not in str(error.value) and "--config.init_from" in str(error.value)
     from dit_jax import checkpoint
 
     checkpoint_params, _ = checkpoint.restore(
-        training.export_params(str(tmp_path / "run"), str(tmp_path / "model"), latest=True))
+        training.export_params(str(tmp_path / "run"), str(tmp_path / "model"), latest=True)
+    )
     assert _equal_trees(checkpoint_params, raw.state["params"])
 
 
@@ -286,8 +320,9 @@ def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_coun
     tgt = truth + 0.01  # every true position has a target point 0.017 away
     assert float(losses.correspondence_loss(truth, src, tgt, rotation, jnp.full(3, 0.5), radius=0.05)) == 0.0
     off = truth.at[0].add(jnp.array([0.3, 0.0, 0.0]))
-    np.testing.assert_allclose(float(losses.correspondence_loss(off, src, tgt, rotation, jnp.full(3, 0.5), radius=0.05)),
-                               0.09 / 12, rtol=1e-5)
+    np.testing.assert_allclose(
+        float(losses.correspondence_loss(off, src, tgt, rotation, jnp.full(3, 0.5), radius=0.05)), 0.09 / 12, rtol=1e-5
+    )
     # A source point whose true position has no target point near (cropped away) is not pulled anywhere.
     cropped = tgt.at[0].add(5.0)
     assert float(losses.correspondence_loss(off, src, cropped, rotation, jnp.full(3, 0.5), radius=0.05)) < 1e-10
@@ -295,14 +330,21 @@ def test_correspondence_loss_pulls_soft_matches_onto_true_positions_where_a_coun
     assert float(losses.correspondence_loss(off, src, tgt + 10.0, rotation, jnp.full(3, 0.5), radius=0.05)) == 0.0
     # In the total only with a weight (0: the authors' objective, unchanged), discounted per iteration.
     eye = jnp.broadcast_to(jnp.eye(3), (2, 3, 3))
-    its = model.Iterations(rotation=eye, translation=jnp.zeros((2, 3)), rotation_ab=eye,
-                           translation_ab=jnp.zeros((2, 3)), rotation_ba=eye, translation_ba=jnp.zeros((2, 3)),
-                           soft_weights=jnp.full((2, 12), 0.5), correspondences=jnp.zeros((2, 12), jnp.int32),
-                           temperature=jnp.ones(2), soft_targets=jnp.stack([off, off]))
+    its = model.Iterations(
+        rotation=eye,
+        translation=jnp.zeros((2, 3)),
+        rotation_ab=eye,
+        translation_ab=jnp.zeros((2, 3)),
+        rotation_ba=eye,
+        translation_ba=jnp.zeros((2, 3)),
+        soft_weights=jnp.full((2, 12), 0.5),
+        correspondences=jnp.zeros((2, 12), jnp.int32),
+        temperature=jnp.ones(2),
+        soft_targets=jnp.stack([off, off]),
+    )
     dit_loss = jax.jit(losses.dit_loss, static_argnames=("match_radius", "correspondence_weight"))
     plain, plain_terms = dit_loss(its, src, tgt, rotation, jnp.full(3, 0.5), match_radius=0.05)
-    weighted, terms = dit_loss(its, src, tgt, rotation, jnp.full(3, 0.5), match_radius=0.05,
-                               correspondence_weight=2.0)
+    weighted, terms = dit_loss(its, src, tgt, rotation, jnp.full(3, 0.5), match_radius=0.05, correspondence_weight=2.0)
     assert "correspondence" not in plain_terms
     np.testing.assert_allclose(float(terms["correspondence"]), 1.9 * 0.09 / 12, rtol=1e-5)
     np.testing.assert_allclose(float(weighted - plain), 2.0 * 1.9 * 0.09 / 12, rtol=1e-4)
@@ -313,13 +355,27 @@ def test_train_cli_reads_a_recipe_file_and_its_field_overrides(capsys):
     unknown fields or values of the wrong type end in one line and status 2."""
     import train
 
-    _, config, workdir = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.lr=0.5",
-                                      "--config.model.n_blocks=2", "--config.max_steps=7"])
+    _, config, workdir = train.parse(
+        [
+            "--config",
+            str(ROOT / "configs" / "tiny.py"),
+            "--config.lr=0.5",
+            "--config.model.n_blocks=2",
+            "--config.max_steps=7",
+        ]
+    )
     assert config.lr == 0.5 and config.model.n_blocks == 2 and config.max_steps == 7 and workdir == "runs/tiny-mix"
-    assert dataclasses.replace(config, lr=TINY_RECIPE.lr, max_steps=None,
-                               model=TINY_RECIPE.model) == TINY_RECIPE, "nothing else moves"
-    _, config, _ = train.parse(["--config", str(ROOT / "configs" / "tiny.py"), "--config.differentiable=false",
-                                "--config.settings=('clean', 'independent_clean')"])
+    assert dataclasses.replace(config, lr=TINY_RECIPE.lr, max_steps=None, model=TINY_RECIPE.model) == TINY_RECIPE, (
+        "nothing else moves"
+    )
+    _, config, _ = train.parse(
+        [
+            "--config",
+            str(ROOT / "configs" / "tiny.py"),
+            "--config.differentiable=false",
+            "--config.settings=('clean', 'independent_clean')",
+        ]
+    )
     assert config.differentiable is False and config.settings == ("clean", "independent_clean")
     _, default, workdir = train.parse([])
     assert default == training.load_config(ROOT / "configs" / "quick.py") and workdir == "runs/quick-clean"
@@ -340,7 +396,9 @@ def test_resume_reads_the_config_saved_in_the_workdir(tmp_path):
     (tmp_path / "train_config.json").write_text(json.dumps(config.to_json()))
     _, resumed, _ = train.parse(["--workdir", str(tmp_path), "--resume"])
     assert resumed == config
-    _, explicit, _ = train.parse(["--workdir", str(tmp_path), "--resume", "--config", str(ROOT / "configs" / "tiny.py")])
+    _, explicit, _ = train.parse(
+        ["--workdir", str(tmp_path), "--resume", "--config", str(ROOT / "configs" / "tiny.py")]
+    )
     assert explicit == TINY_RECIPE
 
 
@@ -398,8 +456,9 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     checkpoint.save(source, params, config.model_config())
     optimizer = training.make_optimizer(config, 10)
     state = training._initialise_from(training.init_state(config, optimizer), str(source), optimizer)
-    assert jax.tree.all(jax.tree.map(lambda a, b: bool(np.array_equal(np.asarray(a), np.asarray(b))),
-                                     state.params, params))
+    assert jax.tree.all(
+        jax.tree.map(lambda a, b: bool(np.array_equal(np.asarray(a), np.asarray(b))), state.params, params)
+    )
     wider = configs.tiny().replace(emb_dims=64, token_dim=8)
     # Only its shapes are read: zeros of the wider network's shapes, without compiling its initialisation.
     wider_shapes = jax.eval_shape(lambda: model.init(jax.random.PRNGKey(0), wider))
@@ -429,8 +488,9 @@ def _grown_from(source, config, optimizer):
     deeper = dataclasses.replace(config, model=grown_model_config(config.model))
     deeper_state = jax.eval_shape(lambda: training.init_state(deeper, optimizer))
     rng = np.random.default_rng(3)
-    deeper_state = deeper_state.replace(params=jax.tree.map(
-        lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), deeper_state.params))
+    deeper_state = deeper_state.replace(
+        params=jax.tree.map(lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), deeper_state.params)
+    )
     return training._initialise_from(deeper_state, str(source), optimizer).params
 
 
@@ -461,8 +521,16 @@ def test_training_curves_of_several_runs_plot_into_one_png(tmp_path):
         workdir = tmp_path / f"seed{seed}"
         workdir.mkdir()
         lines = [{"step": s, "split": "train", "loss": 1.0 / s} for s in (5, 10, 15)]
-        lines += [{"step": s, "split": "val", "rotation_error": 1e-4, "network_rotation_error": 20.0 / (1 + s),
-                   "network_match_accuracy": 0.5 + s / 40} for s in (0, 10, 15)]
+        lines += [
+            {
+                "step": s,
+                "split": "val",
+                "rotation_error": 1e-4,
+                "network_rotation_error": 20.0 / (1 + s),
+                "network_match_accuracy": 0.5 + s / 40,
+            }
+            for s in (0, 10, 15)
+        ]
         (workdir / "metrics.jsonl").write_text("\n".join(json.dumps(r) for r in lines[::-1]) + "\n")
         runs[f"seed {seed}"] = str(workdir)
     records = training.read_metrics(runs["seed 0"])
@@ -509,20 +577,46 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     The two processes read the data ``tiny_run`` prepared (preparing at once is tested in test_data_shapes).
     """
     # One checkpoint and one validation, both at step 12: the same steps, less to save and wait for.
-    args = [sys.executable, str(ROOT / "train.py"), *TINY_ARGS, "--config.ckpt_every=12", "--config.eval_every=12",
-            "--no-progress", "--prepared-dir", prepared]
+    args = [
+        sys.executable,
+        str(ROOT / "train.py"),
+        *TINY_ARGS,
+        "--config.ckpt_every=12",
+        "--config.eval_every=12",
+        "--no-progress",
+        "--prepared-dir",
+        prepared,
+    ]
     # two CPU devices per process, whatever device count the environment asks for
     flags = " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if "device_count" not in f)
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=f"{flags} --xla_force_host_platform_device_count=2")
     port = _free_port()
-    procs = [subprocess.Popen(args + ["--workdir", str(tmp_path / "two"), "--distributed", "--coordinator",
-                                      f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=str(ROOT))
-             for i in range(2)]
+    procs = [
+        subprocess.Popen(
+            args
+            + [
+                "--workdir",
+                str(tmp_path / "two"),
+                "--distributed",
+                "--coordinator",
+                f"localhost:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(i),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            cwd=str(ROOT),
+        )
+        for i in range(2)
+    ]
     outputs = [p.communicate(timeout=600) for p in procs]
     for p, (out, err) in zip(procs, outputs):
         assert p.returncode == 0, out[-1000:] + err[-3000:]
-    results = [json.loads(out[out.index("{"):]) for out, _ in outputs]
+    results = [json.loads(out[out.index("{") :]) for out, _ in outputs]
     assert [(r["processes"], r["devices"]) for r in results] == [(2, 4), (2, 4)]
     assert results[0]["val"] == results[1]["val"]
 
@@ -541,12 +635,18 @@ def test_data_parallel_steps_equal_one_device_over_devices_and_processes(tmp_pat
     import optax
 
     start = training.init_state(TINY_RECIPE, optax.sgd(0.1)).params
-    moved = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
-                for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(start)))
-    differ = max(float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
-                 for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(two)))
-    leaves = [(np.asarray(a), np.asarray(b), np.asarray(c))
-              for a, b, c in zip(jax.tree.leaves(reference), jax.tree.leaves(two), jax.tree.leaves(start))]
+    moved = max(
+        float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+        for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(start))
+    )
+    differ = max(
+        float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+        for a, b in zip(jax.tree.leaves(reference), jax.tree.leaves(two))
+    )
+    leaves = [
+        (np.asarray(a), np.asarray(b), np.asarray(c))
+        for a, b, c in zip(jax.tree.leaves(reference), jax.tree.leaves(two), jax.tree.leaves(start))
+    ]
     moved_norm = np.sqrt(sum(float(np.sum((a - c) ** 2)) for a, _, c in leaves))
     differ_norm = np.sqrt(sum(float(np.sum((a - b) ** 2)) for a, b, _ in leaves))
     assert moved > 1e-4  # it trained
@@ -571,19 +671,39 @@ def test_the_batch_loss_is_the_mean_of_each_pairs_loss():
     rng = np.random.default_rng(5)
     src = rng.uniform(-1, 1, (4, config.n_points, 3)).astype(np.float32)
     rotation = np.stack([random_rotation(rng) for _ in range(4)]).astype(np.float32)
-    batch = {"src": src, "tgt": np.einsum("bij,bnj->bni", rotation, src) + 0.1, "R": rotation,
-             "t": np.full((4, 3), 0.1, np.float32)}
+    batch = {
+        "src": src,
+        "tgt": np.einsum("bij,bnj->bni", rotation, src) + 0.1,
+        "R": rotation,
+        "t": np.full((4, 3), 0.1, np.float32),
+    }
     key = jax.random.PRNGKey(9)
 
     def pair_loss(p, pair, pair_key):  # as a train step computes one pair's loss
-        its = model.unroll(p, pair["src"], pair["tgt"], model_config, config.train_iters,
-                           differentiable=config.differentiable, dropout_key=pair_key)
-        return losses.dit_loss(its, pair["src"], pair["tgt"], pair["R"], pair["t"], match_radius=config.match_radius,
-                               correspondence_weight=config.correspondence_weight)[0]
+        its = model.unroll(
+            p,
+            pair["src"],
+            pair["tgt"],
+            model_config,
+            config.train_iters,
+            differentiable=config.differentiable,
+            dropout_key=pair_key,
+        )
+        return losses.dit_loss(
+            its,
+            pair["src"],
+            pair["tgt"],
+            pair["R"],
+            pair["t"],
+            match_radius=config.match_radius,
+            correspondence_weight=config.correspondence_weight,
+        )[0]
 
     single = jax.jit(jax.value_and_grad(pair_loss))
-    singles = [single(params, {name: array[i] for name, array in batch.items()}, pair_key)
-               for i, pair_key in enumerate(jax.random.split(key, 4))]
+    singles = [
+        single(params, {name: array[i] for name, array in batch.items()}, pair_key)
+        for i, pair_key in enumerate(jax.random.split(key, 4))
+    ]
     expected = float(np.mean([float(v) for v, _ in singles]))
     # Host arithmetic (NumPy): op-by-op JAX would compile each operation for each parameter's shape.
     mean_grads = jax.tree.map(lambda *g: np.mean([np.asarray(x) for x in g], axis=0), *[g for _, g in singles])

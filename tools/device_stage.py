@@ -89,8 +89,19 @@ def _seconds_per_step(workdir: str) -> tuple[float, float]:
 
 
 def _launch(name: str, args, train_args: list[str], log_dir: str) -> subprocess.Popen:
-    cmd = [sys.executable, os.path.abspath(__file__), "worker", "--packed", args.packed, "--compile-cache",
-           args.compile_cache, "--workdir", os.path.join(args.workdir, name), "--", *train_args]
+    cmd = [
+        sys.executable,
+        os.path.abspath(__file__),
+        "worker",
+        "--packed",
+        args.packed,
+        "--compile-cache",
+        args.compile_cache,
+        "--workdir",
+        os.path.join(args.workdir, name),
+        "--",
+        *train_args,
+    ]
     log = open(os.path.join(log_dir, f"{name}.log"), "w")
     env = dict(os.environ, XLA_PYTHON_CLIENT_PREALLOCATE="false", PYTHONUNBUFFERED="1")
     if args.autotune is not None:
@@ -167,8 +178,14 @@ def run(args) -> int:
     if args.steps:
         return _train_side_by_side(args, runs, base, start, deadline, args.steps, None)
     # Timing: the first run's recipe for a few steps, validation included (it fills the compile cache).
-    calib = [*base, *runs[0][1], f"--config.max_steps={args.calibration_steps}", "--config.log_every=10",
-             "--config.eval_every=1000000", "--config.ckpt_every=1000000"]
+    calib = [
+        *base,
+        *runs[0][1],
+        f"--config.max_steps={args.calibration_steps}",
+        "--config.log_every=10",
+        "--config.eval_every=1000000",
+        "--config.ckpt_every=1000000",
+    ]
     proc = _launch("calibration", args, calib, args.out)
     try:
         proc.wait(timeout=max(60.0, deadline - time.time() - 120))
@@ -189,8 +206,11 @@ def run(args) -> int:
     compile_seconds = max(args.compile_seconds, 3 * 10 * first)
     steps = int((left - compile_seconds - (args.validations + 1) * args.validation_seconds) / per_step)
     steps = max(args.min_steps, steps // 50 * 50)
-    print(f"calibration: {spent:.0f} s, {steady:.3f} s / step steady, {first:.2f} s / step in the first "
-          f"interval; {left:.0f} s left, {compile_seconds:.0f} s for compiling -> {steps} steps", flush=True)
+    print(
+        f"calibration: {spent:.0f} s, {steady:.3f} s / step steady, {first:.2f} s / step in the first "
+        f"interval; {left:.0f} s left, {compile_seconds:.0f} s for compiling -> {steps} steps",
+        flush=True,
+    )
     return _train_side_by_side(args, runs, base, start, deadline, steps, steady)
 
 
@@ -199,8 +219,18 @@ def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) ->
     ckpt_every = min(every, args.ckpt_every or every)
     procs = {}
     for name, extra in runs:
-        procs[name] = _launch(name, args, [*base, *extra, f"--config.max_steps={steps}",
-                                           f"--config.eval_every={every}", f"--config.ckpt_every={ckpt_every}"], args.out)
+        procs[name] = _launch(
+            name,
+            args,
+            [
+                *base,
+                *extra,
+                f"--config.max_steps={steps}",
+                f"--config.eval_every={every}",
+                f"--config.ckpt_every={ckpt_every}",
+            ],
+            args.out,
+        )
     for name, p in procs.items():
         try:
             p.wait(timeout=max(1.0, deadline - time.time() - args.margin / 2))
@@ -208,8 +238,13 @@ def _train_side_by_side(args, runs, base, start, deadline, steps, calibrated) ->
             p.kill()
             p.wait()
             print(f"{name}: stopped at the deadline", flush=True)
-    summary = {"seconds_per_step_calibration": calibrated, "steps": steps, "eval_every": every,
-               "elapsed": round(time.time() - start), "runs": {}}
+    summary = {
+        "seconds_per_step_calibration": calibrated,
+        "steps": steps,
+        "eval_every": every,
+        "elapsed": round(time.time() - start),
+        "runs": {},
+    }
     for name, p in procs.items():
         workdir = os.path.join(args.workdir, name)
         summary["runs"][name] = {"returncode": p.returncode}
@@ -244,26 +279,46 @@ def main() -> int:
     r.add_argument("--out", required=True, help="bundles and logs")
     r.add_argument("--workdir", default="/tmp/device_stage")
     r.add_argument("--compile-cache", default="/tmp/device_stage_xla")
-    r.add_argument("--cache-from", default=None, metavar="TAR",
-                   help="a compilation cache an earlier lease wrote to --out (xla_cache.tar), carried here")
+    r.add_argument(
+        "--cache-from",
+        default=None,
+        metavar="TAR",
+        help="a compilation cache an earlier lease wrote to --out (xla_cache.tar), carried here",
+    )
     r.add_argument("--seconds", type=float, required=True, help="wall-clock budget of the whole command")
     r.add_argument("--run", action="append", required=True, metavar="NAME[:FIELD=VALUE,...]")
-    r.add_argument("--steps", type=int, default=None,
-                   help="train this many steps, without timing the recipe first (each compile costs minutes)")
+    r.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="train this many steps, without timing the recipe first (each compile costs minutes)",
+    )
     r.add_argument("--autotune", default="0", help="XLA's --xla_gpu_autotune_level for the runs (0: off)")
     r.add_argument("--calibration-steps", type=int, default=40)
     r.add_argument("--slowdown", type=float, default=1.3, help="step time side by side / alone (assumed)")
-    r.add_argument("--compile-seconds", type=float, default=60.0,
-                   help="at least this much, per run, in parallel (else 3 x the first logged interval)")
+    r.add_argument(
+        "--compile-seconds",
+        type=float,
+        default=60.0,
+        help="at least this much, per run, in parallel (else 3 x the first logged interval)",
+    )
     r.add_argument("--validation-seconds", type=float, default=8.0, help="assumed, once compiled")
     r.add_argument("--margin", type=float, default=40.0, help="seconds kept for stopping and bundling")
     r.add_argument("--min-steps", type=int, default=100)
-    r.add_argument("--validations", type=int, default=8,
-                   help="validations spread over each run, the end's included (1: the end's only; each setting's "
-                        "first validation compiles its registration, minutes on a fresh GPU machine)")
-    r.add_argument("--ckpt-every", type=int, default=None,
-                   help="steps between checkpoints (default: the validations' interval); a run stopped at the "
-                        "deadline before any validation brings back its latest")
+    r.add_argument(
+        "--validations",
+        type=int,
+        default=8,
+        help="validations spread over each run, the end's included (1: the end's only; each setting's "
+        "first validation compiles its registration, minutes on a fresh GPU machine)",
+    )
+    r.add_argument(
+        "--ckpt-every",
+        type=int,
+        default=None,
+        help="steps between checkpoints (default: the validations' interval); a run stopped at the "
+        "deadline before any validation brings back its latest",
+    )
     w = sub.add_parser("worker")
     w.add_argument("--packed", required=True)
     w.add_argument("--workdir", required=True)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import pathlib
 import sys
 import types
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -29,12 +29,14 @@ def allow_without_tfds() -> bool:
     """Installs a stand-in ``tensorflow_datasets`` module where the real one is missing; True if it did."""
     try:
         import tensorflow_datasets  # noqa: F401
+
         return False
     except ImportError:
         stub = types.ModuleType("tensorflow_datasets")
         unused = type("Unused", (), {"__init__": lambda self, *a, **k: None})
-        stub.core = types.SimpleNamespace(BuilderConfig=unused, GeneratorBasedBuilder=unused, Version=unused,
-                                          DatasetInfo=unused)
+        stub.core = types.SimpleNamespace(
+            BuilderConfig=unused, GeneratorBasedBuilder=unused, Version=unused, DatasetInfo=unused
+        )
         stub.features = types.SimpleNamespace(FeaturesDict=unused, Tensor=unused, Scalar=unused, Text=unused)
         sys.modules["tensorflow_datasets"] = stub
         return True
@@ -49,7 +51,7 @@ def pack(source: str, out: str, split: str = "train", labels: Iterable[int] | No
     from dit_jax.data import shapes as shapes_lib
 
     path = shapes_lib.check_h5_source(source, 1)
-    rows = list(shapes_lib._read_h5_split(path, split, 10 ** 9))
+    rows = list(shapes_lib._read_h5_split(path, split, 10**9))
     all_labels = np.array([r[2] for r in rows], np.int64)
     keep = np.ones(len(rows), bool) if labels is None else np.isin(all_labels, list(labels))
     kept = np.flatnonzero(keep)
@@ -58,11 +60,17 @@ def pack(source: str, out: str, split: str = "train", labels: Iterable[int] | No
         raise ValueError(f"{source}: coordinates beyond the unit cube cannot be packed as int16")
     out_path = pathlib.Path(out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(out_path, points=np.round(points * QUANT).astype(np.int16), rows=kept, labels=all_labels,
-             ids=np.array([rows[i][0] for i in kept]), shape_names=np.array(shapes_lib._shape_names(str(path))),
-             source=np.array(str(source)), split=np.array(split))
-    return {"out": str(out_path), "shapes": len(rows), "kept": int(len(kept)),
-            "bytes": out_path.stat().st_size}
+    np.savez(
+        out_path,
+        points=np.round(points * QUANT).astype(np.int16),
+        rows=kept,
+        labels=all_labels,
+        ids=np.array([rows[i][0] for i in kept]),
+        shape_names=np.array(shapes_lib._shape_names(str(path))),
+        source=np.array(str(source)),
+        split=np.array(split),
+    )
+    return {"out": str(out_path), "shapes": len(rows), "kept": int(len(kept)), "bytes": out_path.stat().st_size}
 
 
 def load(path: str, n_points: int | None = None):
@@ -81,4 +89,3 @@ def load(path: str, n_points: int | None = None):
         ids = np.array([f"unpacked:{i}" for i in range(len(labels))], dtype=object)
         ids[z["rows"]] = z["ids"]
         return Shapes(points, labels, ids.astype(str), tuple(str(s) for s in z["shape_names"]))
-

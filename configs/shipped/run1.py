@@ -17,12 +17,14 @@ from dit_jax.training import TrainConfig
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu('low_noise_partial'),
-                       setting='low_noise_partial',
-                       data_dir='../shared/data/modelnet40_ply_hdf5_1024',
-                       unseen=True,
-                       n_points=512,
-                       max_steps=600,
-                       lr_drops=(0.5, 0.8),
-                       eval_every=150,
-                       init_from='dit_jax/weights/dit-cpu-modelnet40').to_config_dict()
+    return TrainConfig(
+        model=configs.cpu("low_noise_partial"),
+        setting="low_noise_partial",
+        data_dir="../shared/data/modelnet40_ply_hdf5_1024",
+        unseen=True,
+        n_points=512,
+        max_steps=600,
+        lr_drops=(0.5, 0.8),
+        eval_every=150,
+        init_from="dit_jax/weights/dit-cpu-modelnet40",
+    ).to_config_dict()

@@ -20,13 +20,26 @@ from dit_jax.training import load_config
 
 def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run1.py"))  # run 1's recipe, changed:
-    return dataclasses.replace(before, model=configs.cpu('clean'),
-                               setting='clean',
-                               settings=('clean', 'low_noise_partial', 'high_noise_partial', 'independent_clean', 'independent_clean', 'independent_high_noise_partial', 'scan_low_noise', 'scan_high_noise', 'scan_high_noise'),
-                               mix_one_size=False,  # trained before the mix had one size
-                               max_steps=1000,
-                               lr_drops=(0.75, 0.9),
-                               val_pairs=24,
-                               eval_every=125,
-                               ckpt_every=50,
-                               match_radius=0.07).to_config_dict()
+    return dataclasses.replace(
+        before,
+        model=configs.cpu("clean"),
+        setting="clean",
+        settings=(
+            "clean",
+            "low_noise_partial",
+            "high_noise_partial",
+            "independent_clean",
+            "independent_clean",
+            "independent_high_noise_partial",
+            "scan_low_noise",
+            "scan_high_noise",
+            "scan_high_noise",
+        ),
+        mix_one_size=False,  # trained before the mix had one size
+        max_steps=1000,
+        lr_drops=(0.75, 0.9),
+        val_pairs=24,
+        eval_every=125,
+        ckpt_every=50,
+        match_radius=0.07,
+    ).to_config_dict()

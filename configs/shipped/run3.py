@@ -19,8 +19,6 @@ from dit_jax.training import load_config
 
 def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run2.py"))  # run 2's recipe, changed:
-    return dataclasses.replace(before, lr=0.0003,
-                               lr_drops=(0.8,),
-                               val_pairs=16,
-                               eval_every=100,
-                               correspondence_weight=1.0).to_config_dict()
+    return dataclasses.replace(
+        before, lr=0.0003, lr_drops=(0.8,), val_pairs=16, eval_every=100, correspondence_weight=1.0
+    ).to_config_dict()

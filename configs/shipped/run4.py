@@ -19,5 +19,4 @@ from dit_jax.training import load_config
 
 def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run3.py"))  # run 3's recipe, changed:
-    return dataclasses.replace(before, max_steps=1200,
-                               lr_drops=(0.85,)).to_config_dict()
+    return dataclasses.replace(before, max_steps=1200, lr_drops=(0.85,)).to_config_dict()

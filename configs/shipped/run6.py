@@ -19,5 +19,4 @@ from dit_jax.training import load_config
 
 def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run5.py"))  # run 5's recipe, changed:
-    return dataclasses.replace(before, eval_every=200,
-                               seed=1).to_config_dict()
+    return dataclasses.replace(before, eval_every=200, seed=1).to_config_dict()

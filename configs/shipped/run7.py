@@ -24,7 +24,18 @@ from dit_jax.training import load_config
 
 def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run6.py"))  # run 6's recipe, changed:
-    return dataclasses.replace(before, init_from="dit_jax/weights/dit-cpu-modelnet40", seed=7,
-                               mix_one_size=False, mix_points=384, mix_sampling="varied", max_steps=4500,
-                               lr_drops=(0.9,), val_pairs=16, validate_at_start=False, eval_every=4500,
-                               ckpt_every=250, keep=1).to_config_dict()
+    return dataclasses.replace(
+        before,
+        init_from="dit_jax/weights/dit-cpu-modelnet40",
+        seed=7,
+        mix_one_size=False,
+        mix_points=384,
+        mix_sampling="varied",
+        max_steps=4500,
+        lr_drops=(0.9,),
+        val_pairs=16,
+        validate_at_start=False,
+        eval_every=4500,
+        ckpt_every=250,
+        keep=1,
+    ).to_config_dict()

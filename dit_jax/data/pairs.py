@@ -38,12 +38,14 @@ the same ones.
 from __future__ import annotations
 
 import dataclasses
-from typing import Mapping, NamedTuple
+from collections.abc import Mapping
+from typing import NamedTuple
 
 import numpy as np
 
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.data.shapes import Shapes
+
 
 class Setting(NamedTuple):
     """How one data setting makes its pairs."""
@@ -299,12 +301,14 @@ class PairDataset:
                 src_idx[i], tgt_idx[i] = _scan_views(shapes[i], k, rng)
             else:
                 order = rng.permutation(p)
-                halves = order[:p // 2], order[p // 2:2 * (p // 2)]
+                halves = order[: p // 2], order[p // 2 : 2 * (p // 2)]
                 half = min(c.n_points, p // 2)
                 picked = [h[:half] for h in halves]
                 if c.partial:
-                    picked = [h[self._crop(shapes[i][h][None], anchor[None], k)[0]] for h, anchor in
-                              zip(picked, self._crop_anchors(rng))]
+                    picked = [
+                        h[self._crop(shapes[i][h][None], anchor[None], k)[0]]
+                        for h, anchor in zip(picked, self._crop_anchors(rng))
+                    ]
                 src_idx[i], tgt_idx[i] = picked[0], rng.permutation(picked[1])
             if c.noise_clip > 0:
                 noise[:, i] = np.clip(rng.normal(0.0, NOISE_STD, (2, k, 3)), -c.noise_clip, c.noise_clip)
@@ -361,7 +365,7 @@ def visible_points(points: np.ndarray, camera: np.ndarray, gamma: float = SCAN_G
 
     rel = np.asarray(points, np.float64) - camera
     norm = np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-12)
-    radius = norm.max() * 10.0 ** gamma
+    radius = norm.max() * 10.0**gamma
     flipped = rel + 2.0 * (radius - norm) * rel / norm
     hull = ConvexHull(np.vstack([flipped, np.zeros((1, 3))]))
     seen = np.zeros(len(rel), bool)
@@ -394,7 +398,7 @@ def _scan_views(shape: np.ndarray, k: int, rng: np.random.Generator) -> tuple[np
             continue
         # Too few at this density: fill up with the unowned (hidden) points nearest this view's camera.
         spare = np.flatnonzero(owner == -1)
-        fill = spare[np.argsort(np.linalg.norm(shape[spare] - cameras[view], axis=1))[:k - len(own)]]
+        fill = spare[np.argsort(np.linalg.norm(shape[spare] - cameras[view], axis=1))[: k - len(own)]]
         owner[fill] = view
         out.append(np.concatenate([own, fill]))
     # Both views seeing most of a sparse shape leaves few hidden points to fill with: a view still short
@@ -430,8 +434,16 @@ class MixedPairs:
     sampling pattern is learned.
     """
 
-    def __init__(self, shapes: Shapes, config: PairConfig, settings: tuple[str, ...], *, one_size: bool = False,
-                 points: int | None = None, sampling: str = "uniform"):
+    def __init__(
+        self,
+        shapes: Shapes,
+        config: PairConfig,
+        settings: tuple[str, ...],
+        *,
+        one_size: bool = False,
+        points: int | None = None,
+        sampling: str = "uniform",
+    ):
         if not settings:
             raise ValueError("MixedPairs needs at least one setting")
         if sampling not in ("uniform", "varied"):
@@ -476,8 +488,12 @@ class MixedPairs:
         if self.cloud_points is None:
             return out
         # A stream of its own per pair: thinning moves none of the pair's other draws.
-        return thin(out, self.setting_points(setting), [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]],
-                    self.sampling)
+        return thin(
+            out,
+            self.setting_points(setting),
+            [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]],
+            self.sampling,
+        )
 
 
 #: The ways :func:`thin` can pick the points a cloud keeps: at random (``uniform``); at random with a density
@@ -525,19 +541,23 @@ def thin(pairs: Mapping[str, np.ndarray], keep: int, rngs, sampling: str = "unif
     def rows(clouds):
         if sampling == "uniform":
             return np.stack([sample_points(c, keep, rng) for c, rng in zip(clouds, rngs)])
-        return np.stack([sample_points(c, keep, rng, SAMPLERS[rng.integers(len(SAMPLERS))])
-                         for c, rng in zip(clouds, rngs)])
+        return np.stack(
+            [sample_points(c, keep, rng, SAMPLERS[rng.integers(len(SAMPLERS))]) for c, rng in zip(clouds, rngs)]
+        )
 
     src_rows, tgt_rows = rows(src), rows(tgt)
     # where[i, j]: the new row of the target's old row j (-1: dropped)
     where = np.full((b, tgt.shape[1] + 1), -1, np.int64)
     np.put_along_axis(where, tgt_rows, np.broadcast_to(np.arange(keep), (b, keep)), axis=1)
     old = np.take_along_axis(pairs["correspondence"], src_rows, axis=1)
-    return dict(pairs,
-                src=np.take_along_axis(src, src_rows[..., None], axis=1),
-                tgt=np.take_along_axis(tgt, tgt_rows[..., None], axis=1),
-                correspondence=np.take_along_axis(where, np.where(old >= 0, old, tgt.shape[1]), axis=1)
-                .astype(pairs["correspondence"].dtype))
+    return dict(
+        pairs,
+        src=np.take_along_axis(src, src_rows[..., None], axis=1),
+        tgt=np.take_along_axis(tgt, tgt_rows[..., None], axis=1),
+        correspondence=np.take_along_axis(where, np.where(old >= 0, old, tgt.shape[1]), axis=1).astype(
+            pairs["correspondence"].dtype
+        ),
+    )
 
 
 class PairView:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -22,9 +22,17 @@ def epoch_order(n_pairs: int, epoch: int, seed: int, shuffle: bool) -> np.ndarra
     return np.random.default_rng([seed, epoch, 0x5EED]).permutation(n_pairs)
 
 
-def batches(dataset: PairDataset, batch_size: int, *, epoch: int = 0, shuffle: bool | None = None,
-            drop_remainder: bool | None = None, start_batch: int = 0, prefetch: int = 2,
-            seed: int | None = None) -> Iterator[dict[str, np.ndarray]]:
+def batches(
+    dataset: PairDataset,
+    batch_size: int,
+    *,
+    epoch: int = 0,
+    shuffle: bool | None = None,
+    drop_remainder: bool | None = None,
+    start_batch: int = 0,
+    prefetch: int = 2,
+    seed: int | None = None,
+) -> Iterator[dict[str, np.ndarray]]:
     """Yields the batches of one epoch, ``batch_size`` pairs each.
 
     Args:
@@ -43,7 +51,7 @@ def batches(dataset: PairDataset, batch_size: int, *, epoch: int = 0, shuffle: b
     order = epoch_order(len(dataset), epoch, dataset.config.seed if seed is None else seed, shuffle)
     stop = len(order) - len(order) % batch_size if drop_remainder else len(order)
     starts = range(start_batch * batch_size, stop, batch_size)
-    make = lambda s: dataset.batch(order[s:s + batch_size], epoch)
+    make = lambda s: dataset.batch(order[s : s + batch_size], epoch)
     if prefetch <= 0:
         for s in starts:
             yield make(s)

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import os
 import pathlib
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -61,11 +62,13 @@ class ScanPair(NamedTuple):
 def quaternion_matrix(q) -> np.ndarray:
     """The rotation matrix (3, 3) of the unit quaternion ``q = (qx, qy, qz, qw)`` (normalised first)."""
     x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def read_conf(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
@@ -152,13 +155,14 @@ def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
     """The entries of a 3DMatch ``gt.log``: ``[(i, j, T (4, 4)), ...]``, ``T`` moving fragment j onto i."""
     lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
     if len(lines) % 5:
-        raise DataError(f"{path}: expected entries of five lines ('i j n', then four rows of T), "
-                        f"found {len(lines)} lines")
+        raise DataError(
+            f"{path}: expected entries of five lines ('i j n', then four rows of T), found {len(lines)} lines"
+        )
     entries = []
     for k in range(0, len(lines), 5):
         try:
             i, j = int(lines[k][0]), int(lines[k][1])
-            matrix = np.array(lines[k + 1:k + 5], np.float64)
+            matrix = np.array(lines[k + 1 : k + 5], np.float64)
         except (ValueError, IndexError):
             raise DataError(f"{path}: entry {k // 5 + 1} is not 'i j n' and a 4 x 4 matrix") from None
         if matrix.shape != (4, 4):
@@ -172,13 +176,15 @@ def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
     whose ``gt.log`` entry is ``i j``."""
     lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
     if len(lines) % 7:
-        raise DataError(f"{path}: expected entries of seven lines ('i j n', then six rows of a 6 x 6 matrix), "
-                        f"found {len(lines)} lines")
+        raise DataError(
+            f"{path}: expected entries of seven lines ('i j n', then six rows of a 6 x 6 matrix), "
+            f"found {len(lines)} lines"
+        )
     entries = {}
     for k in range(0, len(lines), 7):
         try:
             i, j = int(lines[k][0]), int(lines[k][1])
-            matrix = np.array(lines[k + 1:k + 7], np.float64)
+            matrix = np.array(lines[k + 1 : k + 7], np.float64)
         except (ValueError, IndexError):
             raise DataError(f"{path}: entry {k // 7 + 1} is not 'i j n' and a 6 x 6 matrix") from None
         if matrix.shape != (6, 6):
@@ -245,9 +251,18 @@ def _gt_log_sets(directory: pathlib.Path, logs: list[pathlib.Path], scene: str =
         name = log.parent.name if log.parent != directory else directory.name
         info_file = log.with_name("gt.info")
         info = read_gt_info(info_file) if info_file.exists() else {}
-        pairs = [_pair(f"{prefix}cloud_bin_{j}->cloud_bin_{i}", fragment(j, log), fragment(i, log), matrix,
-                       info=info.get((i, j)), scene=scene, consecutive=abs(j - i) <= 1)
-                 for i, j, matrix in read_gt_log(log)]
+        pairs = [
+            _pair(
+                f"{prefix}cloud_bin_{j}->cloud_bin_{i}",
+                fragment(j, log),
+                fragment(i, log),
+                matrix,
+                info=info.get((i, j)),
+                scene=scene,
+                consecutive=abs(j - i) <= 1,
+            )
+            for i, j, matrix in read_gt_log(log)
+        ]
         sets[name] = PairSet(pairs, CRITERIA["gt.log"], "gt.log")
     return sets
 
@@ -269,16 +284,24 @@ def _kitti_set(poses_file: pathlib.Path, skips: Sequence[int]) -> dict[str, Pair
         raise DataError(f"{poses_file}: expected one line of 12 numbers (a 3 x 4 pose) per scan") from None
     if poses.shape[1] != 12:
         raise DataError(f"{poses_file}: expected one line of 12 numbers (a 3 x 4 pose) per scan")
-    files = sorted(f for f in poses_file.parent.iterdir()
-                   if f.suffix.lower() in io.READ_FORMATS and f.name != poses_file.name)
+    files = sorted(
+        f for f in poses_file.parent.iterdir() if f.suffix.lower() in io.READ_FORMATS and f.name != poses_file.name
+    )
     if len(files) != len(poses):
         raise DataError(f"{poses_file}: {len(poses)} poses for {len(files)} scans in {poses_file.parent}")
     pose = [np.vstack([row.reshape(3, 4), [0, 0, 0, 1]]) for row in poses]
     points = [_read_scan(f, poses_file) for f in files]
     sets = {}
     for skip in skips:
-        pairs = [_pair(f"{files[i].stem}->{files[i + skip].stem}", points[i], points[i + skip],
-                       np.linalg.inv(pose[i + skip]) @ pose[i]) for i in range(len(files) - skip)]
+        pairs = [
+            _pair(
+                f"{files[i].stem}->{files[i + skip].stem}",
+                points[i],
+                points[i + skip],
+                np.linalg.inv(pose[i + skip]) @ pose[i],
+            )
+            for i in range(len(files) - skip)
+        ]
         sets[f"skip{skip}"] = PairSet(pairs, CRITERIA["kitti"], "kitti")
     return sets
 
@@ -307,11 +330,14 @@ def load_pair_sets(directory: str | os.PathLike, skips: Sequence[int] = (1, 2)) 
             motion = None
         if motion is None or motion.shape != (4, 4):
             raise DataError(f"{path / 'T_target_source.txt'}: expected a 4 x 4 matrix")
-        found = {role: sorted(f for f in path.glob(f"{role}.*") if f.suffix.lower() in io.READ_FORMATS)
-                 for role in ("source", "target")}
+        found = {
+            role: sorted(f for f in path.glob(f"{role}.*") if f.suffix.lower() in io.READ_FORMATS)
+            for role in ("source", "target")
+        }
         if not found["source"] or not found["target"]:
             raise DataError(f"{path}: T_target_source.txt needs a source.* and a target.* cloud beside it")
         pair = _pair(path.name, _read_scan(found["source"][0], path), _read_scan(found["target"][0], path), motion)
         return {"pair": PairSet([pair], CRITERIA["pair"], "pair")}
-    raise DataError(f"{path}: no scan poses found (a Stanford .conf, a 3DMatch gt.log, a KITTI poses.txt, or "
-                    "T_target_source.txt)")
+    raise DataError(
+        f"{path}: no scan poses found (a Stanford .conf, a 3DMatch gt.log, a KITTI poses.txt, or T_target_source.txt)"
+    )

@@ -29,7 +29,8 @@ import logging
 import os
 import pathlib
 import re
-from typing import Iterator, NamedTuple
+from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 import tensorflow_datasets as tfds
@@ -173,11 +174,13 @@ class PointCloudShapes(tfds.core.GeneratorBasedBuilder):
             builder=self,
             disable_shuffling=True,  # keep the source's order, so row i is the file's shape i
             description=f"Point clouds of {c.n_points} points from {c.source}",
-            features=tfds.features.FeaturesDict({
-                "points": tfds.features.Tensor(shape=(c.n_points, 3), dtype=np.float32),
-                "label": tfds.features.Scalar(dtype=np.int64),
-                "id": tfds.features.Text(),
-            }),
+            features=tfds.features.FeaturesDict(
+                {
+                    "points": tfds.features.Tensor(shape=(c.n_points, 3), dtype=np.float32),
+                    "label": tfds.features.Scalar(dtype=np.int64),
+                    "id": tfds.features.Text(),
+                }
+            ),
         )
 
     def _split_generators(self, dl_manager):
@@ -219,15 +222,17 @@ def builder(source: str | os.PathLike | None = None, n_points: int = 1000, data_
             raise DataError(f"{EMBEDDED_FILE}: the embedded dataset is missing from this installation")
         with np.load(EMBEDDED_FILE) as z:
             if z["points"].shape[1] < n_points:
-                raise DataError(f"{EMBEDDED_FILE}: holds {z['points'].shape[1]} points per shape, "
-                                f"fewer than the {n_points} asked")
+                raise DataError(
+                    f"{EMBEDDED_FILE}: holds {z['points'].shape[1]} points per shape, fewer than the {n_points} asked"
+                )
     else:
         source = str(check_h5_source(source, n_points))
     name = f"{'embedded' if source == EMBEDDED else 'h5'}_p{n_points}_{_fingerprint(source)}"
     config = ShapesConfig(name=name, source=source, n_points=n_points)
     with _tfds_warnings_hidden():  # TFDS warns about every custom config, which all of ours are
-        return PointCloudShapes(config=config, data_dir=os.path.join(data_dir or DEFAULT_DATA_DIR, "tfds"),
-                                file_format="array_record")
+        return PointCloudShapes(
+            config=config, data_dir=os.path.join(data_dir or DEFAULT_DATA_DIR, "tfds"), file_format="array_record"
+        )
 
 
 @contextlib.contextmanager
@@ -242,8 +247,9 @@ def _tfds_warnings_hidden():
         absl_logger.setLevel(level)
 
 
-def prepare(source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None,
-            progress: bool = True):
+def prepare(
+    source: str | os.PathLike | None = None, n_points: int = 1000, data_dir: str | None = None, progress: bool = True
+):
     """:func:`builder`'s builder, prepared: once per ``data_dir``, however many processes ask at once;
     ``progress=False`` hides TFDS's progress bars while it prepares (for logs written to files).
 
@@ -281,8 +287,13 @@ def _lock(file) -> None:
     fcntl.flock(file.fileno(), fcntl.LOCK_EX)
 
 
-def load_shapes(source: str | os.PathLike | None = None, split: str = "train", n_points: int = 1000,
-                data_dir: str | None = None, progress: bool = True) -> Shapes:
+def load_shapes(
+    source: str | os.PathLike | None = None,
+    split: str = "train",
+    n_points: int = 1000,
+    data_dir: str | None = None,
+    progress: bool = True,
+) -> Shapes:
     """One split of a shape collection as arrays, preparing it through TFDS the first time.
 
     Args:

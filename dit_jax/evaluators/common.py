@@ -4,12 +4,11 @@ typed record, and the verdict's and the refinement's summaries."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from dit_jax import geometry
-
 
 #: The network alone.
 METHOD_DIT = "DIT"
@@ -52,19 +51,21 @@ class Estimates:
     level: np.ndarray | None = None
 
     @classmethod
-    def from_results(cls, results: Sequence, *, own_verdict: bool = False) -> "Estimates":
+    def from_results(cls, results: Sequence, *, own_verdict: bool = False) -> Estimates:
         """From :class:`dit_jax.pipeline.Result` s, each timed with its refinement."""
         agreement = np.array([r.agreement for r in results])
         refined = bool(results) and results[0].refinement is not None
-        return cls(rotation=np.stack([r.rotation for r in results]),
-                   translation=np.stack([r.translation for r in results]),
-                   seconds=np.array([r.total_seconds for r in results]),
-                   fitness=np.array([r.fitness for r in results]),
-                   agreement=None if np.isnan(agreement).all() else agreement,
-                   backward=np.array([r.direction == "backward" for r in results]) if refined else None,
-                   verdict=np.array([r.verdict for r in results]) if own_verdict else None,
-                   candidate=np.array([r.candidate for r in results]) if own_verdict else None,
-                   level=np.array([r.level for r in results]) if own_verdict else None)
+        return cls(
+            rotation=np.stack([r.rotation for r in results]),
+            translation=np.stack([r.translation for r in results]),
+            seconds=np.array([r.total_seconds for r in results]),
+            fitness=np.array([r.fitness for r in results]),
+            agreement=None if np.isnan(agreement).all() else agreement,
+            backward=np.array([r.direction == "backward" for r in results]) if refined else None,
+            verdict=np.array([r.verdict for r in results]) if own_verdict else None,
+            candidate=np.array([r.candidate for r in results]) if own_verdict else None,
+            level=np.array([r.level for r in results]) if own_verdict else None,
+        )
 
 
 def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None) -> dict[str, Estimates]:
@@ -100,8 +101,14 @@ def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_d
     wrong = errors > right_deg
     caught = float(np.mean(~verdicts[wrong])) if wrong.any() else float("nan")
     right = float(np.mean(~wrong[verdicts])) if verdicts.any() else float("nan")
-    return {"rule": rule, "failures": int(wrong.sum()), "failures_caught": caught, "passed": int(verdicts.sum()),
-            "passed_right": right, "right_deg": right_deg}
+    return {
+        "rule": rule,
+        "failures": int(wrong.sum()),
+        "failures_caught": caught,
+        "passed": int(verdicts.sum()),
+        "passed_right": right,
+        "right_deg": right_deg,
+    }
 
 
 def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg: float = 5.0) -> list[list]:
@@ -114,8 +121,9 @@ def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg:
     bands, low = [], -np.inf
     for high in [*edges, np.inf]:
         inside = (agreement > low) & (agreement <= high)
-        bands.append([None if np.isinf(high) else float(high), int(inside.sum()),
-                      int((inside & (errors <= right_deg)).sum())])
+        bands.append(
+            [None if np.isinf(high) else float(high), int(inside.sum()), int((inside & (errors <= right_deg)).sum())]
+        )
         low = high
     return bands
 
@@ -130,8 +138,13 @@ def fitness_rule(min_fitness: float) -> str:
     return f"fitness >= {min_fitness:.2f}"
 
 
-def refinement_summary(before: np.ndarray, after: np.ndarray, beats_truth: np.ndarray | None = None,
-                       good_deg: float = 10.0, goal_deg: float = 1.0) -> dict:
+def refinement_summary(
+    before: np.ndarray,
+    after: np.ndarray,
+    beats_truth: np.ndarray | None = None,
+    good_deg: float = 10.0,
+    goal_deg: float = 1.0,
+) -> dict:
     """What ICP did to DIT's estimates: rotation errors (P,) in degrees before and after. Of the pairs DIT
     alone had within ``good_deg``, how many end within ``goal_deg`` (and the worst of them); the mean change
     over those pairs and over all. With ``beats_truth`` (P,) bool (the refined motion fits the clouds better
@@ -141,12 +154,18 @@ def refinement_summary(before: np.ndarray, after: np.ndarray, beats_truth: np.nd
     extra = {}
     if beats_truth is not None:
         extra["good_missed_data"] = int(np.sum(good & (after > goal_deg) & np.asarray(beats_truth, bool)))
-    return extra | {"good_deg": good_deg, "goal_deg": goal_deg, "good": int(good.sum()),
-            "good_within_goal": int(np.sum(after[good] <= goal_deg)),
-            "good_worst_after": float(after[good].max()) if good.any() else float("nan"),
-            "good_mean_before": float(before[good].mean()) if good.any() else float("nan"),
-            "good_mean_after": float(after[good].mean()) if good.any() else float("nan"),
-            "mean_before": float(before.mean()), "mean_after": float(after.mean()), "pairs": int(len(before))}
+    return extra | {
+        "good_deg": good_deg,
+        "goal_deg": goal_deg,
+        "good": int(good.sum()),
+        "good_within_goal": int(np.sum(after[good] <= goal_deg)),
+        "good_worst_after": float(after[good].max()) if good.any() else float("nan"),
+        "good_mean_before": float(before[good].mean()) if good.any() else float("nan"),
+        "good_mean_after": float(after[good].mean()) if good.any() else float("nan"),
+        "mean_before": float(before.mean()),
+        "mean_after": float(after.mean()),
+        "pairs": int(len(before)),
+    }
 
 
 def rotation_error_deg(rotation: np.ndarray, truth: np.ndarray) -> float:
@@ -161,6 +180,7 @@ def rescore_agreement(results: dict, max_disagreement: dict) -> dict:
 
     Raises ValueError where an agreement verdict was reported without its per-pair evidence (older outputs),
     which only a new evaluation can score."""
+
     def threshold(method: str) -> float:
         return float(max_disagreement["icp" if method == METHOD_DIT_ICP else "none"])
 
@@ -173,8 +193,12 @@ def rescore_agreement(results: dict, max_disagreement: dict) -> dict:
                 raise ValueError(f"{setting}/{method}: no per-pair agreement kept; evaluate again to re-score it")
             errors, agreement = (np.asarray(r["per_pair"][k], float) for k in ("rot_err", "agreement"))
             extra = {k: v for k, v in r["verdict"].items() if k == "extra_seconds_per_pair"}
-            r["verdict"] = verdict_summary(errors, agreement <= threshold(method),
-                                           agreement_rule(threshold(method)), r["verdict"]["right_deg"]) | extra
+            r["verdict"] = (
+                verdict_summary(
+                    errors, agreement <= threshold(method), agreement_rule(threshold(method)), r["verdict"]["right_deg"]
+                )
+                | extra
+            )
     for pair_set, methods in results.get("pair_sets", {}).items():
         for method in (METHOD_DIT, METHOD_DIT_ICP):
             r = methods.get(method)
@@ -184,6 +208,9 @@ def rescore_agreement(results: dict, max_disagreement: dict) -> dict:
             for row in r["rows"]:
                 row["verdict"] = bool(row["agreement"] <= threshold(method))
             r["summary"]["verdict"] = verdict_summary(
-                np.array([row["rot_err"] for row in r["rows"]]), np.array([row["verdict"] for row in r["rows"]]),
-                agreement_rule(threshold(method)), verdict["right_deg"])
+                np.array([row["rot_err"] for row in r["rows"]]),
+                np.array([row["verdict"] for row in r["rows"]]),
+                agreement_rule(threshold(method)),
+                verdict["right_deg"],
+            )
     return results

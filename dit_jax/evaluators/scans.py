@@ -5,16 +5,28 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from dit_jax import baselines as baselines_lib
-from dit_jax import icp as icp_lib, pipeline
+from dit_jax import icp as icp_lib
+from dit_jax import pipeline
 from dit_jax.evaluators import report
-from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, SCAN_THRESHOLDS, agreement_rule,
-                                       fitness_rule, progress_bar, refinement_summary, rotation_error_deg, run_dit,
-                                       verdict_summary, Estimates)
+from dit_jax.evaluators.common import (
+    METHOD_DIT,
+    METHOD_DIT_ICP,
+    METHOD_PIPELINE,
+    SCAN_THRESHOLDS,
+    Estimates,
+    agreement_rule,
+    fitness_rule,
+    progress_bar,
+    refinement_summary,
+    rotation_error_deg,
+    run_dit,
+    verdict_summary,
+)
 
 
 def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -33,8 +45,7 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, tgt, "shared")
     rotation, translation = baselines_lib.get(name)(src_n, tgt_n)
     rotation = np.asarray(rotation, np.float64)
-    translation = pipeline.to_caller_units(rotation, np.asarray(translation, np.float64), src_centre, tgt_centre,
-                                           scale)
+    translation = pipeline.to_caller_units(rotation, np.asarray(translation, np.float64), src_centre, tgt_centre, scale)
     return rotation, translation, time.perf_counter() - started
 
 
@@ -59,11 +70,14 @@ def benchmark_summary(rows: list[dict], criterion: tuple[float, float]) -> dict:
     def figures(subset: list[dict]) -> dict:
         counted = [r for r in subset if not r["consecutive"]]
         right = [r for r in subset if is_right(r, criterion)]
-        return {"pairs": len(subset), "counted": len(counted),
-                "recall": float(np.mean([r["rmse"] <= BENCHMARK_RMSE for r in counted])) if counted else float("nan"),
-                "criterion_share": float(np.mean([is_right(r, criterion) for r in subset])),
-                "rre_median": float(np.median([r["rot_err"] for r in right])) if right else float("nan"),
-                "rte_median": float(np.median([r["trans_err"] for r in right])) if right else float("nan")}
+        return {
+            "pairs": len(subset),
+            "counted": len(counted),
+            "recall": float(np.mean([r["rmse"] <= BENCHMARK_RMSE for r in counted])) if counted else float("nan"),
+            "criterion_share": float(np.mean([is_right(r, criterion) for r in subset])),
+            "rre_median": float(np.median([r["rot_err"] for r in right])) if right else float("nan"),
+            "rte_median": float(np.median([r["trans_err"] for r in right])) if right else float("nan"),
+        }
 
     scenes = {scene: figures([r for r in rows if r["scene"] == scene]) for scene in sorted({r["scene"] for r in rows})}
     out = figures(rows) | {"seconds_median": float(np.median([r["seconds"] for r in rows])), "scenes": scenes}
@@ -80,18 +94,26 @@ def summarise_scans(rows: list[dict], criterion: tuple[float, float] | None = No
     (:func:`benchmark_summary`); where they carry the verdict's ``level``, ``levels``: for each level the pairs
     given it and how many of them were right (:func:`is_right`)."""
     rot = np.array([r["rot_err"] for r in rows])
-    out = {"pairs": len(rows), "rot_median": float(np.median(rot)), "rot_mean": float(np.mean(rot)),
-           "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
-           "seconds_per_pair": float(np.mean([r["seconds"] for r in rows]))}
+    out = {
+        "pairs": len(rows),
+        "rot_median": float(np.median(rot)),
+        "rot_mean": float(np.mean(rot)),
+        "trans_rel_median": float(np.median([r["trans_err_rel"] for r in rows])),
+        "seconds_per_pair": float(np.mean([r["seconds"] for r in rows])),
+    }
     out.update({f"within_{t:g}": int(np.sum(rot <= t)) for t in SCAN_THRESHOLDS})
     if criterion is not None:
         out["registered"] = int(sum(is_right(r, criterion) for r in rows))
         if rows and "rmse" in rows[0]:
             out["benchmark"] = benchmark_summary(rows, criterion)
     if rows and "level" in rows[0]:
-        out["levels"] = {level: {"pairs": sum(r["level"] == level for r in rows),
-                                 "right": sum(r["level"] == level and is_right(r, criterion) for r in rows)}
-                         for level in pipeline.VERDICT_LEVELS}
+        out["levels"] = {
+            level: {
+                "pairs": sum(r["level"] == level for r in rows),
+                "right": sum(r["level"] == level and is_right(r, criterion) for r in rows),
+            }
+            for level in pipeline.VERDICT_LEVELS
+        }
     return out
 
 
@@ -106,9 +128,19 @@ def sample_pairs(found, max_pairs: int | None, seed: int = 0) -> list:
     return [found.pairs[k] for k in chosen]
 
 
-def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, skips: Sequence[int] = (1, 2),
-                   baselines: Sequence[str] = (), max_pairs: int | None = None, progress: bool = True,
-                   inference: dict | None = None, worst_pairs: bool = True, seed: int = 0) -> dict:
+def evaluate_scans(
+    checkpoint_dir: str | None,
+    scans_dir: str,
+    out_dir: str,
+    *,
+    skips: Sequence[int] = (1, 2),
+    baselines: Sequence[str] = (),
+    max_pairs: int | None = None,
+    progress: bool = True,
+    inference: dict | None = None,
+    worst_pairs: bool = True,
+    seed: int = 0,
+) -> dict:
     """DIT (and baselines) on pairs of real scans with known poses (:mod:`dit_jax.data.scans`).
 
     Pairs: the pair sets of :func:`dit_jax.data.scans.load_pair_sets` (a series gives scan i with scan i +
@@ -130,25 +162,34 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
     loaded = scans_lib.load_pair_sets(scans_dir, skips)
     registrar = registration.load(checkpoint_dir, **(inference or {})) if checkpoint_dir is not None else None
     pair_sets = {name: sample_pairs(found, max_pairs, seed) for name, found in loaded.items()}
-    bar = progress_bar(progress, sum(map(len, pair_sets.values())) * (len(baselines) + bool(registrar)),
-                       "evaluate scans")
-    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "scans": os.path.abspath(scans_dir),
-               "pair_sets": {}, "pair_set_info": {}}
+    bar = progress_bar(
+        progress, sum(map(len, pair_sets.values())) * (len(baselines) + bool(registrar)), "evaluate scans"
+    )
+    results = {
+        "checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir),
+        "scans": os.path.abspath(scans_dir),
+        "pair_sets": {},
+        "pair_set_info": {},
+    }
     if registrar is not None:
         # One untimed registration first, so that no pair's seconds include compiling the network (every scan
         # is sampled to the same point count: one program serves them all).
         first = next((pairs[0] for pairs in pair_sets.values() if pairs), None)
         if first is not None:
             registrar.register(first.source, first.target)
-        results["dit"] = {"n_points": registrar.settings.n_points,
-                          "n_iters": registrar.settings.model_config(registrar.config).n_iters,
-                          "inference_settings": registrar.settings.to_dict()}
+        results["dit"] = {
+            "n_points": registrar.settings.n_points,
+            "n_iters": registrar.settings.model_config(registrar.config).n_iters,
+            "inference_settings": registrar.settings.to_dict(),
+        }
     for set_name, set_pairs in pair_sets.items():
         criterion = loaded[set_name].criterion
         results["pair_set_info"][set_name] = {
-            "pairs": len(set_pairs), "angle": float(np.mean([rotation_error_deg(p.rotation, np.eye(3))
-                                                             for p in set_pairs])),
-            "kind": loaded[set_name].kind, "criterion": list(criterion) if criterion else None}
+            "pairs": len(set_pairs),
+            "angle": float(np.mean([rotation_error_deg(p.rotation, np.eye(3)) for p in set_pairs])),
+            "kind": loaded[set_name].kind,
+            "criterion": list(criterion) if criterion else None,
+        }
         estimates = {}
         if registrar is not None:
             if bar is not None:
@@ -171,16 +212,24 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                 rotation, translation = est.rotation[k], est.translation[k]
                 extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
                 trans_err = float(np.linalg.norm(translation - pair.translation))
-                row = {"pair": pair.name, "rot_err": rotation_error_deg(rotation, pair.rotation),
-                       "trans_err": trans_err, "trans_err_rel": trans_err / extent,
-                       "seconds": float(est.seconds[k]),
-                       "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist()}
+                row = {
+                    "pair": pair.name,
+                    "rot_err": rotation_error_deg(rotation, pair.rotation),
+                    "trans_err": trans_err,
+                    "trans_err_rel": trans_err / extent,
+                    "seconds": float(est.seconds[k]),
+                    "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist(),
+                }
                 if method == METHOD_DIT_ICP:
-                    row["beats_truth"] = icp_lib.fits_better(pair.source, pair.target, (rotation, translation),
-                                                             (pair.rotation, pair.translation))
+                    row["beats_truth"] = icp_lib.fits_better(
+                        pair.source, pair.target, (rotation, translation), (pair.rotation, pair.translation)
+                    )
                 if pair.info is not None:
-                    row.update(rmse=scans_lib.benchmark_rmse(rotation, translation, pair), scene=pair.scene,
-                               consecutive=pair.consecutive)
+                    row.update(
+                        rmse=scans_lib.benchmark_rmse(rotation, translation, pair),
+                        scene=pair.scene,
+                        consecutive=pair.consecutive,
+                    )
                 if est.candidate is not None:
                     row["candidate"] = str(est.candidate[k])
                 if est.level is not None:
@@ -192,39 +241,57 @@ def evaluate_scans(checkpoint_dir: str | None, scans_dir: str, out_dir: str, *, 
                     if est.verdict is not None:  # the pipeline's own, second candidate included
                         row.update(verdict=bool(est.verdict[k]))
                     elif est.agreement is not None:
-                        row.update(agreement=float(est.agreement[k]),
-                                   verdict=bool(est.agreement[k] <= verdict_settings.max_disagreement(refine)))
+                        row.update(
+                            agreement=float(est.agreement[k]),
+                            verdict=bool(est.agreement[k] <= verdict_settings.max_disagreement(refine)),
+                        )
                     else:
                         row.update(verdict=bool(est.fitness[k] >= verdict_settings.min_fitness))
                 rows.append(row)
             summary = summarise_scans(rows, criterion)
             if rows and "verdict" in rows[0]:
                 refine = "icp" if method == METHOD_DIT_ICP else "none"
-                rule = (agreement_rule(registrar.settings.max_disagreement(refine))
-                        if registrar.settings.verdict_rule == "agreement"
-                        else fitness_rule(registrar.settings.min_fitness))
+                rule = (
+                    agreement_rule(registrar.settings.max_disagreement(refine))
+                    if registrar.settings.verdict_rule == "agreement"
+                    else fitness_rule(registrar.settings.min_fitness)
+                )
                 if method == METHOD_PIPELINE:
                     rule += ", or the feature match agrees with it as closely"
-                summary["verdict"] = verdict_summary(np.array([r["rot_err"] for r in rows]),
-                                                     np.array([r["verdict"] for r in rows]), rule)
+                summary["verdict"] = verdict_summary(
+                    np.array([r["rot_err"] for r in rows]), np.array([r["verdict"] for r in rows]), rule
+                )
             results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
         done = results["pair_sets"][set_name]
         if METHOD_DIT_ICP in done:
             done[METHOD_DIT_ICP]["summary"]["refinement"] = refinement_summary(
                 np.array([r["rot_err"] for r in done[METHOD_DIT]["rows"]]),
                 np.array([r["rot_err"] for r in done[METHOD_DIT_ICP]["rows"]]),
-                np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]))
+                np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]),
+            )
         if worst_pairs:
             by_name = {p.name: p for p in set_pairs}
             worst = []
             for method, r in done.items():
                 row = max(r["rows"], key=lambda x: x["rot_err"])
                 pair, matrix = by_name[row["pair"]], np.asarray(row["matrix"])
-                worst.append({"method": method, "pair": row["pair"], "src": pair.source, "tgt": pair.target,
-                              "R": matrix[:3, :3], "t": matrix[:3, 3], "truth": (pair.rotation, pair.translation)})
+                worst.append(
+                    {
+                        "method": method,
+                        "pair": row["pair"],
+                        "src": pair.source,
+                        "tgt": pair.target,
+                        "R": matrix[:3, :3],
+                        "t": matrix[:3, 3],
+                        "truth": (pair.rotation, pair.translation),
+                    }
+                )
             os.makedirs(out_dir, exist_ok=True)
-            report.plot_worst(os.path.join(out_dir, f"worst_{set_name}.png"), f"worst pair of each method: "
-                              f"{set_name} ({os.path.basename(os.path.normpath(scans_dir))})", worst)
+            report.plot_worst(
+                os.path.join(out_dir, f"worst_{set_name}.png"),
+                f"worst pair of each method: {set_name} ({os.path.basename(os.path.normpath(scans_dir))})",
+                worst,
+            )
     if bar is not None:
         bar.close()
     table = report.scan_tables(results)

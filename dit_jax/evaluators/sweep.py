@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -14,10 +14,19 @@ from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators.common import METHOD_DIT, METHOD_DIT_ICP, progress_bar, rotation_error_deg, run_dit
 
 
-def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
-                setting: str = "independent_clean", unseen: bool = True, angles: Sequence[float] = tuple(range(0, 181, 15)),
-                pairs_per_angle: int = 24, n_points: int | None = None, progress: bool = True,
-                refine: bool = True) -> dict:
+def angle_sweep(
+    checkpoint_dir: str | None,
+    out_dir: str,
+    *,
+    data_dir: str | None = None,
+    setting: str = "independent_clean",
+    unseen: bool = True,
+    angles: Sequence[float] = tuple(range(0, 181, 15)),
+    pairs_per_angle: int = 24,
+    n_points: int | None = None,
+    progress: bool = True,
+    refine: bool = True,
+) -> dict:
     """DIT's error against the rotation angle: test pairs of ``setting`` re-posed to rotations of exactly each
     angle about random axes (translations as drawn), through the registration pipeline as users run it: the
     network's result and, with ``refine``, the refined one.
@@ -25,12 +34,14 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     from dit_jax import registration
 
     # The network's own range: no second candidate (its results are not what the sweep measures).
-    changes = ({"refine": "icp" if refine else "none", "feature_candidate": "off"}
-               | ({"n_points": n_points} if n_points else {}))
+    changes = {"refine": "icp" if refine else "none", "feature_candidate": "off"} | (
+        {"n_points": n_points} if n_points else {}
+    )
     registrar = registration.load(checkpoint_dir, **changes)
     n_points = registrar.settings.n_points
-    test_shapes = shapes_lib.load_shapes(data_dir, "test", progress=progress,
-                                         n_points=pairs_lib.shape_points(data_dir, n_points, [setting]))
+    test_shapes = shapes_lib.load_shapes(
+        data_dir, "test", progress=progress, n_points=pairs_lib.shape_points(data_dir, n_points, [setting])
+    )
     ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen, n_points=n_points))
     # Pairs spread over the whole split (every category), the same ones for every angle.
     indices = np.linspace(0, len(ds) - 1, pairs_per_angle).astype(int)
@@ -39,38 +50,56 @@ def angle_sweep(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | Non
     axes = rng.normal(size=(len(indices), 3))
     rows = {}
     bar = progress_bar(progress, len(angles) * len(indices), "angle sweep")
-    summary = lambda e: {"median": float(np.median(e)), "within_1": float(np.mean(e <= 1)),
-                         "within_5": float(np.mean(e <= 5)), "within_10": float(np.mean(e <= 10)),
-                         "errors": e.tolist()}
+    summary = lambda e: {
+        "median": float(np.median(e)),
+        "within_1": float(np.mean(e <= 1)),
+        "within_5": float(np.mean(e <= 5)),
+        "within_10": float(np.mean(e <= 10)),
+        "errors": e.tolist(),
+    }
     for angle in angles:
         rotations = [geometry.axis_angle_matrix(axis, angle) for axis in axes]
         # Back to the shape's frame, then the new rotation; the translation stays as drawn.
-        pairs = [(batch["src"][i], (batch["tgt"][i] - batch["t"][i]) @ batch["R"][i] @ rotations[i].T + batch["t"][i])
-                 for i in range(len(indices))]
+        pairs = [
+            (batch["src"][i], (batch["tgt"][i] - batch["t"][i]) @ batch["R"][i] @ rotations[i].T + batch["t"][i])
+            for i in range(len(indices))
+        ]
         found = run_dit(registrar, pairs, bar=bar)
-        errors = {m: np.array([rotation_error_deg(r, truth) for r, truth in zip(est.rotation, rotations)])
-                  for m, est in found.items()}
+        errors = {
+            m: np.array([rotation_error_deg(r, truth) for r, truth in zip(est.rotation, rotations)])
+            for m, est in found.items()
+        }
         rows[float(angle)] = summary(errors[METHOD_DIT])
         if refine:
             rows[float(angle)]["icp"] = summary(errors[METHOD_DIT_ICP])
     if bar is not None:
         bar.close()
-    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
-               "setting": setting, "unseen": unseen, "pairs_per_angle": len(indices), "angles": rows}
+    results = {
+        "checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir),
+        "data": data_dir or "embedded",
+        "setting": setting,
+        "unseen": unseen,
+        "pairs_per_angle": len(indices),
+        "angles": rows,
+    }
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "angle_sweep.json"), "w") as f:
         json.dump(results, f, indent=2)
-    lines = [f"DIT on {len(indices)} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
-             f"{results['data']}) per angle, random axes"
-             + ("; DIT+ICP as `register` returns it (both directions refined, the better fitting kept)"
-                if refine else ""), "",
-             "| rotation (deg) | median error (deg) | within 5 deg | within 10 deg |"
-             + (" DIT+ICP median | DIT+ICP within 1 deg | DIT+ICP within 5 deg |" if refine else ""),
-             "|---|---|---|---|" + ("---|---|---|" if refine else "")]
+    lines = [
+        f"DIT on {len(indices)} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
+        f"{results['data']}) per angle, random axes"
+        + ("; DIT+ICP as `register` returns it (both directions refined, the better fitting kept)" if refine else ""),
+        "",
+        "| rotation (deg) | median error (deg) | within 5 deg | within 10 deg |"
+        + (" DIT+ICP median | DIT+ICP within 1 deg | DIT+ICP within 5 deg |" if refine else ""),
+        "|---|---|---|---|" + ("---|---|---|" if refine else ""),
+    ]
     for a, r in rows.items():
         line = f"| {a:g} | {r['median']:.2f} | {100 * r['within_5']:.0f} % | {100 * r['within_10']:.0f} % |"
         if refine:
-            line += f" {r['icp']['median']:.2f} | {100 * r['icp']['within_1']:.0f} % | {100 * r['icp']['within_5']:.0f} % |"
+            line += (
+                f" {r['icp']['median']:.2f} | {100 * r['icp']['within_1']:.0f} % | {100 * r['icp']['within_5']:.0f} % |"
+            )
         lines.append(line)
     table = "\n".join(lines) + "\n"
     with open(os.path.join(out_dir, "angle_sweep.md"), "w") as f:

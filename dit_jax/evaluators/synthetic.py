@@ -20,28 +20,39 @@ import json
 import os
 import sys
 import time
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
 
 from dit_jax import baselines as baselines_lib
-from dit_jax import icp as icp_lib, metrics
+from dit_jax import icp as icp_lib
+from dit_jax import metrics
 from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import report
-from dit_jax.evaluators.common import (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE, Estimates, agreement_rule,
-                                       fitness_rule, progress_bar, refinement_summary, run_dit, verdict_summary)
-
+from dit_jax.evaluators.common import (
+    METHOD_DIT,
+    METHOD_DIT_ICP,
+    METHOD_PIPELINE,
+    Estimates,
+    agreement_rule,
+    fitness_rule,
+    progress_bar,
+    refinement_summary,
+    run_dit,
+    verdict_summary,
+)
 
 #: The rotation error that "within ... up to symmetry" (:func:`dit_jax.metrics.within_up_to_symmetry`) allows,
 #: with the success curve's paired translation, 0.05.
 SYMMETRY_DEGREES = 5.0
 
 
-def predict_baseline(name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None,
-                     setting: str | None = None):
+def predict_baseline(
+    name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None, setting: str | None = None
+):
     """A baseline's :class:`Estimates` of pairs ``indices`` of ``dataset``, with its options tuned for
     ``setting`` (:func:`dit_jax.baselines.tuned_options`)."""
     method = baselines_lib.get(name, setting)
@@ -64,9 +75,15 @@ def complete_shapes(truth: dict) -> np.ndarray:
     return np.einsum("bji,bnj->bni", truth["R"], truth["tgt_clean"] - truth["t"][:, None])
 
 
-def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, shape_names: Sequence[str],
-          min_fitness: float | None = None, max_disagreement: float | None = None,
-          symmetry_tolerance: np.ndarray | None = None) -> dict:
+def score(
+    pred: Estimates,
+    dataset: pairs_lib.PairDataset,
+    indices: np.ndarray,
+    shape_names: Sequence[str],
+    min_fitness: float | None = None,
+    max_disagreement: float | None = None,
+    symmetry_tolerance: np.ndarray | None = None,
+) -> dict:
     """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
     distance, the share within 5 degrees up to the shape's symmetry, time per pair, the per-category
     breakdown, the worst pair, each pair's rotation error, surface error and verdict evidence (``per_pair``)
@@ -90,15 +107,27 @@ def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, 
     if symmetry_tolerance is None:
         symmetry_tolerance = metrics.symmetry_tolerance(shapes, truth["R"], truth["t"], SYMMETRY_DEGREES)
     up_to_symmetry = metrics.within_up_to_symmetry(
-        errors, np.linalg.norm(np.asarray(pred.translation, np.float64) - truth["t"], axis=-1), surface,
-        symmetry_tolerance, SYMMETRY_DEGREES)
+        errors,
+        np.linalg.norm(np.asarray(pred.translation, np.float64) - truth["t"], axis=-1),
+        surface,
+        symmetry_tolerance,
+        SYMMETRY_DEGREES,
+    )
     result["within_up_to_symmetry"] = float(np.mean(up_to_symmetry))
     worst = int(np.argmax(errors))  # kept, so a later --reuse run can still draw this method's worst pair
-    result["worst"] = {"pair": int(indices[worst]), "rot_err": float(errors[worst]),
-                       "R": np.asarray(pred.rotation[worst]).tolist(), "t": np.asarray(pred.translation[worst]).tolist()}
+    result["worst"] = {
+        "pair": int(indices[worst]),
+        "rot_err": float(errors[worst]),
+        "R": np.asarray(pred.rotation[worst]).tolist(),
+        "t": np.asarray(pred.translation[worst]).tolist(),
+    }
     # Per pair, so a verdict threshold chosen later can be scored on these pairs without registering them again.
-    result["per_pair"] = {"pair": np.asarray(indices).tolist(), "rot_err": np.round(errors, 5).tolist(),
-                          "surface_error": np.round(surface, 6).tolist(), "up_to_symmetry": up_to_symmetry.tolist()}
+    result["per_pair"] = {
+        "pair": np.asarray(indices).tolist(),
+        "rot_err": np.round(errors, 5).tolist(),
+        "surface_error": np.round(surface, 6).tolist(),
+        "up_to_symmetry": up_to_symmetry.tolist(),
+    }
     for evidence in ("agreement", "fitness"):
         if getattr(pred, evidence) is not None:
             result["per_pair"][evidence] = np.round(np.asarray(getattr(pred, evidence), np.float64), 5).tolist()
@@ -107,8 +136,9 @@ def score(pred: Estimates, dataset: pairs_lib.PairDataset, indices: np.ndarray, 
         result["feature_candidate_kept"] = int(np.sum(pred.candidate == "features"))
         result["per_pair"]["verdict"] = np.asarray(pred.verdict, bool).tolist()
     elif pred.agreement is not None and max_disagreement is not None:
-        result["verdict"] = verdict_summary(errors, pred.agreement <= max_disagreement,
-                                            agreement_rule(max_disagreement))
+        result["verdict"] = verdict_summary(
+            errors, pred.agreement <= max_disagreement, agreement_rule(max_disagreement)
+        )
     if pred.fitness is not None and min_fitness is not None and pred.verdict is None:
         result["verdict_fitness"] = verdict_summary(errors, pred.fitness >= min_fitness, fitness_rule(min_fitness))
     by_category = {}
@@ -131,19 +161,36 @@ def _reusable(reuse: str | None, data_dir, unseen: bool, variant: str, n_points:
     with open(path) as f:
         old = json.load(f)
     info = next(iter(old.get("setting_info", {}).values()), {})
-    same = (old.get("data") == (data_dir or "embedded") and old.get("n_points") == n_points
-            and info.get("split") == ("unseen" if unseen else "seen") and info.get("variant") == variant)
+    same = (
+        old.get("data") == (data_dir or "embedded")
+        and old.get("n_points") == n_points
+        and info.get("split") == ("unseen" if unseen else "seen")
+        and info.get("variant") == variant
+    )
     if not same:
         raise ValueError(f"--reuse {reuse}: made on other pairs (data, split, variant or point count differ)")
     return old["settings"]
 
 
-def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None = None,
-             settings: Sequence[str] = ("clean",), unseen: bool = False, variant: str = "authors",
-             max_pairs: int | None = None, baselines: Sequence[str] = (), inference: dict | None = None,
-             gmcce_threshold: float | str | None = None, compute_dtype: str = "float32", batch_size: int = 8,
-             prepared_dir: str | None = None, progress: bool = True, reuse: str | None = None,
-             worst_pairs: bool = True) -> dict:
+def evaluate(
+    checkpoint_dir: str | None,
+    out_dir: str,
+    *,
+    data_dir: str | None = None,
+    settings: Sequence[str] = ("clean",),
+    unseen: bool = False,
+    variant: str = "authors",
+    max_pairs: int | None = None,
+    baselines: Sequence[str] = (),
+    inference: dict | None = None,
+    gmcce_threshold: float | str | None = None,
+    compute_dtype: str = "float32",
+    batch_size: int = 8,
+    prepared_dir: str | None = None,
+    progress: bool = True,
+    reuse: str | None = None,
+    worst_pairs: bool = True,
+) -> dict:
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
     Args:
@@ -165,35 +212,55 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         from dit_jax import registration
 
         loaded = registration.load(checkpoint_dir, **(inference or {}))
-        registrar = registration.Registrar(loaded.params, loaded.config.replace(compute_dtype=compute_dtype),
-                                           loaded.settings)
+        registrar = registration.Registrar(
+            loaded.params, loaded.config.replace(compute_dtype=compute_dtype), loaded.settings
+        )
     n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
-    test_shapes = shapes_lib.load_shapes(data_dir, "test", data_dir=prepared_dir, progress=progress,
-                                         n_points=pairs_lib.shape_points(data_dir, n_points, settings))
+    test_shapes = shapes_lib.load_shapes(
+        data_dir,
+        "test",
+        data_dir=prepared_dir,
+        progress=progress,
+        n_points=pairs_lib.shape_points(data_dir, n_points, settings),
+    )
     os.makedirs(out_dir, exist_ok=True)
-    results = {"checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir), "data": data_dir or "embedded",
-               "n_points": n_points, "model_config": registrar and registrar.config.to_dict(),
-               "inference_settings": registrar and registrar.settings.to_dict(), "compute_dtype": compute_dtype,
-               "settings": {}, "setting_info": {}}
+    results = {
+        "checkpoint": checkpoint_dir and os.path.abspath(checkpoint_dir),
+        "data": data_dir or "embedded",
+        "n_points": n_points,
+        "model_config": registrar and registrar.config.to_dict(),
+        "inference_settings": registrar and registrar.settings.to_dict(),
+        "compute_dtype": compute_dtype,
+        "settings": {},
+        "setting_info": {},
+    }
     datasets = {}
     for setting in settings:
-        ds = pairs_lib.PairDataset(test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen,
-                                                                       variant=variant, n_points=n_points))
+        ds = pairs_lib.PairDataset(
+            test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen, variant=variant, n_points=n_points)
+        )
         datasets[setting] = (ds, np.arange(min(len(ds), max_pairs or len(ds))))
-    bar = progress_bar(progress, sum(len(ix) for _, ix in datasets.values()) * (len(baselines) + bool(registrar)),
-                       "evaluate")
+    bar = progress_bar(
+        progress, sum(len(ix) for _, ix in datasets.values()) * (len(baselines) + bool(registrar)), "evaluate"
+    )
     earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
     first_dit = None
     for setting, (ds, indices) in datasets.items():
-        threshold = (None if gmcce_threshold is None else GMCCE_THRESHOLDS[setting] if gmcce_threshold == "authors"
-                     else float(gmcce_threshold))
+        threshold = (
+            None
+            if gmcce_threshold is None
+            else GMCCE_THRESHOLDS[setting]
+            if gmcce_threshold == "authors"
+            else float(gmcce_threshold)
+        )
         preds: dict[str, Estimates] = {}
         if registrar is not None:
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: DIT")
             run = registrar if threshold is None else _with_settings(registrar, gmcce_threshold=threshold)
-            preds.update(run_dit(run, [(ds[int(n)]["src"], ds[int(n)]["tgt"]) for n in indices],
-                                 batch_size=batch_size, bar=bar))
+            preds.update(
+                run_dit(run, [(ds[int(n)]["src"], ds[int(n)]["tgt"]) for n in indices], batch_size=batch_size, bar=bar)
+            )
         reused = {}
         for name in baselines:
             old = earlier.get(setting, {}).get(name)
@@ -207,18 +274,23 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar, setting)
         truth = ds.batch(indices)
-        tolerance = (metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
-                     if preds else None)
+        tolerance = (
+            metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
+            if preds
+            else None
+        )
         inference_settings = registrar.settings if registrar else None
         scored = {}
         for name, pred in preds.items():
             verdict_options = {}
             if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE):
-                verdict_options = dict(min_fitness=inference_settings.min_fitness,
-                                       max_disagreement=inference_settings.max_disagreement(
-                                           "icp" if name == METHOD_DIT_ICP else "none"))
-            scored[name] = score(pred, ds, indices, test_shapes.shape_names, symmetry_tolerance=tolerance,
-                                 **verdict_options)
+                verdict_options = dict(
+                    min_fitness=inference_settings.min_fitness,
+                    max_disagreement=inference_settings.max_disagreement("icp" if name == METHOD_DIT_ICP else "none"),
+                )
+            scored[name] = score(
+                pred, ds, indices, test_shapes.shape_names, symmetry_tolerance=tolerance, **verdict_options
+            )
         for name in baselines:
             if name in scored:
                 scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
@@ -226,30 +298,46 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
         if METHOD_DIT_ICP in scored:
             errors = {m: np.array(scored[m]["per_pair"]["rot_err"]) for m in (METHOD_DIT, METHOD_DIT_ICP)}
             refined = preds[METHOD_DIT_ICP]
-            beats_truth = np.array([icp_lib.fits_better(ds[int(n)]["src"], ds[int(n)]["tgt"],
-                                                        (refined.rotation[k], refined.translation[k]),
-                                                        (truth["R"][k], truth["t"][k]))
-                                    for k, n in enumerate(indices)])
-            scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(errors[METHOD_DIT], errors[METHOD_DIT_ICP],
-                                                                      beats_truth)
+            beats_truth = np.array(
+                [
+                    icp_lib.fits_better(
+                        ds[int(n)]["src"],
+                        ds[int(n)]["tgt"],
+                        (refined.rotation[k], refined.translation[k]),
+                        (truth["R"][k], truth["t"][k]),
+                    )
+                    for k, n in enumerate(indices)
+                ]
+            )
+            scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(
+                errors[METHOD_DIT], errors[METHOD_DIT_ICP], beats_truth
+            )
             if refined.backward is not None:
                 scored[METHOD_DIT_ICP]["backward_kept"] = int(np.sum(refined.backward))
         results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
         model_config = registrar and run.settings.model_config(run.config)
-        results["setting_info"][setting] = {"pairs": int(len(indices)), "split": "unseen" if unseen else "seen",
-                                            "variant": variant,
-                                            "gmcce_threshold": model_config and model_config.gmcce_threshold,
-                                            "n_iters": model_config and model_config.n_iters}
+        results["setting_info"][setting] = {
+            "pairs": int(len(indices)),
+            "split": "unseen" if unseen else "seen",
+            "variant": variant,
+            "gmcce_threshold": model_config and model_config.gmcce_threshold,
+            "n_iters": model_config and model_config.n_iters,
+        }
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
         if worst_pairs and preds:
-            missing = report.plot_worst_pairs(ds, results["settings"][setting],
-                                              os.path.join(out_dir, f"worst_{setting}.png"),
-                                              f"worst pair of each method: {setting} ({results['data']}, "
-                                              f"{'unseen' if unseen else 'seen'} split)")
+            missing = report.plot_worst_pairs(
+                ds,
+                results["settings"][setting],
+                os.path.join(out_dir, f"worst_{setting}.png"),
+                f"worst pair of each method: {setting} ({results['data']}, {'unseen' if unseen else 'seen'} split)",
+            )
             if missing:
-                print(f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
-                      f"keep their worst pair", file=sys.stderr)
+                print(
+                    f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
+                    f"keep their worst pair",
+                    file=sys.stderr,
+                )
     if bar is not None:
         bar.close()
     table = report.markdown_tables(results)
@@ -258,8 +346,9 @@ def evaluate(checkpoint_dir: str | None, out_dir: str, *, data_dir: str | None =
     if first_dit is not None:
         setting, ds, pred = first_dit
         shown = np.arange(min(3, len(pred.rotation)))
-        report.plot_registrations(ds, pred, shown, os.path.join(out_dir, "registrations.png"),
-                                  f"DIT on {results['data']} ({setting})")
+        report.plot_registrations(
+            ds, pred, shown, os.path.join(out_dir, "registrations.png"), f"DIT on {results['data']} ({setting})"
+        )
     results["table"] = table
     return results
 

@@ -60,8 +60,11 @@ def fallback_threshold(curve: list[dict]) -> float:
     :func:`dit_jax.evaluators.common.verdict_summary` per grid value), the smaller on a tie. One that trusts
     none counts as always right; one that trusts fewer than :data:`dit_jax.pipeline.MIN_BAND_PAIRS` is not
     taken (too few to say how often they are right), unless every threshold is such, when the smallest is."""
-    candidates = [(1.0 if row["passed"] == 0 else row["passed_right"], -t) for t, row in zip(AGREEMENT_GRID, curve)
-                  if row["passed"] == 0 or row["passed"] >= pipeline.MIN_BAND_PAIRS]
+    candidates = [
+        (1.0 if row["passed"] == 0 else row["passed_right"], -t)
+        for t, row in zip(AGREEMENT_GRID, curve)
+        if row["passed"] == 0 or row["passed"] >= pipeline.MIN_BAND_PAIRS
+    ]
     return -max(candidates)[1] if candidates else AGREEMENT_GRID[0]
 
 
@@ -70,8 +73,9 @@ def gather_agreement(registrar: registration.Registrar, batches: dict) -> dict:
     refinement ("none": the network's result, "icp": the refined one), ``{"setting", "rot_err",
     "agreement"}``, each a list over all pairs."""
     per_pair = {refine: {"setting": [], "rot_err": [], "agreement": []} for refine in pipeline.REFINEMENTS}
-    agreement_registrar = registration.Registrar(registrar.params, registrar.config, registrar.settings,
-                                                 verdict_rule="agreement", refine="icp")
+    agreement_registrar = registration.Registrar(
+        registrar.params, registrar.config, registrar.settings, verdict_rule="agreement", refine="icp"
+    )
     for setting, b in batches.items():
         found = common.run_dit(agreement_registrar, list(zip(b["src"], b["tgt"])))
         for refine, method in (("none", common.METHOD_DIT), ("icp", common.METHOD_DIT_ICP)):
@@ -87,17 +91,26 @@ def gather_agreement(registrar: registration.Registrar, batches: dict) -> dict:
 def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
     """The agreement thresholds per refinement from gathered evidence (:func:`gather_agreement`), chosen over
     the settings ``pooled``, with the precision curve, the bands and the figures per setting."""
-    report = {"verdict_max_disagreement": {}, "verdict_pool": list(pooled), "verdict_agreement_on_validation": {},
-              "verdict_curve": {}, "verdict_agreement_bands": {}, "per_pair": per_pair, "verdict_fallback": []}
+    report = {
+        "verdict_max_disagreement": {},
+        "verdict_pool": list(pooled),
+        "verdict_agreement_on_validation": {},
+        "verdict_curve": {},
+        "verdict_agreement_bands": {},
+        "per_pair": per_pair,
+        "verdict_fallback": [],
+    }
     for refinement, evidence in per_pair.items():
         errors, agreement = np.asarray(evidence["rot_err"], float), np.asarray(evidence["agreement"], float)
         settings = np.asarray(evidence["setting"])
         in_pool = np.isin(settings, pooled)
         report["verdict_curve"][refinement] = curve = [
             common.verdict_summary(errors[in_pool], agreement[in_pool] <= t, common.agreement_rule(t), RIGHT_DEG)
-            for t in AGREEMENT_GRID]
+            for t in AGREEMENT_GRID
+        ]
         report["verdict_agreement_bands"][refinement] = common.agreement_bands(
-            errors[in_pool], agreement[in_pool], AGREEMENT_GRID, RIGHT_DEG)
+            errors[in_pool], agreement[in_pool], AGREEMENT_GRID, RIGHT_DEG
+        )
         threshold = largest_threshold(errors[in_pool], agreement[in_pool])
         if threshold is None:
             threshold = fallback_threshold(curve)
@@ -107,10 +120,16 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
         report["verdict_agreement_on_validation"][refinement] = {
             "pooled": common.verdict_summary(errors, agreement <= threshold, rule, RIGHT_DEG),
             "pool": common.verdict_summary(errors[in_pool], agreement[in_pool] <= threshold, rule, RIGHT_DEG),
-            **{s: common.verdict_summary(errors[settings == s], agreement[settings == s] <= threshold, rule,
-                                         RIGHT_DEG) for s in dict.fromkeys(settings.tolist())}}
-        print(f"refine={refinement}: agreement within {threshold:g} deg"
-              + (" (fallback)" if refinement in report["verdict_fallback"] else ""), flush=True)
+            **{
+                s: common.verdict_summary(errors[settings == s], agreement[settings == s] <= threshold, rule, RIGHT_DEG)
+                for s in dict.fromkeys(settings.tolist())
+            },
+        }
+        print(
+            f"refine={refinement}: agreement within {threshold:g} deg"
+            + (" (fallback)" if refinement in report["verdict_fallback"] else ""),
+            flush=True,
+        )
     return report
 
 
@@ -125,15 +144,20 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
         variants.append(changes)
     report = {"grid": {k: list(v) for k, v in grid.items()}, "variants": []}
     for changes in variants:
-        run = registration.Registrar(registrar.params, registrar.config, registrar.settings, refine="none",
-                                     verdict_rule="fitness", **changes)
+        run = registration.Registrar(
+            registrar.params, registrar.config, registrar.settings, refine="none", verdict_rule="fitness", **changes
+        )
         row = {"changes": changes, "settings": {}}
         for setting, b in batches.items():
             est = common.run_dit(run, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
             errors = np.array([geometry.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, b["R"])])
-            row["settings"][setting] = {"within_5": float(np.mean(errors <= 5)), "median": float(np.median(errors)),
-                                        "mean_log": float(np.mean(np.log10(errors + 1e-6))),
-                                        "errors": errors.tolist(), "fitness": est.fitness.tolist()}
+            row["settings"][setting] = {
+                "within_5": float(np.mean(errors <= 5)),
+                "median": float(np.median(errors)),
+                "mean_log": float(np.mean(np.log10(errors + 1e-6))),
+                "errors": errors.tolist(),
+                "fitness": est.fitness.tolist(),
+            }
         row["within_5"] = float(np.mean([s["within_5"] for s in row["settings"].values()]))
         row["mean_log"] = float(np.mean([s["mean_log"] for s in row["settings"].values()]))
         report["variants"].append(row)
@@ -143,8 +167,14 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
     errors = np.concatenate([s["errors"] for s in best["settings"].values()])
     fitness = np.concatenate([s["fitness"] for s in best["settings"].values()])
     right = errors <= RIGHT_DEG
-    report["verdict_min_fitness"] = next((float(t) for t in np.round(np.arange(0.0, 1.0001, 0.01), 2)
-                                          if (fitness >= t).any() and right[fitness >= t].mean() >= PRECISION), None)
+    report["verdict_min_fitness"] = next(
+        (
+            float(t)
+            for t in np.round(np.arange(0.0, 1.0001, 0.01), 2)
+            if (fitness >= t).any() and right[fitness >= t].mean() >= PRECISION
+        ),
+        None,
+    )
     return report
 
 
@@ -156,9 +186,12 @@ def record(path: str, report: dict) -> pipeline.InferenceSettings:
     changes = {}
     if "verdict_max_disagreement" in report:
         thresholds, bands = report["verdict_max_disagreement"], report.get("verdict_agreement_bands", {})
-        changes.update(max_disagreement_network=thresholds.get("none", settings.max_disagreement_network),
-                       max_disagreement_icp=thresholds.get("icp", settings.max_disagreement_icp),
-                       agreement_bands_network=bands.get("none"), agreement_bands_icp=bands.get("icp"))
+        changes.update(
+            max_disagreement_network=thresholds.get("none", settings.max_disagreement_network),
+            max_disagreement_icp=thresholds.get("icp", settings.max_disagreement_icp),
+            agreement_bands_network=bands.get("none"),
+            agreement_bands_icp=bands.get("icp"),
+        )
     if "chosen" in report:
         changes.update(report["chosen"])
         if report.get("verdict_min_fitness") is not None:
@@ -181,13 +214,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=24, help="validation pairs per setting")
     parser.add_argument("--out", required=True, help="where the choice and its evidence go (JSON)")
-    parser.add_argument("--verdict-settings", nargs="+", default=list(pairs_lib.SETTINGS),
-                        help="settings the agreement verdict is chosen on (default: all)")
-    parser.add_argument("--verdict-pool", choices=("independent", "all"), default="independent",
-                        help="settings the thresholds are chosen over: those whose clouds share no point, or all")
+    parser.add_argument(
+        "--verdict-settings",
+        nargs="+",
+        default=list(pairs_lib.SETTINGS),
+        help="settings the agreement verdict is chosen on (default: all)",
+    )
+    parser.add_argument(
+        "--verdict-pool",
+        choices=("independent", "all"),
+        default="independent",
+        help="settings the thresholds are chosen over: those whose clouds share no point, or all",
+    )
     parser.add_argument("--verdict-only", action="store_true", help="choose the agreement thresholds only")
-    parser.add_argument("--rechoose", default=None, metavar="JSON",
-                        help="choose the thresholds again from the evidence an earlier --out kept")
+    parser.add_argument(
+        "--rechoose",
+        default=None,
+        metavar="JSON",
+        help="choose the thresholds again from the evidence an earlier --out kept",
+    )
     parser.add_argument("--n-iters", type=int, nargs="+", default=None, help="iteration counts to try as well")
     parser.add_argument("--keep-gmcce", action="store_true", help="search only --n-iters")
     parser.add_argument("--record", action="store_true", help="write the choice into the checkpoint")
@@ -199,26 +244,33 @@ def main(argv: list[str] | None = None) -> int:
         if os.path.realpath(earlier.get("checkpoint", args.checkpoint)) != os.path.realpath(args.checkpoint):
             parser.error(f"{args.rechoose} holds the evidence of {earlier['checkpoint']}, not {args.checkpoint}")
         settings = list(dict.fromkeys(earlier["per_pair"]["icp"]["setting"]))
-        report = {"checkpoint": args.checkpoint, "rechosen_from": args.rechoose,
-                  **choose_from_evidence(earlier["per_pair"], _pooled(settings, args.verdict_pool))}
+        report = {
+            "checkpoint": args.checkpoint,
+            "rechosen_from": args.rechoose,
+            **choose_from_evidence(earlier["per_pair"], _pooled(settings, args.verdict_pool)),
+        }
     else:
         registrar = registration.load(args.checkpoint)
         n_points = registrar.settings.n_points
         report = {"checkpoint": args.checkpoint, "pairs_per_setting": args.pairs}
         if not args.verdict_only:
-            batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs, n_points=n_points,
-                                                  unseen=args.unseen)
+            batches = training.validation_batches(
+                args.data_dir, SETTINGS, count=args.pairs, n_points=n_points, unseen=args.unseen
+            )
             config = registrar.settings.model_config(registrar.config)
             grid = {k: (getattr(config, k),) for k in GRID} if args.keep_gmcce else dict(GRID)
             if args.n_iters:
                 grid["n_iters"] = tuple(args.n_iters)
             report |= choose_inference(registrar, batches, grid)
-            registrar = registration.Registrar(registrar.params, registrar.config, registrar.settings,
-                                               **report["chosen"])
-        batches = training.validation_batches(args.data_dir, args.verdict_settings, count=args.pairs,
-                                              n_points=n_points, unseen=args.unseen)
-        report |= choose_from_evidence(gather_agreement(registrar, batches),
-                                       _pooled(args.verdict_settings, args.verdict_pool))
+            registrar = registration.Registrar(
+                registrar.params, registrar.config, registrar.settings, **report["chosen"]
+            )
+        batches = training.validation_batches(
+            args.data_dir, args.verdict_settings, count=args.pairs, n_points=n_points, unseen=args.unseen
+        )
+        report |= choose_from_evidence(
+            gather_agreement(registrar, batches), _pooled(args.verdict_settings, args.verdict_pool)
+        )
     with open(args.out, "w") as f:
         json.dump(report, f, indent=2)
     if args.record:

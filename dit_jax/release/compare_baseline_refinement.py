@@ -24,7 +24,6 @@ import numpy as np
 
 from dit_jax import baselines, icp, training
 from dit_jax.data.pairs import SETTINGS
-
 from dit_jax.release.tune_baselines import score  # the tuning's own score, so the two tables compare
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -37,23 +36,37 @@ def main() -> None:
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=16, help="validation pairs per setting")
     parser.add_argument("--n-points", type=int, default=1000)
-    parser.add_argument("--write", action="store_true",
-                        help="write the per-setting choice into dit_jax/baselines_tuned.json and the table into "
-                             "docs/baselines_refinement.md")
+    parser.add_argument(
+        "--write",
+        action="store_true",
+        help="write the per-setting choice into dit_jax/baselines_tuned.json and the table into "
+        "docs/baselines_refinement.md",
+    )
     args = parser.parse_args()
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its warnings go to stdout, into the table
-    batches = training.validation_batches(args.data_dir, list(SETTINGS), count=args.pairs, n_points=args.n_points,
-                                          unseen=args.unseen)
+    batches = training.validation_batches(
+        args.data_dir, list(SETTINGS), count=args.pairs, n_points=args.n_points, unseen=args.unseen
+    )
     tuned_json = json.loads(TUNED_PATH.read_text())
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").
     single = tuned_json.get("refinement", {}).get("single_icp_method", {})
-    command = ("python -m dit_jax.release.compare_baseline_refinement " + (f"--data-dir {args.data_dir} " if args.data_dir else "")
-               + ("--unseen " if args.unseen else "") + f"--pairs {args.pairs}" + (" --write" if args.write else ""))
-    lines = [f"{datetime.date.today().isoformat()}: `{command}` (validation pairs of training shapes)", "",
-             "success % / within 5 deg, 0.05 % / median deg; the better score (success + within 5) in bold", "",
-             "| method | setting | its tuned single ICP | DIT's refinement |", "|---|---|---|---|"]
+    command = (
+        "python -m dit_jax.release.compare_baseline_refinement "
+        + (f"--data-dir {args.data_dir} " if args.data_dir else "")
+        + ("--unseen " if args.unseen else "")
+        + f"--pairs {args.pairs}"
+        + (" --write" if args.write else "")
+    )
+    lines = [
+        f"{datetime.date.today().isoformat()}: `{command}` (validation pairs of training shapes)",
+        "",
+        "success % / within 5 deg, 0.05 % / median deg; the better score (success + within 5) in bold",
+        "",
+        "| method | setting | its tuned single ICP | DIT's refinement |",
+        "|---|---|---|---|",
+    ]
     print("\n".join(lines), flush=True)
     wins = {"tuned": 0, "refine": 0, "tie": 0}
     scores = {}
@@ -73,19 +86,22 @@ def main() -> None:
             a, b = score(tuned, batch), score(multi, batch)
             scores.setdefault(name, {})[setting] = (a["score"], b["score"])
             cell = lambda s, bold: ("**{}**" if bold else "{}").format(
-                f"{100 * s['success']:.0f} / {100 * s['within_5']:.0f} / {s['median']:.2f}")
+                f"{100 * s['success']:.0f} / {100 * s['within_5']:.0f} / {s['median']:.2f}"
+            )
             better = "tie" if np.isclose(a["score"], b["score"]) else ("tuned" if a["score"] > b["score"] else "refine")
             wins[better] += 1
             lines.append(f"| {name} | {setting} | {cell(a, better == 'tuned')} | {cell(b, better == 'refine')} |")
             print(lines[-1], flush=True)
-    lines += ["", f"The tuned single ICP scores better on {wins['tuned']} of these, DIT's refinement on "
-                  f"{wins['refine']}, ties {wins['tie']}."]
+    lines += [
+        "",
+        f"The tuned single ICP scores better on {wins['tuned']} of these, DIT's refinement on "
+        f"{wins['refine']}, ties {wins['tie']}.",
+    ]
     print(lines[-1])
     if args.write:
         choice = tuned_json["choice"]
         # No date in the package's file: the tuning's report in docs/ carries it.
-        record = {"command": command, "pairs": args.pairs,
-                  "single_icp_method": {}, "scores": scores}
+        record = {"command": command, "pairs": args.pairs, "single_icp_method": {}, "scores": scores}
         chosen = []
         for name, per_setting in scores.items():
             record["single_icp_method"][name] = {}
@@ -103,11 +119,16 @@ def main() -> None:
                     chosen.append(f"{name} {target}")
         tuned_json["refinement"] = record
         TUNED_PATH.write_text(json.dumps(tuned_json, indent=1) + "\n")
-        lines += ["", "Written to `dit_jax/baselines_tuned.json`: DIT's refinement (`icp_method: refine`) for "
-                      + (", ".join(chosen) or "none") + "; the tuned single ICP elsewhere ('any': summed over "
-                      "the settings, the global estimate of each setting's own choice)."]
+        lines += [
+            "",
+            "Written to `dit_jax/baselines_tuned.json`: DIT's refinement (`icp_method: refine`) for "
+            + (", ".join(chosen) or "none")
+            + "; the tuned single ICP elsewhere ('any': summed over "
+            "the settings, the global estimate of each setting's own choice).",
+        ]
         (ROOT / "docs" / "baselines_refinement.md").write_text(
-            "# The baselines' ICP refinement: their tuned single ICP or DIT's refinement\n\n" + "\n".join(lines) + "\n")
+            "# The baselines' ICP refinement: their tuned single ICP or DIT's refinement\n\n" + "\n".join(lines) + "\n"
+        )
 
 
 if __name__ == "__main__":

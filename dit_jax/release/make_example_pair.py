@@ -43,8 +43,12 @@ def main() -> None:
     io.write(os.path.join(OUT, "chair_tgt.pcd"), tgt.astype(np.float32), binary=False)
     matrix = np.eye(4)
     matrix[:3, :3], matrix[:3, 3] = rotation, translation
-    np.savetxt(os.path.join(OUT, "chair_truth.txt"), matrix, fmt="%.9f",
-               header="true 4x4 motion of chair_src.ply onto chair_tgt.pcd (tgt = R src + t)")
+    np.savetxt(
+        os.path.join(OUT, "chair_truth.txt"),
+        matrix,
+        fmt="%.9f",
+        header="true 4x4 motion of chair_src.ply onto chair_tgt.pcd (tgt = R src + t)",
+    )
     print(f"source {len(src)} points, target {len(tgt)} points, none shared")
     with np.printoptions(precision=6, suppress=True):
         print(matrix)

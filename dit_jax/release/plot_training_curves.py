@@ -1,6 +1,6 @@
 """Plot the training curves of one or more runs into one PNG.
 
-    python -m dit_jax.release.plot_training_curves OUT.png runs/a runs/b ... [--labels "seed 0" "seed 1" ...]
+python -m dit_jax.release.plot_training_curves OUT.png runs/a runs/b ... [--labels "seed 0" "seed 1" ...]
 """
 
 import argparse

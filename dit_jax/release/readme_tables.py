@@ -39,8 +39,10 @@ def percent(x: float) -> str:
 
 
 def best_table(settings: dict) -> list[str]:
-    lines = ["| setting | best (success, then within 5 deg, then iso R) | runner-up | " + " | ".join(NETWORK) + " |",
-             "|---|---|---|" + "---|" * len(NETWORK)]
+    lines = [
+        "| setting | best (success, then within 5 deg, then iso R) | runner-up | " + " | ".join(NETWORK) + " |",
+        "|---|---|---|" + "---|" * len(NETWORK),
+    ]
     for name, methods in settings.items():
         ranked = sorted(methods, key=lambda m: rank_key(methods[m]))
 
@@ -50,13 +52,16 @@ def best_table(settings: dict) -> list[str]:
 
         def short(m):
             return f"{percent(methods[m]['success'])} / iso {methods[m]['rot_iso']:.3g}" if m in methods else "-"
+
         lines.append(f"| {name} | {cell(ranked[0])} | {cell(ranked[1])} | {' | '.join(map(short, NETWORK))} |")
     return lines
 
 
 def versus_table(settings: dict) -> list[str]:
-    lines = ["| setting | method | MAE(R) deg | iso R deg | success | within 5 deg, 0.05 | s / pair |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| setting | method | MAE(R) deg | iso R deg | success | within 5 deg, 0.05 | s / pair |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, methods in settings.items():
         baselines = [m for m in methods if m not in NETWORK]
         shown = [m for m in NETWORK if m in methods]
@@ -64,8 +69,10 @@ def versus_table(settings: dict) -> list[str]:
             shown.append(min(baselines, key=lambda m: rank_key(methods[m])))
         for m in shown:
             s = methods[m]
-            lines.append(f"| {name} | {m} | {s['rot_mae']:.4g} | {s['rot_iso']:.4g} | {percent(s['success'])} | "
-                         f"{percent(within5(s))} | {s['seconds_per_pair']:.3f} |")
+            lines.append(
+                f"| {name} | {m} | {s['rot_mae']:.4g} | {s['rot_iso']:.4g} | {percent(s['success'])} | "
+                f"{percent(within5(s))} | {s['seconds_per_pair']:.3f} |"
+            )
     return lines
 
 
@@ -76,9 +83,11 @@ def changes(settings: dict, before: dict) -> list[str]:
         for m in NETWORK:
             if m in methods and m in before.get(name, {}):
                 old, new = before[name][m], methods[m]
-                parts.append(f"{m} success {percent(old['success'])} -> {percent(new['success'])}, within 5 "
-                             f"{percent(within5(old))} -> {percent(within5(new))}, iso R "
-                             f"{old['rot_iso']:.3g} -> {new['rot_iso']:.3g}")
+                parts.append(
+                    f"{m} success {percent(old['success'])} -> {percent(new['success'])}, within 5 "
+                    f"{percent(within5(old))} -> {percent(within5(new))}, iso R "
+                    f"{old['rot_iso']:.3g} -> {new['rot_iso']:.3g}"
+                )
         if parts:
             lines.append(f"- {name}: " + "; ".join(parts))
     return lines
@@ -94,29 +103,44 @@ def _count(summary: dict | None, what: str) -> str:
 
 
 def verdict_table(directories: list[str]) -> list[str]:
-    lines = ["| data | " + " | ".join(f"{m}: failures (> 5 deg) flagged | {m}: trusted within 5 deg"
-                                      for m in NETWORK) + " |", "|---|" + "---|---|" * len(NETWORK)]
+    lines = [
+        "| data | "
+        + " | ".join(f"{m}: failures (> 5 deg) flagged | {m}: trusted within 5 deg" for m in NETWORK)
+        + " |",
+        "|---|" + "---|---|" * len(NETWORK),
+    ]
     for directory in directories:
         results = json.load(open(os.path.join(directory, "results.json")))
         if "pair_sets" in results:  # evaluate.py --scans
-            groups = {f"{os.path.basename(results['scans'].rstrip('/'))} {name}": {m: v["summary"] for m, v in
-                                                                                  methods.items()}
-                      for name, methods in results["pair_sets"].items()}
+            groups = {
+                f"{os.path.basename(results['scans'].rstrip('/'))} {name}": {
+                    m: v["summary"] for m, v in methods.items()
+                }
+                for name, methods in results["pair_sets"].items()
+            }
         else:
-            groups = {f"{os.path.basename(directory.rstrip('/'))} {name}": methods
-                      for name, methods in results["settings"].items()}
+            groups = {
+                f"{os.path.basename(directory.rstrip('/'))} {name}": methods
+                for name, methods in results["settings"].items()
+            }
         for name, methods in groups.items():
             pairs = methods[NETWORK[0]]["pairs"]
             verdicts = [(methods.get(m) or {}).get("verdict") for m in NETWORK]
-            lines.append(f"| {name} ({pairs} pairs) | " + " | ".join(
-                f"{_count(v, 'flagged')} | {_count(v, 'trusted')}" for v in verdicts) + " |")
+            lines.append(
+                f"| {name} ({pairs} pairs) | "
+                + " | ".join(f"{_count(v, 'flagged')} | {_count(v, 'trusted')}" for v in verdicts)
+                + " |"
+            )
     return lines
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("directory", nargs="+", help="evaluate.py --out directories (holding results.json); "
-                                                     "one, but with --verdict any number")
+    parser.add_argument(
+        "directory",
+        nargs="+",
+        help="evaluate.py --out directories (holding results.json); one, but with --verdict any number",
+    )
     parser.add_argument("--before", default=None, help="an earlier results.json of the same pairs")
     parser.add_argument("--verdict", action="store_true", help="the agreement verdict's table instead")
     args = parser.parse_args()

@@ -49,8 +49,13 @@ SOURCES = (
     ("eval_embedded", "embedded furniture set"),
 )
 #: Where each table lives.
-PAGES = {"expect": ROOT / "README.md", "results": DOCS / "results.md", "rooms": DOCS / "results.md",
-         "levels": DOCS / "verdict.md", "bands": DOCS / "verdict.md"}
+PAGES = {
+    "expect": ROOT / "README.md",
+    "results": DOCS / "results.md",
+    "rooms": DOCS / "results.md",
+    "levels": DOCS / "verdict.md",
+    "bands": DOCS / "verdict.md",
+}
 #: The README's table: the real sets and one synthetic directory.
 EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "eval_modelnet40_unseen")
 #: The rooms table's source: the 3DMatch benchmark's scenes.
@@ -96,15 +101,30 @@ def _rows(name: str, results: dict) -> list[dict]:
             for method, r in methods.items():
                 right, pairs = _scan_score(r["summary"])
                 scores[method] = (right / pairs, float(r["summary"]["seconds_per_pair"]), right, pairs)
-            rows.append({"label": label, "pairs": next(iter(scores.values()))[3], "scores": scores,
-                         "criterion": "registered" if "registered" in next(iter(methods.values()))["summary"]
-                         else "within 5 deg"})
+            rows.append(
+                {
+                    "label": label,
+                    "pairs": next(iter(scores.values()))[3],
+                    "scores": scores,
+                    "criterion": "registered"
+                    if "registered" in next(iter(methods.values()))["summary"]
+                    else "within 5 deg",
+                }
+            )
     else:
         for setting, methods in results.get("settings", {}).items():
-            scores = {method: (_synthetic_within5(s), float(s["seconds_per_pair"]), None, int(s["pairs"]))
-                      for method, s in methods.items()}
-            rows.append({"label": setting, "pairs": next(iter(scores.values()))[3], "scores": scores,
-                         "criterion": "within 5 deg"})
+            scores = {
+                method: (_synthetic_within5(s), float(s["seconds_per_pair"]), None, int(s["pairs"]))
+                for method, s in methods.items()
+            }
+            rows.append(
+                {
+                    "label": setting,
+                    "pairs": next(iter(scores.values()))[3],
+                    "scores": scores,
+                    "criterion": "within 5 deg",
+                }
+            )
     for row in rows:
         baselines = [m for m in row["scores"] if m not in NETWORK]
         row["best"] = max(baselines, key=lambda m: (row["scores"][m][0], -row["scores"][m][1])) if baselines else None
@@ -131,8 +151,11 @@ def _default(row: dict) -> str:
 
 
 def expect_table() -> list[str]:
-    lines = ["| data | pairs | right by | DIT alone | DIT+ICP | default pipeline | best baseline | "
-             "s / pair: default, baseline |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| data | pairs | right by | DIT alone | DIT+ICP | default pipeline | best baseline | "
+        "s / pair: default, baseline |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, title in SOURCES:
         if name not in EXPECT_SOURCES or (results := _load(name)) is None:
             continue
@@ -140,10 +163,12 @@ def expect_table() -> list[str]:
             best = row["best"]
             baseline = f"{_cell(row, best)} ({best})" if best else "-"
             default = _default(row)
-            lines.append(f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
-                         f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | "
-                         f"{_cell(row, common.METHOD_PIPELINE)} | {baseline} | "
-                         f"{_seconds(row, default)}, {_seconds(row, best)} |")
+            lines.append(
+                f"| {title}: {row['label']} | {row['pairs']} | {row['criterion']} | "
+                f"{_cell(row, common.METHOD_DIT)} | {_cell(row, common.METHOD_DIT_ICP)} | "
+                f"{_cell(row, common.METHOD_PIPELINE)} | {baseline} | "
+                f"{_seconds(row, default)}, {_seconds(row, best)} |"
+            )
     return lines
 
 
@@ -153,18 +178,25 @@ def results_tables() -> list[str]:
         results = _load(name)
         if results is None:
             continue
-        lines += [f"### {title}", "",
-                  f"Every method and column: [{name}/results.md]({name}/results.md); weights "
-                  f"`{pathlib.Path(results.get('checkpoint', '?')).name}`.", "",
-                  "| setting or pair set | pairs | right by | DIT alone | DIT+ICP | default pipeline | best baseline | "
-                  "s / pair: DIT, DIT+ICP, default, baseline |", "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"### {title}",
+            "",
+            f"Every method and column: [{name}/results.md]({name}/results.md); weights "
+            f"`{pathlib.Path(results.get('checkpoint', '?')).name}`.",
+            "",
+            "| setting or pair set | pairs | right by | DIT alone | DIT+ICP | default pipeline | best baseline | "
+            "s / pair: DIT, DIT+ICP, default, baseline |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for row in _rows(name, results):
             best = row["best"]
-            lines.append(f"| {row['label']} | {row['pairs']} | {row['criterion']} | {_cell(row, common.METHOD_DIT)} | "
-                         f"{_cell(row, common.METHOD_DIT_ICP)} | {_cell(row, common.METHOD_PIPELINE)} | "
-                         f"{_cell(row, best)} ({best or 'none'}) | "
-                         f"{_seconds(row, common.METHOD_DIT)}, {_seconds(row, common.METHOD_DIT_ICP)}, "
-                         f"{_seconds(row, common.METHOD_PIPELINE)}, {_seconds(row, best)} |")
+            lines.append(
+                f"| {row['label']} | {row['pairs']} | {row['criterion']} | {_cell(row, common.METHOD_DIT)} | "
+                f"{_cell(row, common.METHOD_DIT_ICP)} | {_cell(row, common.METHOD_PIPELINE)} | "
+                f"{_cell(row, best)} ({best or 'none'}) | "
+                f"{_seconds(row, common.METHOD_DIT)}, {_seconds(row, common.METHOD_DIT_ICP)}, "
+                f"{_seconds(row, common.METHOD_PIPELINE)}, {_seconds(row, best)} |"
+            )
         lines.append("")
     return lines[:-1]
 
@@ -178,16 +210,16 @@ def _settings_of(results: dict) -> pipeline.InferenceSettings:
     return pipeline.InferenceSettings(**recorded)
 
 
-def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str,
-                 confirmed=None) -> dict:
+def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str, confirmed=None) -> dict:
     """{level: (results, right)} of results with these agreements (degrees), right or not. ``confirmed``: per
     result, whether the pipeline's second candidate confirmed it (trusted whatever the agreement)."""
     counts = {level: [0, 0] for level in pipeline.VERDICT_LEVELS}
     threshold, bands = settings.max_disagreement(refine), settings.agreement_bands(refine)
     confirmed = [False] * len(agreement) if confirmed is None else confirmed
     for a, ok, sure in zip(agreement, right, confirmed):
-        level = pipeline.verdict_level(bool(sure) or a <= threshold, pipeline.agreement_band(bands, a),
-                                       settings.unconfirmed_min_right)
+        level = pipeline.verdict_level(
+            bool(sure) or a <= threshold, pipeline.agreement_band(bands, a), settings.unconfirmed_min_right
+        )
         counts[level][0] += 1
         counts[level][1] += int(ok)
     return {level: tuple(c) for level, c in counts.items()}
@@ -211,12 +243,25 @@ def levels_table() -> list[str]:
                     refined = methods.get(common.METHOD_DIT_ICP)
                     if method == common.METHOD_PIPELINE and r and refined and "agreement" in refined["rows"][0]:
                         # Its level: trusted where it says so, else the level of DIT+ICP's own agreement.
-                        sets.append((set_name, method, [row["agreement"] for row in refined["rows"]],
-                                     [_right_scans(row, criterion) for row in r["rows"]],
-                                     [row["verdict"] for row in r["rows"]]))
+                        sets.append(
+                            (
+                                set_name,
+                                method,
+                                [row["agreement"] for row in refined["rows"]],
+                                [_right_scans(row, criterion) for row in r["rows"]],
+                                [row["verdict"] for row in r["rows"]],
+                            )
+                        )
                     elif r and all(row.get("agreement") is not None for row in r["rows"]):
-                        sets.append((set_name, method, [row["agreement"] for row in r["rows"]],
-                                     [_right_scans(row, criterion) for row in r["rows"]], None))
+                        sets.append(
+                            (
+                                set_name,
+                                method,
+                                [row["agreement"] for row in r["rows"]],
+                                [_right_scans(row, criterion) for row in r["rows"]],
+                                None,
+                            )
+                        )
         else:
             for setting, methods in results.get("settings", {}).items():
                 for method in NETWORK:
@@ -224,8 +269,15 @@ def levels_table() -> list[str]:
                     if method == common.METHOD_PIPELINE and "verdict" not in per_pair:
                         continue  # measured before the pipeline kept its per-pair verdicts
                     if "agreement" in per_pair:
-                        sets.append((setting, method, per_pair["agreement"],
-                                     [e <= 5.0 for e in per_pair["rot_err"]], per_pair.get("verdict")))
+                        sets.append(
+                            (
+                                setting,
+                                method,
+                                per_pair["agreement"],
+                                [e <= 5.0 for e in per_pair["rot_err"]],
+                                per_pair.get("verdict"),
+                            )
+                        )
         for set_name, method, agreement, right, confirmed in sets:
             refine = "none" if method == common.METHOD_DIT else "icp"
             counts = level_counts(np.asarray(agreement, float), right, settings, refine, confirmed)
@@ -245,8 +297,12 @@ def rooms_table() -> list[str]:
     lines = []
     for set_name, methods in _scan_sets(results).items():
         info = results["pair_set_info"][set_name]
-        lines += [f"**{set_name}** ({info['pairs']} pairs, about {info['angle']:.0f} deg apart on average)", "",
-                  *report.benchmark_table(methods, info["criterion"]), ""]
+        lines += [
+            f"**{set_name}** ({info['pairs']} pairs, about {info['angle']:.0f} deg apart on average)",
+            "",
+            *report.benchmark_table(methods, info["criterion"]),
+            "",
+        ]
         for method, r in methods.items():
             if r["summary"].get("levels"):
                 lines += [report.levels_line(method, r["summary"]["levels"]), ""]
@@ -266,16 +322,28 @@ def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
             edges.append((label, int(pairs), int(right)))
             low = high
         if not lines:
-            lines = ["| agreement (deg) | " + " | ".join(label for label, _, _ in edges) + " |",
-                     "|---|" + "---|" * len(edges)]
+            lines = [
+                "| agreement (deg) | " + " | ".join(label for label, _, _ in edges) + " |",
+                "|---|" + "---|" * len(edges),
+            ]
         lines.append(f"| {method}: validation results | " + " | ".join(str(p) for _, p, _ in edges) + " |")
-        lines.append(f"| {method}: within 5 deg | " + " | ".join(
-            f"{100 * r / p:.0f} %" if p >= pipeline.MIN_BAND_PAIRS else f"({r} of {p})" for _, p, r in edges) + " |")
+        lines.append(
+            f"| {method}: within 5 deg | "
+            + " | ".join(
+                f"{100 * r / p:.0f} %" if p >= pipeline.MIN_BAND_PAIRS else f"({r} of {p})" for _, p, r in edges
+            )
+            + " |"
+        )
     return lines
 
 
-TABLES = {"expect": expect_table, "results": results_tables, "rooms": rooms_table, "levels": levels_table,
-          "bands": bands_table}
+TABLES = {
+    "expect": expect_table,
+    "results": results_tables,
+    "rooms": rooms_table,
+    "levels": levels_table,
+    "bands": bands_table,
+}
 
 
 def _replace(text: str, name: str, table: list[str]) -> str:

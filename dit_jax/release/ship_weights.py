@@ -29,15 +29,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", default=registration.shipped_weights())
     parser.add_argument("--inference-points", type=int, default=1000)
     parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
-    parser.add_argument("--choice", default=None, help="inference settings and verdict threshold to ship "
-                                                       "(dit-calibrate's output)")
+    parser.add_argument(
+        "--choice", default=None, help="inference settings and verdict threshold to ship (dit-calibrate's output)"
+    )
     args = parser.parse_args(argv)
 
     records = [json.loads(line) for line in open(os.path.join(args.workdir, "metrics.jsonl"))]
     train = [r for r in records if r.get("split") == "train"]
     val = [r for r in records if r.get("split") == "val"]
     log_every = training.TrainConfig.from_json(
-        json.load(open(os.path.join(args.workdir, "train_config.json")))).log_every
+        json.load(open(os.path.join(args.workdir, "train_config.json")))
+    ).log_every
     # metrics.jsonl may hold a step twice after a resume; count each logged step once
     per_step = {r["step"]: r["seconds_per_step"] for r in train}
     staging = args.out + ".new"
@@ -45,14 +47,16 @@ def main(argv: list[str] | None = None) -> None:
         shutil.rmtree(staging)
     path = training.export_params(args.workdir, staging)
     extra = checkpoint.read_extra(path)
-    extra.update({
-        "command": args.command,
-        "steps_run": max(per_step) if per_step else 0,
-        "train_seconds": round(sum(per_step.values()) * log_every),
-        "last_validation": val[-1] if val else None,
-        registration.SETTINGS_KEY: pipeline.InferenceSettings(n_points=args.inference_points).to_dict(),
-        "note": args.note,
-    })
+    extra.update(
+        {
+            "command": args.command,
+            "steps_run": max(per_step) if per_step else 0,
+            "train_seconds": round(sum(per_step.values()) * log_every),
+            "last_validation": val[-1] if val else None,
+            registration.SETTINGS_KEY: pipeline.InferenceSettings(n_points=args.inference_points).to_dict(),
+            "note": args.note,
+        }
+    )
     params, config = checkpoint.restore(path)
     init_from = extra.get("train_config", {}).get("init_from")
     if init_from and os.path.isdir(init_from):
@@ -64,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.choice:
         calibrate.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
-    print(f"wrote {args.out} ({size / 2 ** 20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
+    print(f"wrote {args.out} ({size / 2**20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
 
 
 if __name__ == "__main__":

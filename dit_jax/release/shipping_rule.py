@@ -60,8 +60,11 @@ def errors_deg(registrar: registration.Registrar, batch: dict, bar=None) -> np.n
 
 def summary(errors: np.ndarray) -> dict:
     """Median and shares within 5 and 10 degrees of ``errors`` (P,)."""
-    return {"median": float(np.median(errors)), "within_5": float(np.mean(errors <= RIGHT_DEG)),
-            "within_10": float(np.mean(errors <= 10.0))}
+    return {
+        "median": float(np.median(errors)),
+        "within_5": float(np.mean(errors <= RIGHT_DEG)),
+        "within_10": float(np.mean(errors <= 10.0)),
+    }
 
 
 def verdict(shipped: dict, candidate: dict) -> dict:
@@ -71,10 +74,12 @@ def verdict(shipped: dict, candidate: dict) -> dict:
     for sampling in shipped:
         gains = {s: candidate[sampling][s]["within_5"] - shipped[sampling][s]["within_5"] for s in HARD}
         clean_loss = shipped[sampling]["clean"]["within_5"] - candidate[sampling]["clean"]["within_5"]
-        out[sampling] = {"clean_loss": clean_loss, "hard_gain": sum(gains.values()),
-                         "worst_hard_loss": max(0.0, -min(gains.values())),
-                         "passes": bool(clean_loss <= 0 and sum(gains.values()) >= GAIN
-                                        and -min(gains.values()) <= LOSS)}
+        out[sampling] = {
+            "clean_loss": clean_loss,
+            "hard_gain": sum(gains.values()),
+            "worst_hard_loss": max(0.0, -min(gains.values())),
+            "passes": bool(clean_loss <= 0 and sum(gains.values()) >= GAIN and -min(gains.values()) <= LOSS),
+        }
     out["ships"] = all(v["passes"] for v in out.values())
     return out
 
@@ -84,15 +89,17 @@ def table(results: dict) -> str:
     lines = ["| checkpoint | sampling | " + " | ".join(SETTINGS) + " |", "|---" * (len(SETTINGS) + 2) + "|"]
     for name in ("shipped", "candidate"):
         for sampling, rows in results[name].items():
-            cells = [f"{rows[s]['median']:.1f} / {rows[s]['within_5']:.2f} / {rows[s]['within_10']:.2f}"
-                     for s in SETTINGS]
+            cells = [
+                f"{rows[s]['median']:.1f} / {rows[s]['within_5']:.2f} / {rows[s]['within_10']:.2f}" for s in SETTINGS
+            ]
             lines.append(f"| {name} | {sampling} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dit_jax.release.shipping_rule",
-                                     description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m dit_jax.release.shipping_rule", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("candidate", help="a model checkpoint (dit_jax.training.export_params)")
     parser.add_argument("--shipped", default=None, help="the weights to beat (default: the shipped ones)")
     parser.add_argument("--data-dir", required=True)
@@ -105,18 +112,26 @@ def main(argv: list[str] | None = None) -> int:
     shipped = registration.load(args.shipped)
     candidate = registration.load(args.candidate)
     settings = inference_settings(shipped)
-    registrars = {"shipped": registration.Registrar(shipped.params, shipped.config, settings),
-                  "candidate": registration.Registrar(candidate.params, candidate.config, settings)}
+    registrars = {
+        "shipped": registration.Registrar(shipped.params, shipped.config, settings),
+        "candidate": registration.Registrar(candidate.params, candidate.config, settings),
+    }
     batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs)
     copies = {"own": batches, "varied": {s: resampled(b, args.varied_points) for s, b in batches.items()}}
     bar = common.progress_bar(not args.no_progress, 2 * 2 * len(SETTINGS) * args.pairs, "register")
-    results = {name: {sampling: {s: summary(errors_deg(reg, b, bar)) for s, b in copy.items()}
-                      for sampling, copy in copies.items()} for name, reg in registrars.items()}
+    results = {
+        name: {
+            sampling: {s: summary(errors_deg(reg, b, bar)) for s, b in copy.items()}
+            for sampling, copy in copies.items()
+        }
+        for name, reg in registrars.items()
+    }
     if bar is not None:
         bar.close()
     results["verdict"] = verdict(results["shipped"], results["candidate"])
-    results.update(pairs=args.pairs, candidate_path=args.candidate,
-                   shipped_path=args.shipped or registration.shipped_weights())
+    results.update(
+        pairs=args.pairs, candidate_path=args.candidate, shipped_path=args.shipped or registration.shipped_weights()
+    )
     print(table(results))
     print(json.dumps(results["verdict"], indent=1))
     if args.out:

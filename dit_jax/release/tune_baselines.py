@@ -33,7 +33,8 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import baselines, icp as icp_lib, metrics, training
+from dit_jax import baselines, metrics, training
+from dit_jax import icp as icp_lib
 from dit_jax.data.pairs import SETTINGS
 
 FEATURE_GRID = {"voxel": (None, 0.03), "normal_radius": (0.1, 0.2), "feature_radius": (0.15, 0.25, 0.4)}
@@ -52,8 +53,12 @@ def score(estimates: list, batch: dict) -> dict:
     s = metrics.summarise(rotation, translation, batch["R"], batch["t"])
     errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(rotation, jnp.float32), jnp.asarray(batch["R"])))
     within = s["success_curve"]["ratio"][s["success_curve"]["rotation_thresholds"].index(5.0)]
-    return {"success": s["success"], "within_5": within, "median": float(np.median(errors)),
-            "score": s["success"] + within}
+    return {
+        "success": s["success"],
+        "within_5": within,
+        "median": float(np.median(errors)),
+        "score": s["success"] + within,
+    }
 
 
 def rounded(value):
@@ -79,8 +84,10 @@ def choose(rows: list[dict]) -> dict:
     for setting in settings:
         best = max(rows, key=lambda r: rank_key(r["settings"][setting]))
         chosen[setting] = best
-    mean = lambda r: {"score": np.mean([v["score"] for v in r["settings"].values()]),
-                      "median": np.mean([v["median"] for v in r["settings"].values()])}
+    mean = lambda r: {
+        "score": np.mean([v["score"] for v in r["settings"].values()]),
+        "median": np.mean([v["median"] for v in r["settings"].values()]),
+    }
     chosen["any"] = max(rows, key=lambda r: rank_key(mean(r)))
     return chosen
 
@@ -91,15 +98,19 @@ def main() -> None:
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=24, help="validation pairs per setting")
     parser.add_argument("--n-points", type=int, default=1000)
-    parser.add_argument("--checkpoint", default=None, help="the DIT model whose refinement is tuned "
-                        "(default: the shipped weights); 'none' skips it")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="the DIT model whose refinement is tuned (default: the shipped weights); 'none' skips it",
+    )
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS))
     parser.add_argument("--out-json", default="dit_jax/baselines_tuned.json")
     parser.add_argument("--report", default="docs/baselines_tuning")
     args = parser.parse_args()
     started = time.time()
-    batches = training.validation_batches(args.data_dir, args.settings, count=args.pairs, n_points=args.n_points,
-                                          unseen=args.unseen)
+    batches = training.validation_batches(
+        args.data_dir, args.settings, count=args.pairs, n_points=args.n_points, unseen=args.unseen
+    )
     pair = lambda b, i: (b["src"][i].astype(np.float64), b["tgt"][i].astype(np.float64))
     log = lambda msg: print(f"[{time.time() - started:6.0f} s] {msg}", flush=True)
 
@@ -118,13 +129,15 @@ def main() -> None:
                     key = json.dumps(opt.to_dict(), sort_keys=True)
                     configs["fpfh_ransac"][key] = opt
                     est["fpfh_ransac"].setdefault(key, {}).setdefault(setting, []).append(
-                        baselines.ransac_on_features(fs, ft, opt))
+                        baselines.ransac_on_features(fs, ft, opt)
+                    )
                     for tuple_scale in TUPLE_SCALES:
                         opt_f = opt.replace(fgr_tuple_scale=tuple_scale)
                         key_f = json.dumps(opt_f.to_dict(), sort_keys=True)
                         configs["fgr"][key_f] = opt_f
                         est["fgr"].setdefault(key_f, {}).setdefault(setting, []).append(
-                            baselines.fgr_on_features(fs, ft, opt_f))
+                            baselines.fgr_on_features(fs, ft, opt_f)
+                        )
         log(f"stage 1: {setting} done")
 
     def key_of(options: dict) -> str:
@@ -133,11 +146,25 @@ def main() -> None:
     def row(method, options, estimates):
         return {"options": options, "settings": {s: score(estimates[s], batches[s]) for s in batches}}
 
-    report = {"date": datetime.date.today().isoformat(), "command": "python " + " ".join(sys.argv), "pairs": args.pairs,
-              "n_points": args.n_points, "unseen": args.unseen, "data": args.data_dir or "embedded",
-              "grid": {"features": FEATURE_GRID, "distances": DISTANCES, "tuple_scales": TUPLE_SCALES,
-                       "ransac_rules": RANSAC_RULES, "icp_distances": ICP_DISTANCES, "schedules": SCHEDULES,
-                       "icp_methods": ICP_METHODS}, "rows": {}, "choice": {}}
+    report = {
+        "date": datetime.date.today().isoformat(),
+        "command": "python " + " ".join(sys.argv),
+        "pairs": args.pairs,
+        "n_points": args.n_points,
+        "unseen": args.unseen,
+        "data": args.data_dir or "embedded",
+        "grid": {
+            "features": FEATURE_GRID,
+            "distances": DISTANCES,
+            "tuple_scales": TUPLE_SCALES,
+            "ransac_rules": RANSAC_RULES,
+            "icp_distances": ICP_DISTANCES,
+            "schedules": SCHEDULES,
+            "icp_methods": ICP_METHODS,
+        },
+        "rows": {},
+        "choice": {},
+    }
     chosen_rows = {}
     for method in ("fpfh_ransac", "fgr"):
         report["rows"][method] = [row(method, configs[method][k].to_dict(), v) for k, v in est[method].items()]
@@ -146,11 +173,13 @@ def main() -> None:
     # Stage 2: RANSAC's stopping rule on each winner (a longer search only where it scores better).
     for winner in {key_of(r["options"]): r for r in chosen_rows["fpfh_ransac"].values()}.values():
         for iterations, confidence in RANSAC_RULES[1:]:
-            opt = baselines.Options.from_dict(winner["options"]).replace(ransac_iterations=iterations,
-                                                                         ransac_confidence=confidence)
+            opt = baselines.Options.from_dict(winner["options"]).replace(
+                ransac_iterations=iterations, ransac_confidence=confidence
+            )
             key = key_of(opt.to_dict())
-            est["fpfh_ransac"][key] = {s: [baselines.fpfh_ransac(*pair(b, i), opt) for i in range(len(b["src"]))]
-                                       for s, b in batches.items()}
+            est["fpfh_ransac"][key] = {
+                s: [baselines.fpfh_ransac(*pair(b, i), opt) for i in range(len(b["src"]))] for s, b in batches.items()
+            }
             report["rows"]["fpfh_ransac"].append(row("fpfh_ransac", opt.to_dict(), est["fpfh_ransac"][key]))
     chosen_rows["fpfh_ransac"] = choose(report["rows"]["fpfh_ransac"])
     log("stage 2 done")
@@ -173,8 +202,10 @@ def main() -> None:
                 continue
             starts = {"": ({}, dit_est)}
         else:
-            starts = {key_of(r["options"]): (r["options"], est[method][key_of(r["options"])])
-                      for r in chosen_rows[method].values()}
+            starts = {
+                key_of(r["options"]): (r["options"], est[method][key_of(r["options"])])
+                for r in chosen_rows[method].values()
+            }
         rows_by_start = {}
         for start_key, (options, global_est) in starts.items():
             rows_by_start[start_key] = []
@@ -182,11 +213,18 @@ def main() -> None:
                 refined = {s: [] for s in batches}
                 for setting, b in batches.items():
                     for i, (r0, t0) in enumerate(global_est[setting]):
-                        result = icp_lib.icp(*pair(b, i), r0, t0, distances=schedule, method=icp_method,
-                                             max_iterations=baselines.Options().icp_iterations)
+                        result = icp_lib.icp(
+                            *pair(b, i),
+                            r0,
+                            t0,
+                            distances=schedule,
+                            method=icp_method,
+                            max_iterations=baselines.Options().icp_iterations,
+                        )
                         refined[setting].append((result.rotation, result.translation))
                 rows_by_start[start_key].append(
-                    row(method, dict(options, icp_distances=list(schedule), icp_method=icp_method), refined))
+                    row(method, dict(options, icp_distances=list(schedule), icp_method=icp_method), refined)
+                )
         name = f"{method.lower()}_icp"
         report["rows"][name] = [r for rows in rows_by_start.values() for r in rows]
         # Each target refines the global estimate chosen for it.
@@ -196,10 +234,17 @@ def main() -> None:
             rows = rows_by_start[key_of(global_row["options"]) if global_row else ""]
             chosen_rows[name][target] = choose(rows)[target]
         log(f"stage 3: {name} done")
-    report["rows"]["icp"] = [row("icp", baselines.Options(icp_distances=(d,)).to_dict(),
-                                 {s: [baselines.icp(*pair(b, i), baselines.Options(icp_distances=(d,)))
-                                      for i in range(len(b["src"]))] for s, b in batches.items()})
-                             for d in ICP_DISTANCES]
+    report["rows"]["icp"] = [
+        row(
+            "icp",
+            baselines.Options(icp_distances=(d,)).to_dict(),
+            {
+                s: [baselines.icp(*pair(b, i), baselines.Options(icp_distances=(d,))) for i in range(len(b["src"]))]
+                for s, b in batches.items()
+            },
+        )
+        for d in ICP_DISTANCES
+    ]
     chosen_rows["icp"] = choose(report["rows"]["icp"])
 
     # The choice: options per method and setting, with its validation scores.
@@ -207,16 +252,22 @@ def main() -> None:
     for method, per_target in chosen_rows.items():
         report["choice"][method] = {}
         for target, row in per_target.items():
-            options = dict(defaults, **row["options"]) if method != "dit_icp" else {
-                "icp_distances": row["options"]["icp_distances"], "icp_method": row["options"]["icp_method"]}
+            options = (
+                dict(defaults, **row["options"])
+                if method != "dit_icp"
+                else {"icp_distances": row["options"]["icp_distances"], "icp_method": row["options"]["icp_method"]}
+            )
             report["choice"][method][target] = {"options": options, "validation": row["settings"]}
     report["seconds"] = time.time() - started
     os.makedirs(os.path.dirname(args.report) or ".", exist_ok=True)
     with open(args.report + ".json", "w") as f:
         json.dump(rounded(report), f, separators=(",", ":"))
     # No date in the package's file: the report in docs/ carries it.
-    shipped = {"command": report["command"], "report": args.report + ".md",
-               "choice": {m: {t: c["options"] for t, c in per.items()} for m, per in report["choice"].items()}}
+    shipped = {
+        "command": report["command"],
+        "report": args.report + ".md",
+        "choice": {m: {t: c["options"] for t, c in per.items()} for m, per in report["choice"].items()},
+    }
     with open(args.out_json, "w") as f:
         json.dump(shipped, f, indent=1)
     with open(args.report + ".md", "w") as f:
@@ -226,38 +277,57 @@ def main() -> None:
 
 def markdown(report: dict) -> str:
     grid = report["grid"]
-    lines = [f"# Baselines tuned on validation pairs ({report['date']})", "",
-             f"Command: `{report['command']}` ({report['seconds'] / 60:.0f} min on this machine's 2 CPU cores).", "",
-             f"Validation pairs: {report['pairs']} per setting, {report['n_points']} points, from the held-out "
-             f"shapes of the training split of {report['data']}" + (" (categories 0-19)" if report["unseen"] else "")
-             + "; never a test pair. Score per setting: success ratio (paper) + share within 5 deg and 0.05; "
-               "ties: lower median rotation error. `any` is the best mean over settings (real scans, users' clouds).",
-             "", "Grid:", "",
-             f"- features: voxel {grid['features']['voxel']}, normal radius {grid['features']['normal_radius']}, "
-             f"FPFH radius {grid['features']['feature_radius']} (30 / 100 neighbours at most)",
-             f"- RANSAC / FGR distance {list(grid['distances'])}; FGR tuple scale {list(grid['tuple_scales'])}; "
-             f"RANSAC (iterations, confidence) {[list(r) for r in grid['ransac_rules']]} (the second on stage-1 winners)",
-             f"- refinement after each chosen global estimate and after DIT's: pairing distances "
-             f"{[list(s) for s in grid['schedules']]} x {list(grid['icp_methods'])}",
-             f"- plain ICP from the identity: distance {list(grid['icp_distances'])}", "",
-             "## Choice and its validation scores (success / within 5 deg / median deg)", ""]
+    lines = [
+        f"# Baselines tuned on validation pairs ({report['date']})",
+        "",
+        f"Command: `{report['command']}` ({report['seconds'] / 60:.0f} min on this machine's 2 CPU cores).",
+        "",
+        f"Validation pairs: {report['pairs']} per setting, {report['n_points']} points, from the held-out "
+        f"shapes of the training split of {report['data']}"
+        + (" (categories 0-19)" if report["unseen"] else "")
+        + "; never a test pair. Score per setting: success ratio (paper) + share within 5 deg and 0.05; "
+        "ties: lower median rotation error. `any` is the best mean over settings (real scans, users' clouds).",
+        "",
+        "Grid:",
+        "",
+        f"- features: voxel {grid['features']['voxel']}, normal radius {grid['features']['normal_radius']}, "
+        f"FPFH radius {grid['features']['feature_radius']} (30 / 100 neighbours at most)",
+        f"- RANSAC / FGR distance {list(grid['distances'])}; FGR tuple scale {list(grid['tuple_scales'])}; "
+        f"RANSAC (iterations, confidence) {[list(r) for r in grid['ransac_rules']]} (the second on stage-1 winners)",
+        f"- refinement after each chosen global estimate and after DIT's: pairing distances "
+        f"{[list(s) for s in grid['schedules']]} x {list(grid['icp_methods'])}",
+        f"- plain ICP from the identity: distance {list(grid['icp_distances'])}",
+        "",
+        "## Choice and its validation scores (success / within 5 deg / median deg)",
+        "",
+    ]
     settings = list(next(iter(report["choice"]["fpfh_ransac"].values()))["validation"])
-    lines += ["| method | chosen for | options | " + " | ".join(settings) + " |",
-              "|---|---|---|" + "---|" * len(settings)]
+    lines += [
+        "| method | chosen for | options | " + " | ".join(settings) + " |",
+        "|---|---|---|" + "---|" * len(settings),
+    ]
     features = ("voxel", "normal_radius", "feature_radius", "distance")
-    shown = {"fpfh_ransac": features + ("ransac_iterations",), "fgr": features + ("fgr_tuple_scale",),
-             "icp": ("icp_distances",), "dit_icp": ("icp_distances", "icp_method")}
+    shown = {
+        "fpfh_ransac": features + ("ransac_iterations",),
+        "fgr": features + ("fgr_tuple_scale",),
+        "icp": ("icp_distances",),
+        "dit_icp": ("icp_distances", "icp_method"),
+    }
     shown["fpfh_ransac_icp"] = shown["fpfh_ransac"] + shown["dit_icp"]
     shown["fgr_icp"] = shown["fgr"] + shown["dit_icp"]
     for method, per_target in report["choice"].items():
         for target, c in per_target.items():
             opts = ", ".join(f"{k}={c['options'][k]}" for k in shown[method])
-            cells = " | ".join(f"{100 * v['success']:.0f} / {100 * v['within_5']:.0f} / {v['median']:.2f}"
-                               for v in c["validation"].values())
+            cells = " | ".join(
+                f"{100 * v['success']:.0f} / {100 * v['within_5']:.0f} / {v['median']:.2f}"
+                for v in c["validation"].values()
+            )
             lines.append(f"| {method} | {target} | {opts} | {cells} |")
     if "DIT" in report["rows"]:
-        cells = " | ".join(f"{100 * v['success']:.0f} / {100 * v['within_5']:.0f} / {v['median']:.2f}"
-                           for v in report["rows"]["DIT"][0]["settings"].values())
+        cells = " | ".join(
+            f"{100 * v['success']:.0f} / {100 * v['within_5']:.0f} / {v['median']:.2f}"
+            for v in report["rows"]["DIT"][0]["settings"].values()
+        )
         lines.append(f"| DIT alone (shipped) | - | - | {cells} |")
     lines += ["", "Every row of the grid, with its scores, is in baselines_tuning.json.", ""]
     return "\n".join(lines)
