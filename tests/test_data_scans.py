@@ -122,7 +122,7 @@ def test_bad_pose_layouts_are_one_clear_error(tmp_path):
     with pytest.raises(DataError, match="no scan poses found"):
         scans.load_pair_sets(tmp_path)
     (tmp_path / "gt.log").write_text("0 1 2\n1 0 0 0\n")
-    with pytest.raises(DataError, match="entries of five lines"):
+    with pytest.raises(DataError, match="entries of 5 lines"):
         scans.load_pair_sets(tmp_path)
     (tmp_path / "gt.log").write_text("0 1 2\n" + "1 0 0 0\n" * 4)
     with pytest.raises(DataError, match="no cloud_bin_1"):
@@ -195,7 +195,7 @@ def test_a_folder_of_3dmatch_scenes_gives_one_set_per_list_with_the_benchmarks_e
         np.sqrt(xi @ pair.info @ xi / pair.info[0, 0]), rel=1e-6
     )
     (tmp_path / "office" / "3DMatch" / "gt.info").write_text("0 1 60\n1 2 3\n")
-    with pytest.raises(DataError, match="gt.info: expected entries of seven lines"):
+    with pytest.raises(DataError, match="gt.info: expected entries of 7 lines"):
         scans.load_pair_sets(tmp_path)
 
 

@@ -151,46 +151,38 @@ class PairSet(NamedTuple):
     kind: str  # a key of CRITERIA
 
 
-def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
-    """The entries of a 3DMatch ``gt.log``: ``[(i, j, T (4, 4)), ...]``, ``T`` moving fragment j onto i."""
+def _read_pair_matrices(path: str | os.PathLike, size: int, what: str) -> list[tuple[int, int, np.ndarray]]:
+    """The entries of a 3DMatch log of pairs: each a header line ``i j n`` and a ``size`` x ``size`` matrix
+    (``what`` names it in errors)."""
     lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
-    if len(lines) % 5:
+    rows = size + 1
+    if len(lines) % rows:
         raise DataError(
-            f"{path}: expected entries of five lines ('i j n', then four rows of T), found {len(lines)} lines"
+            f"{path}: expected entries of {rows} lines ('i j n', then the {size} rows of {what}), "
+            f"found {len(lines)} lines"
         )
     entries = []
-    for k in range(0, len(lines), 5):
+    for k in range(0, len(lines), rows):
         try:
             i, j = int(lines[k][0]), int(lines[k][1])
-            matrix = np.array(lines[k + 1 : k + 5], np.float64)
+            matrix = np.array(lines[k + 1 : k + rows], np.float64)
         except (ValueError, IndexError):
-            raise DataError(f"{path}: entry {k // 5 + 1} is not 'i j n' and a 4 x 4 matrix") from None
-        if matrix.shape != (4, 4):
-            raise DataError(f"{path}: entry {k // 5 + 1} is not 'i j n' and a 4 x 4 matrix")
+            matrix = None
+        if matrix is None or matrix.shape != (size, size):
+            raise DataError(f"{path}: entry {k // rows + 1} is not 'i j n' and {what} ({size} x {size})")
         entries.append((i, j, matrix))
     return entries
+
+
+def read_gt_log(path: str | os.PathLike) -> list[tuple[int, int, np.ndarray]]:
+    """The entries of a 3DMatch ``gt.log``: ``[(i, j, T (4, 4)), ...]``, ``T`` moving fragment j onto i."""
+    return _read_pair_matrices(path, 4, "a motion T")
 
 
 def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
     """The entries of a 3DMatch ``gt.info``: ``{(i, j): Sigma (6, 6)}``, the information matrix of the pair
     whose ``gt.log`` entry is ``i j``."""
-    lines = [line.split() for line in pathlib.Path(path).read_text().splitlines() if line.strip()]
-    if len(lines) % 7:
-        raise DataError(
-            f"{path}: expected entries of seven lines ('i j n', then six rows of a 6 x 6 matrix), "
-            f"found {len(lines)} lines"
-        )
-    entries = {}
-    for k in range(0, len(lines), 7):
-        try:
-            i, j = int(lines[k][0]), int(lines[k][1])
-            matrix = np.array(lines[k + 1 : k + 7], np.float64)
-        except (ValueError, IndexError):
-            raise DataError(f"{path}: entry {k // 7 + 1} is not 'i j n' and a 6 x 6 matrix") from None
-        if matrix.shape != (6, 6):
-            raise DataError(f"{path}: entry {k // 7 + 1} is not 'i j n' and a 6 x 6 matrix")
-        entries[(i, j)] = matrix
-    return entries
+    return {(i, j): matrix for i, j, matrix in _read_pair_matrices(path, 6, "an information matrix")}
 
 
 #: The 3DMatch benchmark's registration threshold: an RMSE of the true correspondences of 0.2 m.

@@ -19,6 +19,9 @@ METHOD_DIT_ICP = "DIT+ICP"
 METHOD_PIPELINE = "pipeline"
 #: The rows that come from the registration pipeline (the rest are baselines).
 PIPELINE_METHODS = (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE)
+#: What "right" means where the data give no criterion of their own: within this many degrees of rotation (on
+#: ModelNet40's pairs, with 0.05 of translation: :func:`success_share`).
+RIGHT_DEG = 5.0
 #: Rotation thresholds (degrees) of the real-scan tables and curves.
 SCAN_THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
 
@@ -83,6 +86,13 @@ def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None)
     return out
 
 
+def success_share(stats: dict, degrees: float = RIGHT_DEG) -> float:
+    """The share of pairs within ``degrees`` of rotation (and the sweep's paired translation threshold: 0.05 at
+    5 degrees), read off the success curve an evaluation stores for a method (``stats["success_curve"]``)."""
+    curve = stats["success_curve"]
+    return curve["ratio"][curve["rotation_thresholds"].index(degrees)]
+
+
 def progress_bar(enabled: bool, total: int, desc: str):
     """A tqdm bar over ``total`` pairs, or None where ``enabled`` is false."""
     if not enabled:
@@ -92,7 +102,7 @@ def progress_bar(enabled: bool, total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="pair", dynamic_ncols=True)
 
 
-def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_deg: float = 5.0) -> dict:
+def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_deg: float = RIGHT_DEG) -> dict:
     """How well a verdict separates results: errors (P,) in degrees, verdicts (P,) True = trusted; ``rule``
     says in words what it trusts (e.g. "agreement within 5.0 deg").
 
@@ -111,7 +121,7 @@ def verdict_summary(errors: np.ndarray, verdicts: np.ndarray, rule: str, right_d
     }
 
 
-def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg: float = 5.0) -> list[list]:
+def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg: float = RIGHT_DEG) -> list[list]:
     """How often results were right, band by band of the agreement verdict's evidence: errors (P,) and
     agreement (P,) in degrees; ``edges`` the bands' upper ends, increasing. Returns one ``[upper, pairs,
     right]`` per band (previous edge, edge], then ``[None, pairs, right]`` for those beyond the last edge:

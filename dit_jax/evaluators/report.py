@@ -11,7 +11,7 @@ import numpy as np
 
 from dit_jax import metrics, plotting
 from dit_jax.data import pairs as pairs_lib
-from dit_jax.evaluators.common import METHOD_DIT_ICP, SCAN_THRESHOLDS
+from dit_jax.evaluators.common import METHOD_DIT_ICP, RIGHT_DEG, SCAN_THRESHOLDS, success_share
 
 
 def verdict_line(name: str, v: dict) -> str:
@@ -61,13 +61,6 @@ def _share(x: float) -> str:
     return "-" if x != x else f"{100 * x:.1f} %"
 
 
-def within(result: dict, degrees: float) -> float:
-    """The share of pairs within ``degrees`` of rotation (and the paired translation threshold of the sweep:
-    0.05 at 5 degrees), read from a method's success curve."""
-    curve = result["success_curve"]
-    return curve["ratio"][curve["rotation_thresholds"].index(degrees)]
-
-
 def markdown_tables(results: dict) -> str:
     lines = []
     for setting, methods in results["settings"].items():
@@ -84,7 +77,7 @@ def markdown_tables(results: dict) -> str:
             lines.append(
                 f"| {name} | {r['rot_rmse']:.4f} | {r['rot_mae']:.4f} | {r['trans_rmse']:.5f} | "
                 f"{r['trans_mae']:.5f} | {r['rot_iso']:.4f} | {r['trans_iso']:.5f} | {r['chamfer']:.6f} | "
-                f"{100 * r['success']:.1f} % | {100 * within(r, 5.0):.1f} % | "
+                f"{100 * r['success']:.1f} % | {100 * success_share(r, RIGHT_DEG):.1f} % | "
                 f"{_share(r.get('within_up_to_symmetry', float('nan')))} | {r['seconds_per_pair']:.3f} |"
             )
         if METHOD_DIT_ICP in methods and "refinement" in methods[METHOD_DIT_ICP]:

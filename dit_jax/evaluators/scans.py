@@ -17,6 +17,7 @@ from dit_jax.evaluators.common import (
     METHOD_DIT,
     METHOD_DIT_ICP,
     METHOD_PIPELINE,
+    RIGHT_DEG,
     SCAN_THRESHOLDS,
     Estimates,
     agreement_rule,
@@ -51,10 +52,10 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
 
 def is_right(row: dict, criterion: tuple[float, float] | None) -> bool:
     """Whether a row's estimate counts as right: within the data's ``criterion`` (degrees, distance), or within
-    5 degrees where the data give none."""
-    if criterion is None:
-        return row["rot_err"] <= 5.0
-    return row["rot_err"] <= criterion[0] and row["trans_err"] <= criterion[1]
+    :data:`dit_jax.evaluators.common.RIGHT_DEG` where the data give none."""
+    if not criterion:
+        return bool(row["rot_err"] <= RIGHT_DEG)
+    return bool(row["rot_err"] <= criterion[0] and row.get("trans_err", np.inf) <= criterion[1])
 
 
 def benchmark_summary(rows: list[dict], criterion: tuple[float, float]) -> dict:

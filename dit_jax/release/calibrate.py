@@ -10,11 +10,11 @@ Validation pairs come from the training split's held-out shapes (the ones traini
 combination of the GMCCE grid (:data:`GRID`, and ``--n-iters``) registers them, the network alone; the one
 with most pairs within 5 degrees averaged over the settings (ties: the lower mean log error) wins, one setting
 for every input. The fitness verdict's threshold is then the lowest fitness at which at least
-:data:`PRECISION` of the results it trusts are within :data:`RIGHT_DEG`.
+:data:`PRECISION` of the results it trusts are right (within ``common.RIGHT_DEG``, 5 degrees).
 
 The agreement verdict: each pair runs the whole pipeline (both directions, refined by ICP as users get it),
 and each refinement's threshold is the largest of :data:`AGREEMENT_GRID` at which at least
-:data:`PRECISION` of the results it trusts are within :data:`RIGHT_DEG`, pooled over the settings whose clouds
+:data:`PRECISION` of the results it trusts are right, pooled over the settings whose clouds
 share no point (``--verdict-pool independent``: users' data never shares points). Where none reaches it, the
 most precise threshold is taken (:func:`fallback_threshold`) and named in ``verdict_fallback``. The bands of
 agreement and how often each was right go into the settings too, quoted beside every verdict.
@@ -37,20 +37,19 @@ from dit_jax.evaluators import common
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
 #: Candidate thresholds (degrees) of the agreement verdict.
 AGREEMENT_GRID = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
-#: A verdict threshold must leave at least this share of the results it trusts within ``RIGHT_DEG``.
+#: A verdict threshold must leave at least this share of the results it trusts right (``common.RIGHT_DEG``).
 PRECISION = 0.95
-RIGHT_DEG = 5.0
 #: The GMCCE options searched (with ``--n-iters``, the iteration count too).
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
 
 
 def largest_threshold(errors: np.ndarray, agreement: np.ndarray) -> float | None:
     """The largest :data:`AGREEMENT_GRID` value at which at least :data:`PRECISION` of the results with
-    ``agreement`` (P,) at or below it have ``errors`` (P,) within :data:`RIGHT_DEG`; None if none does."""
+    ``agreement`` (P,) at or below it have ``errors`` (P,) within ``common.RIGHT_DEG``; None if none does."""
     chosen = None
     for threshold in AGREEMENT_GRID:
         trusted = agreement <= threshold
-        if trusted.any() and np.mean(errors[trusted] <= RIGHT_DEG) >= PRECISION:
+        if trusted.any() and np.mean(errors[trusted] <= common.RIGHT_DEG) >= PRECISION:
             chosen = threshold
     return chosen
 
@@ -105,11 +104,11 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
         settings = np.asarray(evidence["setting"])
         in_pool = np.isin(settings, pooled)
         report["verdict_curve"][refinement] = curve = [
-            common.verdict_summary(errors[in_pool], agreement[in_pool] <= t, common.agreement_rule(t), RIGHT_DEG)
+            common.verdict_summary(errors[in_pool], agreement[in_pool] <= t, common.agreement_rule(t), common.RIGHT_DEG)
             for t in AGREEMENT_GRID
         ]
         report["verdict_agreement_bands"][refinement] = common.agreement_bands(
-            errors[in_pool], agreement[in_pool], AGREEMENT_GRID, RIGHT_DEG
+            errors[in_pool], agreement[in_pool], AGREEMENT_GRID, common.RIGHT_DEG
         )
         threshold = largest_threshold(errors[in_pool], agreement[in_pool])
         if threshold is None:
@@ -118,10 +117,12 @@ def choose_from_evidence(per_pair: dict, pooled: list[str]) -> dict:
         report["verdict_max_disagreement"][refinement] = threshold
         rule = common.agreement_rule(threshold)
         report["verdict_agreement_on_validation"][refinement] = {
-            "pooled": common.verdict_summary(errors, agreement <= threshold, rule, RIGHT_DEG),
-            "pool": common.verdict_summary(errors[in_pool], agreement[in_pool] <= threshold, rule, RIGHT_DEG),
+            "pooled": common.verdict_summary(errors, agreement <= threshold, rule, common.RIGHT_DEG),
+            "pool": common.verdict_summary(errors[in_pool], agreement[in_pool] <= threshold, rule, common.RIGHT_DEG),
             **{
-                s: common.verdict_summary(errors[settings == s], agreement[settings == s] <= threshold, rule, RIGHT_DEG)
+                s: common.verdict_summary(
+                    errors[settings == s], agreement[settings == s] <= threshold, rule, common.RIGHT_DEG
+                )
                 for s in dict.fromkeys(settings.tolist())
             },
         }
@@ -166,7 +167,7 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
     report["chosen"] = best["changes"]
     errors = np.concatenate([s["errors"] for s in best["settings"].values()])
     fitness = np.concatenate([s["fitness"] for s in best["settings"].values()])
-    right = errors <= RIGHT_DEG
+    right = errors <= common.RIGHT_DEG
     report["verdict_min_fitness"] = next(
         (
             float(t)

@@ -24,14 +24,8 @@ from dit_jax.evaluators import common as evaluation
 NETWORK = evaluation.PIPELINE_METHODS
 
 
-def within5(stats: dict) -> float:
-    """The share of pairs within 5 degrees and 0.05, read off the success curve evaluate.py stores."""
-    curve = stats["success_curve"]
-    return curve["ratio"][curve["rotation_thresholds"].index(5.0)]
-
-
 def rank_key(stats: dict) -> tuple:
-    return (-stats["success"], -within5(stats), stats["rot_iso"])
+    return (-stats["success"], -evaluation.success_share(stats), stats["rot_iso"])
 
 
 def percent(x: float) -> str:
@@ -48,7 +42,7 @@ def best_table(settings: dict) -> list[str]:
 
         def cell(m):
             s = methods[m]
-            return f"{m}: {percent(s['success'])} success, {percent(within5(s))} within 5 deg, iso R {s['rot_iso']:.3g}"
+            return f"{m}: {percent(s['success'])} success, {percent(evaluation.success_share(s))} within 5 deg, iso R {s['rot_iso']:.3g}"
 
         def short(m):
             return f"{percent(methods[m]['success'])} / iso {methods[m]['rot_iso']:.3g}" if m in methods else "-"
@@ -71,7 +65,7 @@ def versus_table(settings: dict) -> list[str]:
             s = methods[m]
             lines.append(
                 f"| {name} | {m} | {s['rot_mae']:.4g} | {s['rot_iso']:.4g} | {percent(s['success'])} | "
-                f"{percent(within5(s))} | {s['seconds_per_pair']:.3f} |"
+                f"{percent(evaluation.success_share(s))} | {s['seconds_per_pair']:.3f} |"
             )
     return lines
 
@@ -85,7 +79,7 @@ def changes(settings: dict, before: dict) -> list[str]:
                 old, new = before[name][m], methods[m]
                 parts.append(
                     f"{m} success {percent(old['success'])} -> {percent(new['success'])}, within 5 "
-                    f"{percent(within5(old))} -> {percent(within5(new))}, iso R "
+                    f"{percent(evaluation.success_share(old))} -> {percent(evaluation.success_share(new))}, iso R "
                     f"{old['rot_iso']:.3g} -> {new['rot_iso']:.3g}"
                 )
         if parts:

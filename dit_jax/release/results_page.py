@@ -33,6 +33,7 @@ import numpy as np
 
 from dit_jax import pipeline
 from dit_jax.evaluators import common
+from dit_jax.evaluators import scans as scans_evaluator
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
@@ -71,21 +72,9 @@ def _scan_sets(results: dict) -> dict:
     return results.get("pair_sets", {})
 
 
-def _right_scans(row: dict, criterion) -> bool:
-    """A real pair is right within 5 degrees, or by its benchmark's criterion (degrees, metres) where it has one."""
-    if criterion:
-        return bool(row["rot_err"] <= criterion[0] and row.get("trans_err", np.inf) <= criterion[1])
-    return bool(row["rot_err"] <= 5.0)
-
-
 def _scan_score(summary: dict) -> tuple[int, int]:
     """(right, pairs) of a pair set's summary: registered by its criterion where it has one, else within 5 deg."""
     return int(summary.get("registered", summary["within_5"])), int(summary["pairs"])
-
-
-def _synthetic_within5(stats: dict) -> float:
-    curve = stats["success_curve"]
-    return curve["ratio"][curve["rotation_thresholds"].index(5.0)]
 
 
 def _rows(name: str, results: dict) -> list[dict]:
@@ -114,7 +103,7 @@ def _rows(name: str, results: dict) -> list[dict]:
     else:
         for setting, methods in results.get("settings", {}).items():
             scores = {
-                method: (_synthetic_within5(s), float(s["seconds_per_pair"]), None, int(s["pairs"]))
+                method: (common.success_share(s), float(s["seconds_per_pair"]), None, int(s["pairs"]))
                 for method, s in methods.items()
             }
             rows.append(
@@ -248,7 +237,7 @@ def levels_table() -> list[str]:
                                 set_name,
                                 method,
                                 [row["agreement"] for row in refined["rows"]],
-                                [_right_scans(row, criterion) for row in r["rows"]],
+                                [scans_evaluator.is_right(row, criterion) for row in r["rows"]],
                                 [row["verdict"] for row in r["rows"]],
                             )
                         )
@@ -258,7 +247,7 @@ def levels_table() -> list[str]:
                                 set_name,
                                 method,
                                 [row["agreement"] for row in r["rows"]],
-                                [_right_scans(row, criterion) for row in r["rows"]],
+                                [scans_evaluator.is_right(row, criterion) for row in r["rows"]],
                                 None,
                             )
                         )
@@ -274,7 +263,7 @@ def levels_table() -> list[str]:
                                 setting,
                                 method,
                                 per_pair["agreement"],
-                                [e <= 5.0 for e in per_pair["rot_err"]],
+                                [e <= common.RIGHT_DEG for e in per_pair["rot_err"]],
                                 per_pair.get("verdict"),
                             )
                         )

@@ -30,9 +30,8 @@ from dit_jax.evaluators import common
 HARD = ("high_noise_partial", "independent_clean", "independent_high_noise_partial", "scan_high_noise")
 SETTINGS = ("clean", *HARD)
 SAMPLINGS = ("own", "varied")
-#: Summed share within :data:`RIGHT_DEG` the hard settings must gain, and the most any one may lose.
+#: Summed share within ``common.RIGHT_DEG`` the hard settings must gain, and the most any one may lose.
 GAIN, LOSS = 0.15, 0.1
-RIGHT_DEG = 5.0
 
 
 def inference_settings(shipped: registration.Registrar) -> pipeline.InferenceSettings:
@@ -62,7 +61,7 @@ def summary(errors: np.ndarray) -> dict:
     """Median and shares within 5 and 10 degrees of ``errors`` (P,)."""
     return {
         "median": float(np.median(errors)),
-        "within_5": float(np.mean(errors <= RIGHT_DEG)),
+        "within_5": float(np.mean(errors <= common.RIGHT_DEG)),
         "within_10": float(np.mean(errors <= 10.0)),
     }
 

@@ -36,6 +36,7 @@ import numpy as np
 from dit_jax import baselines, metrics, training
 from dit_jax import icp as icp_lib
 from dit_jax.data.pairs import SETTINGS
+from dit_jax.evaluators import common
 
 FEATURE_GRID = {"voxel": (None, 0.03), "normal_radius": (0.1, 0.2), "feature_radius": (0.15, 0.25, 0.4)}
 DISTANCES = (0.025, 0.05, 0.1)
@@ -52,7 +53,7 @@ def score(estimates: list, batch: dict) -> dict:
     translation = np.stack([t for _, t in estimates])
     s = metrics.summarise(rotation, translation, batch["R"], batch["t"])
     errors = np.asarray(metrics.rotation_error_deg(jnp.asarray(rotation, jnp.float32), jnp.asarray(batch["R"])))
-    within = s["success_curve"]["ratio"][s["success_curve"]["rotation_thresholds"].index(5.0)]
+    within = common.success_share(s)
     return {
         "success": s["success"],
         "within_5": within,
