@@ -3,8 +3,8 @@
     python -m dit_jax.reference_check FILE.npz [--json] [--x64 | --bfloat16] [--precision P]
 
 The file (its format: docs/network.md, "The reference file") holds the authors' config, their weights under
-``param/*``, one input pair and the activations their code produced. This converts the weights with the file's config, runs dit-jax on the pair
-and compares every activation. It passes (exit 0) only when:
+``param/*``, one input pair and the activations their code produced. This converts the weights with the
+file's config, runs dit-jax on the pair and compares every activation. It passes (exit 0) only when:
 
 * every feature activation, the temperature, the soft weights and the scores are within 1e-4 (absolute);
 * every R and t (head in both modes, each iteration, the final prediction) is within 1e-5;

@@ -31,8 +31,8 @@ from dit_jax.evaluators.common import (
 
 
 def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.baselines.SCAN_BASELINES`) on one pair of scans in their own units
-    (``tgt ~ src @ R.T + t``): every point, in the unit sphere a tuned baseline is tuned for
+    """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.baselines.SCAN_BASELINES`) on one pair of scans
+    in their own units (``tgt ~ src @ R.T + t``): every point, in the unit sphere a tuned baseline is tuned for
     (:func:`dit_jax.pipeline.normalise`), in the data's units for a recipe and the feature candidate."""
     started = time.perf_counter()
     if name == baselines_lib.FEATURE_CANDIDATE:

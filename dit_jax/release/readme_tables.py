@@ -42,7 +42,8 @@ def best_table(settings: dict) -> list[str]:
 
         def cell(m):
             s = methods[m]
-            return f"{m}: {percent(s['success'])} success, {percent(evaluation.success_share(s))} within 5 deg, iso R {s['rot_iso']:.3g}"
+            within = percent(evaluation.success_share(s))
+            return f"{m}: {percent(s['success'])} success, {within} within 5 deg, iso R {s['rot_iso']:.3g}"
 
         def short(m):
             return f"{percent(methods[m]['success'])} / iso {methods[m]['rot_iso']:.3g}" if m in methods else "-"
