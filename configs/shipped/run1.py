@@ -1,8 +1,8 @@
-"""Run 1 of 6 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from the weights shipped before it (a
+"""Run 1 of 7 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from the weights shipped before it (a
 clean run's best, 200 steps; their record is not kept): 600 steps, the best validation checkpoint kept (step
 600).
 
-As run then (``dit_jax.release.ship_weights`` recorded it):
+As run then, in the command-line syntax of then (``dit_jax.release.ship_weights`` recorded it):
 
     python train.py --preset cpu --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --setting clean --unseen \
         --set max_steps=1000 --set 'lr_drops=(0.6,0.85)' --workdir runs/mn40-clean  (stopped after step 240; its \
@@ -10,6 +10,10 @@ As run then (``dit_jax.release.ship_weights`` recorded it):
         ../shared/data/modelnet40_ply_hdf5_1024 --setting low_noise_partial --unseen --init-from \
         runs/mn40-clean/model --set max_steps=600 --set 'lr_drops=(0.5,0.8)' --set eval_every=150 --workdir \
         runs/mn40-lownoise
+
+Re-run today: ``python train.py --config configs/shipped/run1.py --workdir runs/shipped/run1``. Run 1
+started from run 0's weights, which were not kept, so this file starts from the shipped weights: a
+re-run of the chain from it trains those further and does not rebuild them.
 """
 
 from dit_jax import configs

@@ -6,14 +6,16 @@ single sampling pattern is learned; validation thins the held-out shapes' pairs 
 1024-point shapes the scan-like views hold 205 points, so the mix keeps two sizes, 384 and 205 (two compiled
 train steps).
 
-As run then (``dit_jax.release.ship_weights`` recorded it; the training shapes packed here with
-``python -m dit_jax.release.device_stage pack``, docs/training.md; the tool is now ``python tools/device_stage.py``):
+As run then, in the syntax of then (``dit_jax.release.ship_weights`` recorded it; the training shapes packed
+here with ``python -m dit_jax.release.device_stage pack``, docs/training.md; the tool is now
+``python tools/device_stage.py``):
 
     python -m dit_jax.release.device_stage run --packed runs/device_data/mn40_train.npz --out $OUT \
         --seconds 530 --steps 4500 --validations 1 --ckpt-every 250 --run stage7 -- \
         --config configs/shipped/run7.py --no-progress
 
-On 2 CPU cores the same recipe runs as ``python train.py --config configs/shipped/run7.py --workdir DIR``.
+Re-run today (on 2 CPU cores too, in hours), after run 6: ``python train.py --config configs/shipped/run7.py --workdir
+runs/shipped/run7`` (it starts from ``runs/shipped/run6/model``, which run 6's re-run writes).
 """
 
 import dataclasses
@@ -26,7 +28,7 @@ def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "run6.py"))  # run 6's recipe, changed:
     return dataclasses.replace(
         before,
-        init_from="dit_jax/weights/dit-cpu-modelnet40",
+        init_from="runs/shipped/run6/model",
         seed=7,
         mix_one_size=False,
         mix_points=384,
