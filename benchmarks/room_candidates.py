@@ -50,14 +50,7 @@ def main() -> None:
                     match = feature_match.register(pair.source, pair.target, spacing=spacing)
                     start = (match.rotation, match.translation)
                 else:
-                    options = baselines.Options(
-                        voxel=0.05,
-                        normal_radius=0.1,
-                        feature_radius=0.25,
-                        distance=0.075,
-                        ransac_iterations=1_000_000,
-                        ransac_confidence=0.999,
-                    )
+                    options = baselines.room_options()
                     start = baselines.ransac_on_features(
                         baselines.features(pair.source, options), baselines.features(pair.target, options), options
                     )

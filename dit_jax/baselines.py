@@ -253,11 +253,9 @@ def get(
     return functools.partial(_METHODS[name], options=options)
 
 
-def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """Open3D's tutorial recipe (module docs) on clouds in their own units, ``voxel`` in those units: (R, t)."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    options = Options(
+def room_options(voxel: float = 0.05) -> Options:
+    """The global stage of Open3D's room recipe (module docs) as :class:`Options`, ``voxel`` in the clouds' units."""
+    return Options(
         voxel=voxel,
         normal_radius=2 * voxel,
         feature_radius=5 * voxel,
@@ -265,6 +263,13 @@ def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[
         ransac_iterations=1_000_000,
         ransac_confidence=0.999,
     )
+
+
+def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Open3D's tutorial recipe (module docs) on clouds in their own units, ``voxel`` in those units: (R, t)."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    options = room_options(voxel)
     rotation, translation = ransac_on_features(features(src, options), features(tgt, options), options)
     start = np.eye(4)
     start[:3, :3], start[:3, 3] = rotation, translation
