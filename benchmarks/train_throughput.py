@@ -6,6 +6,7 @@ measured in the same run.
     python benchmarks/train_throughput.py --config configs/cpu.py --compare HEAD~1
     python benchmarks/train_throughput.py --config configs/paper.py --remat on
     python benchmarks/train_throughput.py --config configs/cpu.py --mix        # a mix of every setting
+    python benchmarks/train_throughput.py --config configs/cpu.py --precision highest --precision bfloat16 --by-part
 
 Random clouds of the recipe's point count; each step is compiled first, then timed (median of --steps).
 The work per step is counted on the step's jaxpr, loops times their trip counts: GFLOP (matrix products at
@@ -16,6 +17,13 @@ cost analysis counts a loop's body once). The probe is the best GFLOP/s of a flo
 and times its step in a child process with the same arguments, alternating with this tree's, and prints
 the ratio of pairs per second. Peak memory: the process's peak resident set (VmHWM, compilation included)
 and, on an accelerator, the device's peak bytes in use. Prints one JSON record per recipe.
+
+``--precision P`` times the step with the network's products at P (``TrainConfig.train_precision``); given
+more than once, each precision is timed in turn in the same run, and each record after the first gives
+``pairs_per_s_ratio``, its pairs per second over the first's. ``--by-part`` adds ``by_part_ms``: a profile of
+two steps (``jax.profiler``), each compiled operation's time added to the part of the network it comes from
+(its ``op_name``: PSE, PFT's attention and feed-forward layers, the positional encoding, the head, ...), forward
+and backward apart, in milliseconds per step summed over the threads.
 
 ``--mix`` trains on real pairs of a mix instead (the recipe's ``settings``, else every setting of
 :data:`dit_jax.data.pairs.SETTINGS`, from the embedded shapes), one batch of each setting in turn: it reports
@@ -107,13 +115,24 @@ def count_work(jaxpr) -> tuple[float, float]:
     return flops, nbytes
 
 
-def measure(config_path: str, steps: int, n_points: int | None, remat: str, count: bool) -> dict:
-    """Compiles and times the recipe's train step; counts its work where ``count``."""
+def measure(
+    config_path: str,
+    steps: int,
+    n_points: int | None,
+    remat: str,
+    count: bool,
+    precision: str = "preset",
+    by_part: bool = False,
+) -> dict:
+    """Compiles and times the recipe's train step; counts its work where ``count``, profiles it by part
+    where ``by_part``."""
     import jax
 
     from dit_jax import training
 
     config = training.load_config(config_path)
+    if precision != "preset":
+        config = dataclasses.replace(config, train_precision=precision)
     if n_points:
         config = dataclasses.replace(config, n_points=n_points)
     if remat != "preset":
@@ -140,7 +159,7 @@ def measure(config_path: str, steps: int, n_points: int | None, remat: str, coun
         "batch_size": b,
         "train_iters": config.train_iters,
         "remat": config.model_config().remat,
-        "precision": config.model_config().precision,
+        "precision": config.train_model_config().precision,
     }
     if count:
         flops, nbytes = count_work(jax.make_jaxpr(step)(state, batch).jaxpr)
@@ -157,7 +176,54 @@ def measure(config_path: str, steps: int, n_points: int | None, remat: str, coun
         times.append(time.perf_counter() - t0)
     record["step_s"] = float(np.median(times))
     record["pairs_per_s"] = b / record["step_s"]
+    if by_part:
+        record["by_part_ms"] = profile_by_part(step, state, batch)
     return record
+
+
+#: Parts of the network, found in a compiled operation's op_name (the Flax module path), first match wins.
+_PARTS = (
+    ("pse.attention", ("pse/attention", "TokenTransformer")),
+    ("pft.self_attn", ("self_attn",)),
+    ("pft.src_attn", ("src_attn",)),
+    ("pft.feed_forward", ("feed_forward",)),
+    ("positional_encoding", ("positional_encoding",)),
+    ("squeeze_excitation", ("/se/",)),
+    ("temperature_net", ("/temp_net/",)),
+    ("pse.other", ("/pse/", "DIT.embed")),
+    ("pft.other", ("pft", "DIT.interact")),
+)
+
+
+def profile_by_part(step, state, batch, repeats: int = 2) -> dict:
+    """Milliseconds per step of the compiled operations of ``step``, by part and pass (see ``--by-part``)."""
+    import collections
+    import gzip
+    import re
+
+    import jax
+
+    operation_names = {}
+    for line in step.lower(state, batch).compile().as_text().splitlines():
+        found = re.match(r'\s*(?:ROOT )?%?([\w.\-]+) = .*?op_name="([^"]+)"', line)
+        if found:
+            operation_names[found.group(1)] = found.group(2)
+    with tempfile.TemporaryDirectory() as directory:
+        with jax.profiler.trace(directory):
+            for _ in range(repeats):
+                state, out = step(state, batch)
+                out["loss"].block_until_ready()
+        trace = next(pathlib.Path(directory).rglob("*.trace.json.gz"))
+        events = json.load(gzip.open(trace))["traceEvents"]
+    totals = collections.Counter()
+    for event in events:
+        op_name = operation_names.get(event.get("name"))
+        if event.get("ph") != "X" or op_name is None:
+            continue
+        part = next((name for name, keys in _PARTS if any(key in op_name for key in keys)), "head, losses, other")
+        direction = "backward" if "transpose(" in op_name else "forward"
+        totals[f"{part} {direction}"] += event["dur"] / 1e3 / repeats
+    return {name: round(ms, 1) for name, ms in totals.most_common()}
 
 
 def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
@@ -213,7 +279,7 @@ def worktree(rev: str):
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", directory], capture_output=True)
 
 
-def child_measure(tree: pathlib.Path, config_path: str, args) -> dict:
+def child_measure(tree: pathlib.Path, config_path: str, args, precision: str) -> dict:
     """``measure`` in a fresh process importing ``dit_jax`` from ``tree``, the recipe read from there too."""
     command = [
         sys.executable,
@@ -226,6 +292,8 @@ def child_measure(tree: pathlib.Path, config_path: str, args) -> dict:
         "--remat",
         args.remat,
     ]
+    if precision != "preset":  # older trees know no --precision
+        command += ["--precision", precision]
     if args.n_points:
         command += ["--n-points", str(args.n_points)]
     env = dict(os.environ, PYTHONPATH=str(tree), DIT_JAX_COMPILE_CACHE="off")
@@ -246,11 +314,19 @@ def main():
         default="preset",
         help="rematerialised blocks (DITConfig.remat): the recipe's choice, or on / off",
     )
+    parser.add_argument(
+        "--precision",
+        action="append",
+        choices=("preset", "highest", "tf32", "bfloat16"),
+        help="the train step's products (TrainConfig.train_precision; repeatable: each in turn; default: the recipe's)",
+    )
+    parser.add_argument("--by-part", action="store_true", help="profile the step by part of the network (see above)")
     parser.add_argument("--compare", metavar="REV", help="also time the step of this git revision")
     parser.add_argument("--mix", action="store_true", help="real pairs of a mix of settings (see above)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     configs = args.config or list(DEFAULT_CONFIGS)
+    precisions = args.precision or ["preset"]
     if args.mix:
         import jax
 
@@ -264,7 +340,7 @@ def main():
         return
 
     if args.child:  # one recipe, timed only: the other tree's library may not count work the same way
-        print(json.dumps(measure(configs[0], args.steps, args.n_points, args.remat, count=False)))
+        print(json.dumps(measure(configs[0], args.steps, args.n_points, args.remat, False, precisions[0])))
         return
 
     import jax
@@ -273,24 +349,30 @@ def main():
     probe = matmul_peak()
     with worktree(args.compare) if args.compare else contextlib.nullcontext() as other:
         for config_path in configs:
-            record = {
-                "date": datetime.date.today().isoformat(),
-                "device": jax.devices()[0].device_kind,
-                **measure(config_path, args.steps, args.n_points, args.remat, count=True),
-                "probe_gflop_s": probe,
-            }
-            record["probe_share"] = record["gflop_per_step"] / record["step_s"] / probe
-            if other is not None:
-                # This tree's step again in a fresh process beside the other's, so both ran alike.
-                ours, theirs = child_measure(ROOT, config_path, args), child_measure(other, config_path, args)
-                record["compare"] = {
-                    "rev": args.compare,
-                    "step_s": theirs["step_s"],
-                    "compile_and_first_step_s": theirs["compile_and_first_step_s"],
-                    "this_tree_step_s": ours["step_s"],
-                    "ratio": theirs["step_s"] / ours["step_s"],
+            first = None
+            for precision in precisions:
+                record = {
+                    "date": datetime.date.today().isoformat(),
+                    "device": jax.devices()[0].device_kind,
+                    **measure(config_path, args.steps, args.n_points, args.remat, True, precision, args.by_part),
+                    "probe_gflop_s": probe,
                 }
-            print(json.dumps({**record, **peak_memory()}, indent=2), flush=True)
+                record["probe_share"] = record["gflop_per_step"] / record["step_s"] / probe
+                first = first or record
+                if record is not first:
+                    record["pairs_per_s_ratio"] = record["pairs_per_s"] / first["pairs_per_s"]
+                if other is not None:
+                    # This tree's step again in a fresh process beside the other's, so both ran alike.
+                    ours = child_measure(ROOT, config_path, args, precision)
+                    theirs = child_measure(other, config_path, args, precision)
+                    record["compare"] = {
+                        "rev": args.compare,
+                        "step_s": theirs["step_s"],
+                        "compile_and_first_step_s": theirs["compile_and_first_step_s"],
+                        "this_tree_step_s": ours["step_s"],
+                        "ratio": theirs["step_s"] / ours["step_s"],
+                    }
+                print(json.dumps({**record, **peak_memory()}, indent=2), flush=True)
 
 
 if __name__ == "__main__":

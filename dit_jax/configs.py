@@ -96,7 +96,8 @@ class DITConfig(Record):
         computed, in inference and training alike, whatever JAX's global ``jax_default_matmul_precision``
         says: "highest" (the default: float32 products on every backend, the numbers reference_check
         verifies), or the explicit opt-ins "tf32" (``lax.Precision.HIGH``: TensorFloat-32 on NVIDIA GPUs,
-        three bfloat16 passes on TPUs) and "bfloat16" (bfloat16 operands with float32 accumulation). JAX's
+        three bfloat16 passes on TPUs) and "bfloat16" (bfloat16 operands with float32 accumulation; products
+        with a vector operand, the squeeze-and-excitation gate's and the temperature net's, stay float32). JAX's
         own default on NVIDIA GPUs is TF32, which moves the reference check's scores (docs/benchmarks.md).
         The geometry (Procrustes, transforms, soft targets, losses and metrics) always multiplies at "highest".
       remat: rematerialise every PSE layer and PFT block in the backward pass (``jax.checkpoint``): training

@@ -27,13 +27,18 @@ def dot_precision(name: str) -> jax.lax.Precision:
     raise ValueError(f"unknown precision {name!r}; choose highest, tf32 or bfloat16")
 
 
-def _operands(name: str, *arrays: jax.Array) -> tuple[tuple[jax.Array, ...], jnp.dtype | None]:
-    """The operands as the setting multiplies them, and the result type to ask for: "bfloat16" rounds
-    float32 operands to bfloat16 and accumulates in float32, on every backend alike. (XLA's bfloat16 dot
-    algorithm, ``DotAlgorithmPreset.BF16_BF16_F32``, is refused by its CPU backend for some shapes.)"""
+def _operands(name: str, *arrays: jax.Array) -> tuple[tuple[jax.Array, ...], jnp.dtype | None, jax.lax.Precision]:
+    """The operands as the setting multiplies them, the result type to ask for, and the precision: "bfloat16"
+    rounds float32 operands to bfloat16 and accumulates in float32, on every backend alike. (XLA's bfloat16
+    dot algorithm, ``DotAlgorithmPreset.BF16_BF16_F32``, is refused by its CPU backend for some shapes.)
+    A product with a vector operand (the squeeze-and-excitation gate's) stays float32: it has no speed to
+    gain, and XLA's CPU backend runs the outer product of its gradient in bfloat16 a hundred times slower
+    (docs/benchmarks.md)."""
     if name != "bfloat16":
-        return arrays, None
-    return tuple(a.astype(jnp.bfloat16) for a in arrays), jnp.float32
+        return arrays, None, dot_precision(name)
+    if min(a.ndim for a in arrays) < 2:
+        return arrays, None, jax.lax.Precision.HIGHEST
+    return tuple(a.astype(jnp.bfloat16) for a in arrays), jnp.float32, dot_precision(name)
 
 
 def dot_general(name: str):
@@ -42,12 +47,12 @@ def dot_general(name: str):
 
     def dot(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, **kwargs):
         del precision
-        (lhs, rhs), wanted = _operands(name, lhs, rhs)
+        (lhs, rhs), wanted, chosen = _operands(name, lhs, rhs)
         return jax.lax.dot_general(
             lhs,
             rhs,
             dimension_numbers,
-            precision=dot_precision(name),
+            precision=chosen,
             preferred_element_type=wanted or preferred_element_type,
             **kwargs,
         )
@@ -57,10 +62,8 @@ def dot_general(name: str):
 
 def einsum(subscripts: str, a: jax.Array, b: jax.Array, *, precision: str, preferred_element_type=None) -> jax.Array:
     """``jnp.einsum`` of two operands computed as the precision setting says (see :func:`dot_precision`)."""
-    (a, b), wanted = _operands(precision, a, b)
-    return jnp.einsum(
-        subscripts, a, b, precision=dot_precision(precision), preferred_element_type=wanted or preferred_element_type
-    )
+    (a, b), wanted, chosen = _operands(precision, a, b)
+    return jnp.einsum(subscripts, a, b, precision=chosen, preferred_element_type=wanted or preferred_element_type)
 
 
 def _row_blocks(x: jax.Array, rows: int) -> jax.Array:

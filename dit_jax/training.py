@@ -77,6 +77,12 @@ class TrainConfig:
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
       match_radius: radius of the discrimination labels (:func:`dit_jax.losses.match_labels`).
+      train_precision: how the network's matrix products are computed in the train step only (see
+        :attr:`dit_jax.configs.DITConfig.precision`): None (the default) as the model says; "bfloat16" takes
+        bfloat16 operands with float32 accumulation, while the parameters, the optimiser, the geometry and the
+        losses stay float32. Validation and the saved model keep the model's own precision. On a CPU it makes
+        the cpu recipe's step no faster, since XLA's CPU backend runs the batched attention products and the
+        softmax in float32 either way (docs/benchmarks.md).
       correspondence_weight: weight of the correspondence term (:func:`dit_jax.losses.correspondence_loss`,
         not the authors'); 0 trains the authors' objective.
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
@@ -117,9 +123,23 @@ class TrainConfig:
     match_radius: float = losses.MATCH_RADIUS
     correspondence_weight: float = 0.0
     init_from: str | None = None
+    train_precision: str | None = None
+
+    def __post_init__(self):
+        if self.train_precision is not None and self.train_precision not in configs.PRECISIONS:
+            raise ValueError(
+                f"train_precision must be one of {', '.join(configs.PRECISIONS)} (or unset), "
+                f"got {self.train_precision!r}"
+            )
 
     def model_config(self) -> DITConfig:
         return self.model
+
+    def train_model_config(self) -> DITConfig:
+        """The network as the train step computes it: :meth:`model_config` at ``train_precision``."""
+        if self.train_precision is None:
+            return self.model
+        return self.model.replace(precision=self.train_precision)
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
@@ -311,7 +331,7 @@ def make_train_step(config: TrainConfig, optimizer: optax.GradientTransformation
 
     A step whose loss or gradients are not all finite changes nothing but ``step`` and ``skipped``.
     """
-    model_config = config.model_config()
+    model_config = config.train_model_config()
     replicated = NamedSharding(mesh, PartitionSpec())
 
     def step(state: TrainState, batch):
