@@ -40,7 +40,7 @@ _IGNORED_BY = {
         "batch_size",
         "bfloat16",
         "reuse",
-        "no_verdict",
+        "verdict",
     ),
     "--angle-sweep": (
         "skips",
@@ -51,31 +51,19 @@ _IGNORED_BY = {
         "batch_size",
         "bfloat16",
         "reuse",
-        "no_verdict",
+        "verdict",
         "best_direction",
         "no_dit",
     ),
 }
 
 
-def _inference_changes(args) -> dict:
-    """The changes to the checkpoint's inference settings (:class:`dit_jax.pipeline.InferenceSettings`) that
-    evaluate.py's flags ask for."""
-    changes = {
-        "n_points": args.n_points,
-        "n_iters": args.iters,
-        "refine": args.refine,
-        "feature_candidate": args.features,
-        "best_direction": None if args.best_direction is None else args.best_direction == "on",
-        "verdict_rule": "fitness" if args.no_verdict else None,
-    }
-    return {name: value for name, value in changes.items() if value is not None}
-
-
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """evaluate.py's command line."""
     from dit_jax import compile_cache
+    from dit_jax import settings as inference_settings
     from dit_jax.baselines import SCAN_BASELINES as BASELINES
-    from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
+    from dit_jax.data.pairs import SETTINGS
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
     parser.add_argument(
@@ -106,14 +94,8 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
-    parser.add_argument(
-        "--n-points",
-        type=int,
-        default=None,
-        help="default: the checkpoint's inference point count, else its training one, else 1000",
-    )
+    inference_settings.add_flags(parser, ("points", "iters", "refine", "features", "verdict", "best_direction"))
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
-    parser.add_argument("--iters", type=int, default=None, help="default: the model's")
     parser.add_argument(
         "--gmcce-threshold",
         default=None,
@@ -122,19 +104,6 @@ def main(argv=None) -> int:
         "the authors' threshold per setting; or a number",
     )
     parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
-    parser.add_argument(
-        "--refine",
-        choices=["auto", "icp", "gicp", "none"],
-        default=None,
-        help="the DIT+ICP row's refinement (default: the checkpoint's); none drops the row",
-    )
-    parser.add_argument(
-        "--features",
-        choices=["auto", "on", "off"],
-        default=None,
-        help="the pipeline row: the second candidate by local features where DIT+ICP is not "
-        "trusted (default: the checkpoint's)",
-    )
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
@@ -144,20 +113,17 @@ def main(argv=None) -> int:
         metavar="DIR",
         help="take baselines scored on the same pairs from an earlier --out instead of rerunning them",
     )
-    parser.add_argument(
-        "--no-verdict",
-        action="store_true",
-        help="skip the agreement verdict's second registration (target onto source) of every pair",
-    )
-    parser.add_argument(
-        "--best-direction",
-        choices=["on", "off"],
-        default=None,
-        help="DIT+ICP keeps the better fitting of its two directions (source onto target, target "
-        "onto source), as dit-register --best-direction; default: the checkpoint's",
-    )
     parser.add_argument("--no-progress", action="store_true")
     compile_cache.add_arguments(parser)
+    return parser
+
+
+def main(argv=None) -> int:
+    from dit_jax import compile_cache
+    from dit_jax import settings as inference_settings
+    from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
+
+    parser = build_parser()
     args = parser.parse_args(argv)
     mode = "--scans" if args.scans else "--angle-sweep" if args.angle_sweep else None
     for dest in _IGNORED_BY.get(mode, ("skips",)):
@@ -184,7 +150,7 @@ def main(argv=None) -> int:
     from dit_jax.checkpoint import CheckpointError
     from dit_jax.data.shapes import DataError
 
-    inference = _inference_changes(args)
+    inference = inference_settings.changes(args)
     try:
         checkpoint = None if args.no_dit else args.checkpoint or registration.shipped_weights()
         if args.angle_sweep:
@@ -196,7 +162,7 @@ def main(argv=None) -> int:
                 setting=setting,
                 unseen=args.unseen,
                 pairs_per_angle=args.max_pairs or 24,
-                n_points=args.n_points,
+                n_points=args.points,
                 progress=not args.no_progress,
                 refine=args.refine != "none",
             )

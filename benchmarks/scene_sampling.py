@@ -46,9 +46,9 @@ def main() -> None:
                     src = pair.source[pick(pair.source, settings.seed)]
                     tgt = pair.target[pick(pair.target, settings.seed + 1)]
                     src_n, tgt_n, src_c, tgt_c, scale = pipeline.normalise(src, tgt, settings.centring)
-                    rotation, _, _, _, _ = pipeline.network(
+                    rotation = pipeline.network(
                         model.params, model.config, src_n[None].astype(np.float32), tgt_n[None].astype(np.float32)
-                    )
+                    ).rotation
                     errors.append(geometry.rotation_angle_deg(rotation[0].T @ pair.rotation))
                 errors = np.asarray(errors)
                 record = {

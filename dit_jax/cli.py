@@ -43,14 +43,13 @@ import warnings
 
 import numpy as np
 
-from dit_jax import compile_cache, io
+from dit_jax import compile_cache, io, settings
 
 PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
 #: Exit status when the verdict finds the result probably wrong.
 EXIT_SUSPECT = 3
 #: --refine's choices: :data:`dit_jax.pipeline.REFINEMENTS`, spelt out so that parsing imports no JAX.
-REFINE_CHOICES = ("auto", "icp", "gicp", "none")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -100,10 +99,7 @@ def _parser() -> argparse.ArgumentParser:
         "mesh or a PLY, PCD or LAS SRC is written whole: every point, face and field kept)",
     )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
-    parser.add_argument(
-        "--points", type=int, default=None, help="points per cloud the network sees (default: the checkpoint's)"
-    )
-    parser.add_argument("--iters", type=int, default=None, help="registration iterations (default: the model's)")
+    settings.add_flags(parser)
     parser.add_argument(
         "--max-points",
         type=int,
@@ -123,56 +119,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument(
-        "--refine",
-        choices=REFINE_CHOICES,
-        default=None,
-        help="how the network's estimate is refined on the full clouds: icp; gicp (small_gicp's "
-        "generalized ICP at the clouds' point spacing, far faster on large scans); auto "
-        "(gicp on scans, icp on sparse clouds); none: the network alone (faster, less "
-        "accurate). Default: the checkpoint's",
-    )
-    parser.add_argument(
-        "--features",
-        choices=("auto", "on", "off"),
-        default=None,
-        help="where the verdict does not trust the refined result, also register by local "
-        "features (KISS-Matcher) and keep whichever lays more of SRC onto TGT; auto: on "
-        "scans of 5,000 points or more (default: the checkpoint's)",
-    )
-    parser.add_argument(
-        "--any-rotation",
-        action="store_true",
-        help="for clouds at any relative rotation: start the network from 24 turns of SRC "
-        "and go on from the best fitting (about 24 times the network's time)",
-    )
-    parser.add_argument(
         "--plot",
         default=None,
         metavar="FILE.png",
         help="draw both clouds before and after the registration, from two viewpoints",
-    )
-    parser.add_argument(
-        "--verdict",
-        choices=("agreement", "fitness"),
-        default="agreement",
-        help="agreement (default): also register TGT onto SRC and trust the result where both "
-        "agree (twice the time); fitness: trust it where enough of SRC lands on TGT",
-    )
-    parser.add_argument(
-        "--max-disagreement",
-        type=float,
-        default=None,
-        metavar="DEG",
-        help="agreement verdict: trust the result where the two registrations agree within DEG "
-        "degrees (default: the checkpoint's, strict by design; larger trusts more right results "
-        "and more wrong ones: docs/verdict.md)",
-    )
-    parser.add_argument(
-        "--best-direction",
-        choices=("on", "off"),
-        default=None,
-        help="with --refine icp and the agreement verdict: keep whichever of the two registrations "
-        "(SRC onto TGT, TGT onto SRC inverted) fits better; no extra work (default: the checkpoint's)",
     )
     parser.add_argument(
         "--no-verdict-status",
@@ -379,20 +329,7 @@ def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], m
 
 def _model_kwargs(args) -> dict:
     """The inference settings the flags change."""
-    kwargs = {"seed": args.seed, "verdict_rule": args.verdict}
-    if args.points is not None:
-        kwargs["n_points"] = args.points
-    if args.iters is not None:
-        kwargs["n_iters"] = args.iters
-    if args.any_rotation:
-        kwargs["rotation_search"] = True
-    if args.best_direction is not None:
-        kwargs["best_direction"] = args.best_direction == "on"
-    if args.features is not None:
-        kwargs["feature_candidate"] = args.features
-    if args.max_disagreement is not None:
-        kwargs.update(max_disagreement_network=args.max_disagreement, max_disagreement_icp=args.max_disagreement)
-    return kwargs
+    return {"seed": args.seed, **settings.changes(args)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -426,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.max_disagreement is not None:
         if not 0.0 <= args.max_disagreement <= 180.0:
             return _fail(f"--max-disagreement must be between 0 and 180 degrees, got {args.max_disagreement:g}")
-        if args.verdict != "agreement":
+        if args.verdict == "fitness":
             return _fail(
                 "--max-disagreement sets the agreement verdict's threshold; it cannot go with --verdict fitness"
             )
@@ -533,13 +470,7 @@ def _series_parser() -> argparse.ArgumentParser:
         help="draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
     )
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    parser.add_argument(
-        "--refine",
-        choices=REFINE_CHOICES,
-        default=None,
-        help="icp, gicp (small_gicp's generalized ICP), auto (gicp on scans, icp on sparse "
-        "clouds) or none: the network alone for every link (default: the checkpoint's)",
-    )
+    settings.add_flags(parser, ("refine",))
     parser.add_argument(
         "--max-points",
         type=int,

@@ -36,6 +36,7 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -43,28 +44,22 @@ import numpy as np
 
 from dit_jax import compile_cache, geometry
 from dit_jax import icp as icp_lib
-from dit_jax.configs import PRECISIONS, DITConfig, Record
+from dit_jax.configs import DITConfig
+from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importable from here as before)
+    CENTRINGS,
+    DENSE_POINTS,
+    FAR_APART,
+    FEATURE_CANDIDATES,
+    MODEL_OVERRIDES,
+    REFINEMENTS,
+    VERDICTS,
+    InferenceSettings,
+    refinement_for,
+)
 
-#: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
-#: (:func:`refinement_for`).
-REFINEMENTS = ("none", "icp", "gicp", "auto")
-#: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
-#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's);
-#: ``feature_candidate="auto"`` runs the second candidate on such clouds only.
-DENSE_POINTS = 5_000
-#: When the pipeline runs its second candidate (:attr:`InferenceSettings.feature_candidate`).
-FEATURE_CANDIDATES = ("auto", "on", "off")
-#: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
-CENTRINGS = ("auto", "shared", "separate")
-#: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
-VERDICTS = ("agreement", "fitness")
 #: The turns of the source that ``rotation_search`` starts the network from: the 24 rotations of a cube, the
 #: identity first (:func:`dit_jax.geometry.cube_rotations`). Every rotation lies within 62.8 degrees of one.
 SEARCH_TURNS = geometry.cube_rotations()
-#: ``centring="auto"`` centres each cloud on its own centroid where the two sampled clouds' centroids lie more
-#: than this many times the larger one's radius apart, else both on their common centroid. Centred together,
-#: clouds far apart shrink to two specks in the unit sphere; training offsets the target by under one radius.
-FAR_APART = 10.0
 #: Stage 1 warns (:class:`SizeMismatchWarning`) where one cloud's radius is this many times the other's: two
 #: views of one object differ far less, millimetres and metres 1000 times, and a rigid motion cannot rescale.
 SIZE_RATIO_WARNING = 10.0
@@ -78,124 +73,12 @@ CANDIDATE_OVERLAP = 2.0
 VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
 
 
-#: The fields of :class:`InferenceSettings` that override the model config's inference options.
-MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterations", "precision")
-
-
 class InputError(ValueError):
     """A cloud that DIT cannot register; the message names it."""
 
 
 class SizeMismatchWarning(UserWarning):
     """The two clouds differ in size far more than views of one object do: most likely different units."""
-
-
-@dataclasses.dataclass(frozen=True)
-class InferenceSettings(Record):
-    """Every setting of the registration pipeline, in one place. A checkpoint stores its own (chosen on
-    validation pairs by :mod:`dit_jax.release.calibrate`); these defaults serve checkpoints that record none.
-
-    Attributes:
-      n_points: points per cloud the network sees (stage 1).
-      fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
-        sampling, which keeps sampling linear in the cloud's size.
-      seed: farthest-point sampling's start and ICP's subsets: results are deterministic for a seed.
-      centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
-        its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
-        more than :data:`FAR_APART` radii apart, else "shared".
-      n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision: override the model config's
-        (:class:`dit_jax.configs.DITConfig`) where set; None keeps the config's.
-      refine: "icp" refines the network's estimate on the full clouds (stage 3, :func:`dit_jax.icp.refine`);
-        "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
-        (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
-        bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
-      feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
-        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`):
-        "on", "off", or "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse
-        shapes it measured worse than the refined network alone, docs/refinement.md).
-      rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
-      verdict_rule: "agreement": register the target onto the source too and trust the result where the two
-        agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
-        the sampled source points land on the target (one registration).
-      best_direction: with ICP and the agreement verdict, return whichever direction fits the clouds better
-        (:func:`dit_jax.icp.fits_better`); the verdict is the same either way.
-      min_fitness: the fitness verdict's threshold, a share (above 1 trusts nothing).
-      max_disagreement_network, max_disagreement_icp: the agreement verdict's thresholds (degrees) for the
-        network alone and with ICP (below 0 trusts nothing, 180 everything).
-      agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
-        agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
-        :attr:`Result.agreement_band`.
-      unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
-        the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
-    """
-
-    n_points: int = 1000
-    fps_pool: int = 20_000
-    seed: int = 0
-    centring: str = "auto"
-    n_iters: int | None = None
-    gmcce_threshold: float | None = None
-    gmcce_min_keep: float | None = None
-    guard_iterations: bool | None = None
-    precision: str | None = None
-    refine: str = "auto"
-    feature_candidate: str = "auto"
-    rotation_search: bool = False
-    verdict_rule: str = "agreement"
-    best_direction: bool = True
-    min_fitness: float = 0.5
-    max_disagreement_network: float = 3.0
-    max_disagreement_icp: float = 6.0
-    agreement_bands_network: tuple | None = None
-    agreement_bands_icp: tuple | None = None
-    unconfirmed_min_right: float = 0.5
-
-    def __post_init__(self):
-        if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
-            object.__setattr__(self, "feature_candidate", "on" if self.feature_candidate else "off")
-        for name, allowed in (
-            ("centring", CENTRINGS),
-            ("refine", REFINEMENTS),
-            ("verdict_rule", VERDICTS),
-            ("feature_candidate", FEATURE_CANDIDATES),
-        ):
-            value = getattr(self, name)
-            if value not in allowed:
-                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
-        if self.precision is not None and self.precision not in PRECISIONS:
-            raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {self.precision!r}")
-        if self.n_points < 1 or self.fps_pool < 1:
-            raise ValueError(f"n_points and fps_pool must be positive, got {self.n_points} and {self.fps_pool}")
-        if self.n_iters is not None and self.n_iters < 1:
-            raise ValueError(f"n_iters must be at least 1, got {self.n_iters}")
-        for name in ("agreement_bands_network", "agreement_bands_icp"):
-            bands = getattr(self, name)
-            if bands is not None:  # stored as tuples, so the settings stay immutable
-                object.__setattr__(self, name, tuple(tuple(band) for band in bands))
-
-    def model_config(self, config: DITConfig) -> DITConfig:
-        """``config`` with the settings' overrides of the model's inference options applied."""
-        changes = {name: getattr(self, name) for name in MODEL_OVERRIDES if getattr(self, name) is not None}
-        return config.replace(**changes) if changes else config
-
-    def refinement_for(self, src_points: int, tgt_points: int) -> str:
-        """The refinement stage 3 runs on clouds of these sizes: :attr:`refine`, with "auto" resolved
-        (:func:`refinement_for`)."""
-        return refinement_for(self.refine, src_points, tgt_points)
-
-    def runs_feature_candidate(self, src_points: int, tgt_points: int) -> bool:
-        """Whether the second candidate runs (where the result is not trusted) on clouds of these sizes."""
-        if self.feature_candidate == "auto":
-            return min(src_points, tgt_points) >= DENSE_POINTS
-        return self.feature_candidate == "on"
-
-    def max_disagreement(self, refine: str) -> float:
-        """The agreement verdict's threshold (degrees) for ``refine``: the network's for "none", ICP's for a
-        refinement."""
-        return self.max_disagreement_network if refine == "none" else self.max_disagreement_icp
-
-    def agreement_bands(self, refine: str) -> tuple | None:
-        return self.agreement_bands_network if refine == "none" else self.agreement_bands_icp
 
 
 @dataclasses.dataclass(frozen=True)
@@ -527,6 +410,47 @@ def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
 # ------------------------------------------------------------------------------------------ stage 2: network
 
 
+class Estimates(NamedTuple):
+    """Stage 2's output for a batch of B pairs, in the normalised frame: ``tgt_n ~ src_n @ rotation.T +
+    translation``.
+
+    Attributes:
+      rotation: (B, 3, 3) float64.
+      translation: (B, 3) float64.
+      extras: the model's per-pair outputs (:func:`dit_jax.model.register`), each with a leading B axis.
+      start_turn: (B,) degrees the rotation search turned each source before the network's run (0 without).
+      seconds: (B,) each pair's share of its batch's wall time.
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    extras: dict
+    start_turn: np.ndarray
+    seconds: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class Direction:
+    """One direction's network estimate for one pair, in the caller's units: ``rotation`` (3, 3),
+    ``translation`` (3,) and the rotation search's ``start_turn`` (degrees)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    start_turn: float
+
+
+@dataclasses.dataclass(frozen=True)
+class PairEstimate:
+    """What stage 2 found for one pair: ``forward`` (source onto target) with the model's ``extras`` for it,
+    ``backward`` (target onto source) under the agreement verdict, else None, and the network's ``seconds``
+    for both."""
+
+    forward: Direction
+    backward: Direction | None
+    extras: dict
+    seconds: float
+
+
 def network(
     params,
     config: DITConfig,
@@ -551,19 +475,16 @@ def network(
         timings.
 
     Returns:
-      ``(R (B, 3, 3), t (B, 3), extras, start_turn (B,), seconds (B,))``, float64 but ``extras`` (the model's,
-      per pair, :func:`dit_jax.model.register`); ``start_turn`` in degrees; ``seconds`` each pair's share of
-      its batch's wall time.
+      :class:`Estimates` of the B pairs.
     """
     if rotation_search:
         found = [_search_one(params, config, src_n[i], tgt_n[i], seed) for i in range(len(src_n))]
-        rotation, translation, extras, turns, seconds = zip(*found)
-        return (
-            np.stack(rotation),
-            np.stack(translation),
-            jax.tree.map(lambda *a: np.stack(a), *extras),
-            np.asarray(turns),
-            np.asarray(seconds),
+        return Estimates(
+            rotation=np.stack([f.rotation for f in found]),
+            translation=np.stack([f.translation for f in found]),
+            extras=jax.tree.map(lambda *a: np.stack(a), *[f.extras for f in found]),
+            start_turn=np.asarray([f.start_turn for f in found]),
+            seconds=np.asarray([f.seconds for f in found]),
         )
     return _batched(params, config, src_n, tgt_n, min(batch_size or len(src_n), len(src_n)))
 
@@ -581,12 +502,12 @@ def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, ba
         seconds.append(np.full(real, (time.perf_counter() - started) / real))
         outputs.append(jax.tree.map(lambda a: a[:real], out))
     rotation, translation, extras = jax.tree.map(lambda *a: np.concatenate(a), *outputs)
-    return (
-        np.asarray(rotation, np.float64),
-        np.asarray(translation, np.float64),
-        extras,
-        np.zeros(len(src_n)),
-        np.concatenate(seconds),
+    return Estimates(
+        rotation=np.asarray(rotation, np.float64),
+        translation=np.asarray(translation, np.float64),
+        extras=extras,
+        start_turn=np.zeros(len(src_n)),
+        seconds=np.concatenate(seconds),
     )
 
 
@@ -602,31 +523,26 @@ def _register(params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     return compile_cache.call("register", program, config, params, src, tgt)
 
 
-def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int):
+def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int) -> Estimates:
+    """The rotation search for one pair: its :class:`Estimates` without the batch axis."""
     started = time.perf_counter()
     points = np.asarray(src_n, np.float64)
     centre = points.mean(axis=0)
     turned = (points - centre) @ SEARCH_TURNS.transpose(0, 2, 1) + centre
     targets = np.repeat(tgt_n[None], len(SEARCH_TURNS), axis=0)
-    found, shifts, extras, _, _ = _batched(params, config, turned.astype(np.float32), targets, len(SEARCH_TURNS))
-    rotations = found @ SEARCH_TURNS
-    translations = shifts + found @ centre - rotations @ centre
+    runs = _batched(params, config, turned.astype(np.float32), targets, len(SEARCH_TURNS))
+    rotations = runs.rotation @ SEARCH_TURNS
+    translations = runs.translation + runs.rotation @ centre - rotations @ centre
     k = icp_lib.best_start(
         icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), rotations, translations, seed=seed)
     )
     turn = round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6)  # 0, 90, 120 or 180
-    return (rotations[k], translations[k], jax.tree.map(lambda a: a[k], extras), turn, time.perf_counter() - started)
+    return Estimates(
+        rotations[k], translations[k], jax.tree.map(lambda a: a[k], runs.extras), turn, time.perf_counter() - started
+    )
 
 
 # ------------------------------------------------------------------------------------------ stage 3: refine
-
-
-def refinement_for(refine: str, src_points: int, tgt_points: int) -> str:
-    """The refinement of ``refine`` (:data:`REFINEMENTS`) for clouds of these sizes: "auto" is "gicp" where
-    both have at least :data:`DENSE_POINTS` points, else "icp"; any other value is itself."""
-    if refine != "auto":
-        return refine
-    return "gicp" if min(src_points, tgt_points) >= DENSE_POINTS else "icp"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -682,22 +598,35 @@ def refine_pair(
 # ------------------------------------------------------------------------------------------ stage 4: verdict
 
 
+class Verdict(NamedTuple):
+    """Stage 4's judgement of one result: whether the rule ``trusted`` it, the rule's ``threshold`` (degrees
+    of disagreement, or a share of fitness), the two directions' ``agreement`` (degrees; NaN under the
+    fitness rule) and the validation band it falls in (:func:`agreement_band`)."""
+
+    trusted: bool
+    threshold: float
+    agreement: float
+    band: tuple | None
+
+
 def judge(
     settings: InferenceSettings,
     refine: str,
     fitness: float,
     forward_rotation: np.ndarray,
     backward_rotation: np.ndarray | None,
-) -> tuple[bool, float, float, tuple | None]:
-    """Stage 4: ``(verdict, threshold, agreement, agreement_band)`` of one result. The agreement verdict
+) -> Verdict:
+    """Stage 4: the :class:`Verdict` of one result. The agreement verdict
     trusts a result whose two directions' rotations (``forward_rotation``, source onto target, and
     ``backward_rotation``, target onto source) are within ``settings.max_disagreement(refine)`` degrees of
     inverse; the fitness verdict one whose ``fitness`` reaches ``settings.min_fitness``."""
     if settings.verdict_rule == "agreement":
         threshold = settings.max_disagreement(refine)
         agreement = geometry.rotation_angle_deg(forward_rotation @ backward_rotation)
-        return agreement <= threshold, threshold, agreement, agreement_band(settings.agreement_bands(refine), agreement)
-    return fitness >= settings.min_fitness, settings.min_fitness, float("nan"), None
+        return Verdict(
+            agreement <= threshold, threshold, agreement, agreement_band(settings.agreement_bands(refine), agreement)
+        )
+    return Verdict(fitness >= settings.min_fitness, settings.min_fitness, float("nan"), None)
 
 
 def verdict_level(trusted: bool, band: tuple | None, min_right: float) -> str:
@@ -752,34 +681,15 @@ def register_pairs(
     groups: dict[tuple, list[int]] = {}
     for i, p in enumerate(prepared):
         groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
-    estimates: list[dict] = [{} for _ in prepared]
+    estimates: list[PairEstimate | None] = [None] * len(prepared)
     for rows in groups.values():
         src_n = np.stack([prepared[i].src_n for i in rows])
         tgt_n = np.stack([prepared[i].tgt_n for i in rows])
         options = dict(rotation_search=settings.rotation_search, seed=settings.seed, batch_size=batch_size)
         forward = network(params, run_config, src_n, tgt_n, **options)
         backward = network(params, run_config, tgt_n, src_n, **options) if both_ways else None
-        rotation, translation, extras, turns, seconds = forward
         for k, i in enumerate(rows):
-            p = prepared[i]
-            estimate = {
-                "rotation": rotation[k],
-                "extras": {name: v[k] for name, v in extras.items()},
-                "turn": float(turns[k]),
-                "seconds": float(seconds[k]),
-                "translation": to_caller_units(rotation[k], translation[k], p.src_centre, p.tgt_centre, p.scale),
-            }
-            if backward is not None:
-                back_rotation, back_translation, _, back_turns, back_seconds = backward
-                estimate.update(
-                    back_rotation=back_rotation[k],
-                    back_turn=float(back_turns[k]),
-                    back_translation=to_caller_units(
-                        back_rotation[k], back_translation[k], p.tgt_centre, p.src_centre, p.scale
-                    ),
-                    seconds=float(seconds[k] + back_seconds[k]),
-                )
-            estimates[i] = estimate
+            estimates[i] = _pair_estimate(prepared[i], forward, backward, k)
     results = []
     for p, e in zip(prepared, estimates):
         results.append(_finish(p, e, settings, run_config))
@@ -788,46 +698,60 @@ def register_pairs(
     return results
 
 
-def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConfig) -> Result:
+def _pair_estimate(p: Normalised, forward: Estimates, backward: Estimates | None, k: int) -> PairEstimate:
+    """Pair ``k`` of a batch's estimates, both directions moved back to the caller's units."""
+
+    def direction(found: Estimates, from_centre, to_centre) -> Direction:
+        translation = to_caller_units(found.rotation[k], found.translation[k], from_centre, to_centre, p.scale)
+        return Direction(found.rotation[k], translation, float(found.start_turn[k]))
+
+    seconds = float(forward.seconds[k] + (backward.seconds[k] if backward is not None else 0.0))
+    return PairEstimate(
+        forward=direction(forward, p.src_centre, p.tgt_centre),
+        backward=direction(backward, p.tgt_centre, p.src_centre) if backward is not None else None,
+        extras={name: v[k] for name, v in forward.extras.items()},
+        seconds=seconds,
+    )
+
+
+def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config: DITConfig) -> Result:
     """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`)."""
-    extras = e["extras"]
+    extras = e.extras
     common = dict(
         source_indices=p.src_indices,
         correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
         confidence=np.asarray(extras["weights"], np.float64),
         inlier_ratio=float(extras["inlier_ratio"]),
-        seconds=e["seconds"],
+        seconds=e.seconds,
         verdict_rule=settings.verdict_rule,
         min_right=settings.unconfirmed_min_right,
     )
-    back_rotation = e.get("back_rotation")
-    verdict, threshold, agreement, band = judge(
-        settings, "none", float(extras["fitness"]), e["rotation"], back_rotation
-    )
+    back = e.backward
+    judged = judge(settings, "none", float(extras["fitness"]), e.forward.rotation, back and back.rotation)
     network_result = _result(
-        e["rotation"],
-        e["translation"],
+        e.forward.rotation,
+        e.forward.translation,
         fitness=float(extras["fitness"]),
         refinement=None,
         refine_seconds=0.0,
-        verdict=verdict,
-        threshold=threshold,
-        agreement=agreement,
+        verdict=judged.trusted,
+        threshold=judged.threshold,
+        agreement=judged.agreement,
         direction="forward",
-        start_turn=e["turn"],
-        agreement_band=band,
+        start_turn=e.forward.start_turn,
+        agreement_band=judged.band,
         network=None,
         **common,
     )
     method = settings.refinement_for(len(p.src), len(p.tgt))
     if method == "none":
         return network_result
-    backward = (back_rotation, e["back_translation"]) if back_rotation is not None else None
+    backward = (back.rotation, back.translation) if back is not None else None
     # GICP (and the second candidate) work at the clouds' point spacing: measured once for the pair.
     spacing = _spacing(p, settings.seed) if method == "gicp" else None
     refined = refine_pair(
         p,
-        (e["rotation"], e["translation"]),
+        (e.forward.rotation, e.forward.translation),
         backward,
         best_direction=settings.best_direction,
         seed=settings.seed,
@@ -835,22 +759,20 @@ def _finish(p: Normalised, e: dict, settings: InferenceSettings, config: DITConf
         spacing=spacing,
     )
     fitness = _fitness(p, refined.rotation, refined.translation, config)
-    verdict, threshold, agreement, band = judge(
-        settings, method, fitness, refined.forward_rotation, refined.backward_rotation
-    )
-    turn = e["turn"] if refined.direction == "forward" else e["back_turn"]
+    judged = judge(settings, method, fitness, refined.forward_rotation, refined.backward_rotation)
+    turn = e.forward.start_turn if refined.direction == "forward" else back.start_turn
     result = _result(
         refined.rotation,
         refined.translation,
         fitness=fitness,
         refinement=method,
         refine_seconds=refined.seconds,
-        verdict=verdict,
-        threshold=threshold,
-        agreement=agreement,
+        verdict=judged.trusted,
+        threshold=judged.threshold,
+        agreement=judged.agreement,
         direction=refined.direction,
         start_turn=turn,
-        agreement_band=band,
+        agreement_band=judged.band,
         network=network_result,
         **common,
     )

@@ -55,6 +55,9 @@ class TrainConfig:
       data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
       unseen: the unseen-category split (labels 0-19 train, 20-39 test).
       variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).
+      max_angle: degrees; each Euler angle of a pair's turn is uniform in [-max_angle, max_angle]
+        (:attr:`dit_jax.data.pairs.PairConfig.max_angle`), in training and validation alike; the turn's own
+        angle is larger than any one of the three (its distribution: docs/training.md).
       n_points: points per shape.
       batch_size: pairs per step (divisible by the number of devices).
       epochs: passes over the training pairs; ``max_steps`` caps the steps if set.
@@ -101,6 +104,7 @@ class TrainConfig:
     data_dir: str | None = None
     unseen: bool = False
     variant: str = "authors"
+    max_angle: float = 45.0
     n_points: int = 1000
     batch_size: int = 8
     epochs: int = 100
@@ -453,7 +457,7 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress
         config.data_dir, "train", n_points=n_shape, data_dir=prepared_dir, progress=progress
     )
     train_shapes, val_shapes = split_validation(shapes, config.val_fraction)
-    common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points)
+    common = dict(setting=config.setting, variant=config.variant, n_points=config.n_points, max_angle=config.max_angle)
     train_config = pairs_lib.PairConfig(train=True, seed=config.seed, unseen=config.unseen, **common)
     # Validation pairs are fixed (seeded by index) test-style pairs of held-out training shapes; with the
     # unseen split they keep the training categories (a test-style unseen config would keep 20-39 instead).

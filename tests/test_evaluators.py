@@ -190,7 +190,7 @@ def test_evaluate_scans_scores_a_folder_of_3dmatch_scenes_as_the_benchmark_does(
 
 
 def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, tmp_path, capsys):
-    """--n-points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
+    """--points and --iters reach the scans' registrations; a flag that a mode would ignore is refused."""
     import numpy as np
     from conftest import random_rotation, write_scan_series
 
@@ -208,7 +208,7 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
                 str(tmp_path),
                 "--skips",
                 "1",
-                "--n-points",
+                "--points",
                 "96",
                 "--iters",
                 "2",
@@ -225,7 +225,7 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
     assert (dit["n_points"], dit["n_iters"], dit["inference_settings"]["refine"]) == (96, 2, "none")
     assert "DIT sees 96 points of each scan" in (out / "results.md").read_text()
     for argv in (
-        ["--scans", str(tmp_path), "--no-verdict"],
+        ["--scans", str(tmp_path), "--verdict", "fitness"],
         ["--scans", str(tmp_path), "--unseen"],
         ["--scans", str(tmp_path), "--angle-sweep"],
         ["--angle-sweep", "--iters", "2"],
@@ -260,7 +260,7 @@ def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     import evaluate
     from dit_jax import registration
 
-    assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress", "--no-verdict"]) == 0
+    assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress", "--verdict", "fitness"]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
     assert saved["checkpoint"] == os.path.abspath(registration.shipped_weights())
     assert "verdict" not in saved["settings"]["clean"]["DIT"] and "verdict_fitness" in saved["settings"]["clean"]["DIT"]

@@ -749,3 +749,13 @@ def test_the_train_precision_changes_the_step_only():
     assert training.TrainConfig.from_json(config.to_json()).train_precision == "bfloat16"
     with pytest.raises(ValueError, match="train_precision must be one of"):
         dataclasses.replace(TINY_RECIPE, train_precision="float16")
+
+
+def test_max_angle_reaches_the_training_and_validation_pairs():
+    config = dataclasses.replace(TINY_RECIPE, settings=(), max_angle=60.0)
+    train_ds, val_ds = training.make_datasets(config, progress=False)
+    for pairs in (train_ds.batch(np.arange(32)), val_ds.batch(np.arange(min(32, len(val_ds))))):
+        largest = np.abs(pairs["euler_zyx"]).max()
+        assert 45.0 < largest <= 60.0
+    narrow, _ = training.make_datasets(dataclasses.replace(TINY_RECIPE, settings=()), progress=False)
+    assert np.abs(narrow.batch(np.arange(32))["euler_zyx"]).max() <= 45.0

@@ -1,0 +1,280 @@
+"""The registration pipeline's settings (:class:`InferenceSettings`) and their command-line flags.
+
+One frozen record holds every setting :mod:`dit_jax.pipeline` reads, with its choices; a checkpoint stores its
+own. :data:`FLAGS` gives the settings a user may change on the command line one flag name, one help text and
+one set of choices each; dit-register, dit-register-series and evaluate.py add them with :func:`add_flags`
+and read them back with :func:`changes`. Every such flag defaults to "as the checkpoint says". This module
+imports no JAX, so the command-line tools check their input before JAX starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable
+
+from dit_jax.configs import PRECISIONS, DITConfig, Record
+
+#: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
+#: (:func:`refinement_for`).
+REFINEMENTS = ("none", "icp", "gicp", "auto")
+#: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
+#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's);
+#: ``feature_candidate="auto"`` runs the second candidate on such clouds only.
+DENSE_POINTS = 5_000
+#: When the pipeline runs its second candidate (:attr:`InferenceSettings.feature_candidate`).
+FEATURE_CANDIDATES = ("auto", "on", "off")
+#: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
+CENTRINGS = ("auto", "shared", "separate")
+#: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
+VERDICTS = ("agreement", "fitness")
+
+#: ``centring="auto"`` centres each cloud on its own centroid where the two sampled clouds' centroids lie more
+#: than this many times the larger one's radius apart, else both on their common centroid. Centred together,
+#: clouds far apart shrink to two specks in the unit sphere; training offsets the target by under one radius.
+FAR_APART = 10.0
+
+#: The fields of :class:`InferenceSettings` that override the model config's inference options.
+MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterations", "precision")
+
+
+@dataclasses.dataclass(frozen=True)
+class InferenceSettings(Record):
+    """Every setting of the registration pipeline, in one place. A checkpoint stores its own (chosen on
+    validation pairs by :mod:`dit_jax.release.calibrate`); these defaults serve checkpoints that record none.
+
+    Attributes:
+      n_points: points per cloud the network sees (stage 1).
+      fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
+        sampling, which keeps sampling linear in the cloud's size.
+      seed: farthest-point sampling's start and ICP's subsets: results are deterministic for a seed.
+      centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
+        its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
+        more than :data:`FAR_APART` radii apart, else "shared".
+      n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision: override the model config's
+        (:class:`dit_jax.configs.DITConfig`) where set; None keeps the config's.
+      refine: "icp" refines the network's estimate on the full clouds (stage 3, :func:`dit_jax.icp.refine`);
+        "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
+        (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
+        bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
+      feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
+        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`):
+        "on", "off", or "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse
+        shapes it measured worse than the refined network alone, docs/refinement.md).
+      rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
+      verdict_rule: "agreement": register the target onto the source too and trust the result where the two
+        agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
+        the sampled source points land on the target (one registration).
+      best_direction: with ICP and the agreement verdict, return whichever direction fits the clouds better
+        (:func:`dit_jax.icp.fits_better`); the verdict is the same either way.
+      min_fitness: the fitness verdict's threshold, a share (above 1 trusts nothing).
+      max_disagreement_network, max_disagreement_icp: the agreement verdict's thresholds (degrees) for the
+        network alone and with ICP (below 0 trusts nothing, 180 everything).
+      agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
+        agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
+        :attr:`Result.agreement_band`.
+      unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
+        the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
+    """
+
+    n_points: int = 1000
+    fps_pool: int = 20_000
+    seed: int = 0
+    centring: str = "auto"
+    n_iters: int | None = None
+    gmcce_threshold: float | None = None
+    gmcce_min_keep: float | None = None
+    guard_iterations: bool | None = None
+    precision: str | None = None
+    refine: str = "auto"
+    feature_candidate: str = "auto"
+    rotation_search: bool = False
+    verdict_rule: str = "agreement"
+    best_direction: bool = True
+    min_fitness: float = 0.5
+    max_disagreement_network: float = 3.0
+    max_disagreement_icp: float = 6.0
+    agreement_bands_network: tuple | None = None
+    agreement_bands_icp: tuple | None = None
+    unconfirmed_min_right: float = 0.5
+
+    def __post_init__(self):
+        if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
+            object.__setattr__(self, "feature_candidate", "on" if self.feature_candidate else "off")
+        for name, allowed in (
+            ("centring", CENTRINGS),
+            ("refine", REFINEMENTS),
+            ("verdict_rule", VERDICTS),
+            ("feature_candidate", FEATURE_CANDIDATES),
+        ):
+            value = getattr(self, name)
+            if value not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        if self.precision is not None and self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {self.precision!r}")
+        if self.n_points < 1 or self.fps_pool < 1:
+            raise ValueError(f"n_points and fps_pool must be positive, got {self.n_points} and {self.fps_pool}")
+        if self.n_iters is not None and self.n_iters < 1:
+            raise ValueError(f"n_iters must be at least 1, got {self.n_iters}")
+        for name in ("agreement_bands_network", "agreement_bands_icp"):
+            bands = getattr(self, name)
+            if bands is not None:  # stored as tuples, so the settings stay immutable
+                object.__setattr__(self, name, tuple(tuple(band) for band in bands))
+
+    def model_config(self, config: DITConfig) -> DITConfig:
+        """``config`` with the settings' overrides of the model's inference options applied."""
+        changes = {name: getattr(self, name) for name in MODEL_OVERRIDES if getattr(self, name) is not None}
+        return config.replace(**changes) if changes else config
+
+    def refinement_for(self, src_points: int, tgt_points: int) -> str:
+        """The refinement stage 3 runs on clouds of these sizes: :attr:`refine`, with "auto" resolved
+        (:func:`refinement_for`)."""
+        return refinement_for(self.refine, src_points, tgt_points)
+
+    def runs_feature_candidate(self, src_points: int, tgt_points: int) -> bool:
+        """Whether the second candidate runs (where the result is not trusted) on clouds of these sizes."""
+        if self.feature_candidate == "auto":
+            return min(src_points, tgt_points) >= DENSE_POINTS
+        return self.feature_candidate == "on"
+
+    def max_disagreement(self, refine: str) -> float:
+        """The agreement verdict's threshold (degrees) for ``refine``: the network's for "none", ICP's for a
+        refinement."""
+        return self.max_disagreement_network if refine == "none" else self.max_disagreement_icp
+
+    def agreement_bands(self, refine: str) -> tuple | None:
+        return self.agreement_bands_network if refine == "none" else self.agreement_bands_icp
+
+
+def refinement_for(refine: str, src_points: int, tgt_points: int) -> str:
+    """The refinement of ``refine`` (:data:`REFINEMENTS`) for clouds of these sizes: "auto" is "gicp" where
+    both have at least :data:`DENSE_POINTS` points, else "icp"; any other value is itself."""
+    if refine != "auto":
+        return refine
+    return "gicp" if min(src_points, tgt_points) >= DENSE_POINTS else "icp"
+
+
+# ------------------------------------------------------------------------------------------ command-line flags
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    """A command-line flag that changes settings of :class:`InferenceSettings`.
+
+    Attributes:
+      name: the flag, e.g. ``"--points"``.
+      fields: the :class:`InferenceSettings` fields it sets (one, or two set alike).
+      help: what it does; "(default: the checkpoint's)" is added.
+      type: how the text is read (``int``, ``float``, ``str``); None for a switch without a value.
+      choices: the values it takes, the setting's own (``"on"`` / ``"off"`` for a yes-or-no setting).
+      metavar: the value's name in ``--help``.
+    """
+
+    name: str
+    fields: tuple[str, ...]
+    help: str
+    type: Callable | None = str
+    choices: tuple[str, ...] | None = None
+    metavar: str | None = None
+
+    @property
+    def dest(self) -> str:
+        return self.name.lstrip("-").replace("-", "_")
+
+    def value(self, text):
+        """The settings' value of the parsed ``text``: "on" / "off" (a switch's "on") become True / False."""
+        if self.choices == ON_OFF or self.type is None:
+            return text == "on"
+        return text
+
+
+#: The values of a yes-or-no setting's flag.
+ON_OFF = ("on", "off")
+
+#: Every setting a user may change on the command line, one flag each.
+FLAGS = {
+    flag.dest: flag
+    for flag in (
+        Flag("--points", ("n_points",), "points per cloud the network sees", int, metavar="N"),
+        Flag("--iters", ("n_iters",), "registration iterations of the network", int, metavar="N"),
+        Flag(
+            "--refine",
+            ("refine",),
+            "how the network's estimate is refined on the full clouds: icp; gicp (small_gicp's generalized "
+            "ICP at the clouds' point spacing, far faster on large scans); auto (gicp where both clouds have "
+            f"{DENSE_POINTS:,} points or more, else icp); none: the network alone (faster, less accurate)",
+            choices=REFINEMENTS,
+        ),
+        Flag(
+            "--features",
+            ("feature_candidate",),
+            "where the verdict does not trust the refined result, also register by local features "
+            "(KISS-Matcher) and keep whichever lays more of the source onto the target; auto: where both "
+            f"clouds have {DENSE_POINTS:,} points or more",
+            choices=FEATURE_CANDIDATES,
+        ),
+        Flag(
+            "--any-rotation",
+            ("rotation_search",),
+            "for clouds at any relative rotation: start the network from 24 turns of the source and go on "
+            "from the best fitting (about 24 times the network's time)",
+            None,
+        ),
+        Flag(
+            "--verdict",
+            ("verdict_rule",),
+            "agreement: also register the target onto the source and trust the result where both agree "
+            "(twice the time); fitness: trust it where enough of the source lands on the target",
+            choices=VERDICTS,
+        ),
+        Flag(
+            "--max-disagreement",
+            ("max_disagreement_network", "max_disagreement_icp"),
+            "agreement verdict: trust the result where the two registrations agree within DEG degrees "
+            "(strict by design; larger trusts more right results and more wrong ones: docs/verdict.md)",
+            float,
+            metavar="DEG",
+        ),
+        Flag(
+            "--best-direction",
+            ("best_direction",),
+            "with a refinement and the agreement verdict: keep whichever of the two registrations (source "
+            "onto target, target onto source inverted) fits better; no extra work",
+            choices=ON_OFF,
+        ),
+    )
+}
+
+
+def add_flags(parser: argparse.ArgumentParser, names: tuple[str, ...] | None = None) -> None:
+    """Adds the flags of :data:`FLAGS` named in ``names`` (their ``dest``, e.g. ``"points"``; all by
+    default) to ``parser``, each defaulting to None: "as the checkpoint says"."""
+    for dest in names or tuple(FLAGS):
+        flag = FLAGS[dest]
+        if flag.type is None:  # a switch: given, the setting is on
+            parser.add_argument(
+                flag.name,
+                action="store_const",
+                const="on",
+                default=None,
+                help=f"{flag.help} (default: the checkpoint's)",
+            )
+            continue
+        parser.add_argument(
+            flag.name,
+            type=flag.type,
+            choices=flag.choices,
+            default=None,
+            metavar=flag.metavar,
+            help=f"{flag.help} (default: the checkpoint's)",
+        )
+
+
+def changes(args: argparse.Namespace) -> dict:
+    """The :class:`InferenceSettings` changes that the parsed flags of :data:`FLAGS` ask for (those given)."""
+    found = {}
+    for dest, flag in FLAGS.items():
+        text = getattr(args, dest, None)
+        if text is not None:
+            found.update({field: flag.value(text) for field in flag.fields})
+    return found

@@ -1,0 +1,91 @@
+"""dit_jax.settings: the pipeline's settings have one flag each, with the setting's choices, in every CLI."""
+
+import argparse
+import dataclasses
+
+import pytest
+
+import evaluate
+from dit_jax import cli, pipeline, settings
+
+PARSERS = {
+    "dit-register": cli._parser,
+    "dit-register-series": cli._series_parser,
+    "evaluate.py": evaluate.build_parser,
+}
+
+#: Names a setting had before it had one: none of them may come back.
+RETIRED = ("--n-points", "--no-verdict")
+
+#: What each choice-taking field accepts, from the settings' own constants.
+FIELD_CHOICES = {
+    "refine": pipeline.REFINEMENTS,
+    "feature_candidate": pipeline.FEATURE_CANDIDATES,
+    "verdict_rule": pipeline.VERDICTS,
+    "best_direction": settings.ON_OFF,
+}
+
+
+def _actions(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {option: action for action in parser._actions for option in action.option_strings}
+
+
+def test_every_flag_names_fields_of_the_settings():
+    fields = {field.name for field in dataclasses.fields(settings.InferenceSettings)}
+    for flag in settings.FLAGS.values():
+        assert set(flag.fields) <= fields, flag.name
+
+
+@pytest.mark.parametrize("program", PARSERS)
+def test_each_setting_has_one_flag_name_with_the_settings_choices_and_no_default(program):
+    actions = _actions(PARSERS[program]())
+    assert not set(RETIRED) & set(actions), program
+    given = [flag for flag in settings.FLAGS.values() if flag.name in actions]
+    assert given, f"{program} has none of the settings' flags"
+    for flag in given:
+        action = actions[flag.name]
+        assert action.default is None, f"{program} {flag.name}: the default must be the checkpoint's"
+        if len(flag.fields) == 1 and flag.fields[0] in FIELD_CHOICES:
+            assert tuple(action.choices) == tuple(FIELD_CHOICES[flag.fields[0]]), f"{program} {flag.name}"
+        assert "(default: the checkpoint's)" in action.help
+    # No other option of the program sets one of these fields.
+    names = {flag.dest for flag in settings.FLAGS.values()}
+    other = [a.dest for a in actions.values() if a.dest not in names]
+    for flag in settings.FLAGS.values():
+        for field in flag.fields:
+            assert field not in other, f"{program}: {field} has a second flag"
+
+
+def test_the_same_flag_is_the_same_in_every_program():
+    seen = {}
+    for program, build in PARSERS.items():
+        for option, action in _actions(build()).items():
+            if option.lstrip("-").replace("-", "_") in settings.FLAGS:
+                shape = (action.choices and tuple(action.choices), action.help, action.metavar, action.const)
+                assert seen.setdefault(option, shape) == shape, f"{option} differs in {program}"
+    assert set(seen) == {flag.name for flag in settings.FLAGS.values()}
+
+
+def test_parsed_flags_become_settings_changes_and_unset_ones_none():
+    parser = cli._parser()
+    args = parser.parse_args(
+        ["a", "b", "--points", "512", "--best-direction", "off", "--any-rotation", "--max-disagreement", "4.5"]
+    )
+    assert settings.changes(args) == {
+        "n_points": 512,
+        "best_direction": False,
+        "rotation_search": True,
+        "max_disagreement_network": 4.5,
+        "max_disagreement_icp": 4.5,
+    }
+    assert settings.changes(parser.parse_args(["a", "b"])) == {}
+    changed = settings.InferenceSettings().replace(**settings.changes(args))
+    assert changed.n_points == 512 and changed.rotation_search and not changed.best_direction
+
+
+def test_the_settings_module_imports_no_jax():
+    import subprocess
+    import sys
+
+    code = "import sys, dit_jax.settings; sys.exit('jax' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
