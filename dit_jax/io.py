@@ -302,8 +302,11 @@ def _moved_pcd(path: str, rotation: np.ndarray, translation: np.ndarray) -> byte
         )
     data = np.array(cloud.pc_data)  # a writable copy
     _move_fields(data, _NORMALS[".pcd"], rotation, translation)
+    from scipy.spatial.transform import Rotation
+
     view = np.asarray(meta.viewpoint, np.float64)  # tx ty tz qw qx qy qz
-    pose = (*(rotation @ view[:3] + translation), *_quaternion_product(_rotation_quaternion(rotation), view[3:]))
+    turned = Rotation.from_matrix(rotation) * Rotation.from_quat(view[3:], scalar_first=True)
+    pose = (*(rotation @ view[:3] + translation), *turned.as_quat(canonical=True, scalar_first=True))
     moved = type(cloud)(meta.model_copy(update={"viewpoint": tuple(float(v) for v in pose)}), data)
     buffer = io_lib.BytesIO()
     moved.save(buffer, encoding=Encoding.ASCII if meta.data == Encoding.ASCII else Encoding.BINARY)
@@ -383,45 +386,6 @@ def _move_columns(groups: list[tuple[list[np.ndarray], bool]], rotation: np.ndar
 
 _XYZ = ("x", "y", "z")
 _NORMALS = {".ply": ("nx", "ny", "nz"), ".pcd": ("normal_x", "normal_y", "normal_z")}
-
-
-def _rotation_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """The unit quaternion (w, x, y, z) of a rotation matrix (3, 3), w >= 0."""
-    m = np.asarray(rotation, np.float64)
-    # the largest of 4w^2, 4x^2, 4y^2, 4z^2 gives the best-conditioned square root
-    squares = np.array(
-        [
-            1 + np.trace(m),
-            1 + m[0, 0] - m[1, 1] - m[2, 2],
-            1 - m[0, 0] + m[1, 1] - m[2, 2],
-            1 - m[0, 0] - m[1, 1] + m[2, 2],
-        ]
-    )
-    k = int(np.argmax(squares))
-    r = np.sqrt(max(squares[k], 0.0)) * 2  # 4 * |component k|
-    off = {
-        0: (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]),
-        1: (m[2, 1] - m[1, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]),
-        2: (m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], m[1, 2] + m[2, 1]),
-        3: (m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1]),
-    }[k]
-    q = np.empty(4)
-    q[k] = r / 4
-    q[[i for i in range(4) if i != k]] = np.asarray(off) / r
-    return q if q[0] >= 0 else -q
-
-
-def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a * b for quaternions (w, x, y, z): the rotation b, then a."""
-    (aw, ax, ay, az), (bw, bx, by, bz) = a, b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
 
 
 def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:

@@ -28,7 +28,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from dit_jax import configs, losses, metrics, model, pft
 from dit_jax.configs import DITConfig
 from dit_jax.data import pairs as pairs_lib
-from dit_jax.data import pipeline
+from dit_jax.data import prefetch
 from dit_jax.data import shapes as shapes_lib
 
 
@@ -849,7 +849,7 @@ def train(
     def batches_from(step: int) -> Iterator[tuple[int, dict]]:
         epoch, offset = divmod(step, steps_per_epoch)
         while step < total_steps:
-            for b in pipeline.batches(train_ds, config.batch_size, epoch=epoch, start_batch=offset):
+            for b in prefetch.batches(train_ds, config.batch_size, epoch=epoch, start_batch=offset):
                 yield epoch, b
                 step += 1
                 if step >= total_steps:

@@ -67,7 +67,7 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     accuracy fell from 0.72 to 0.44 here (rotation error of the network alone 17.6 -> 21.3 degrees). Now it
     goes from 0.74 to 0.96 and from 15.7 to 0.8 degrees (docs/training.md has every seed of the quick run).
     """
-    from dit_jax.data import pipeline
+    from dit_jax.data import prefetch
 
     steps = 30
     from dit_jax import configs
@@ -81,7 +81,7 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     train_ds, val_ds = training.make_datasets(base, prepared)
     state = training.replicate(training.init_state(base, optimizer), mesh)
     before = training.validate(state.params, val_ds, base.model_config(), 16)
-    for _, batch in zip(range(steps), pipeline.batches(train_ds, base.batch_size, epoch=0)):
+    for _, batch in zip(range(steps), prefetch.batches(train_ds, base.batch_size, epoch=0)):
         state, _ = step(state, training.shard_batch(batch, mesh))
     assert int(state.step) == steps and int(state.skipped) == 0
     after = training.validate(state.params, val_ds, base.model_config(), 16)

@@ -61,14 +61,9 @@ class ScanPair(NamedTuple):
 
 def quaternion_matrix(q) -> np.ndarray:
     """The rotation matrix (3, 3) of the unit quaternion ``q = (qx, qy, qz, qw)`` (normalised first)."""
-    x, y, z, w = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, np.float64)).as_matrix()
 
 
 def read_conf(path: str | os.PathLike) -> list[tuple[str, np.ndarray]]:
@@ -203,20 +198,10 @@ def benchmark_rmse(rotation: np.ndarray, translation: np.ndarray, pair: ScanPair
     truth[:3, :3], truth[:3, 3] = pair.rotation, pair.translation
     estimate[:3, :3], estimate[:3, 3] = rotation, translation
     error = np.linalg.inv(truth) @ estimate
-    # The quaternion's vector part from the rotation's skew part: 2 w v = (R32 - R23, R13 - R31, R21 - R12),
-    # with w = sqrt(1 + trace) / 2 >= 0 (its sign does not change the quadratic form). Near a half turn w -> 0:
-    # take the largest diagonal's branch there.
-    r = error[:3, :3]
-    w2 = (1.0 + np.trace(r)) / 4.0
-    if w2 > 1e-6:
-        w = np.sqrt(w2)
-        vector = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (4.0 * w)
-    else:
-        k = int(np.argmax(np.diag(r)))
-        vector = np.empty(3)
-        vector[k] = np.sqrt(max(0.0, 1.0 + 2.0 * r[k, k] - np.trace(r))) / 2.0
-        for other in {0, 1, 2} - {k}:
-            vector[other] = (r[k, other] + r[other, k]) / (4.0 * vector[k])
+    # The vector part of the error rotation's unit quaternion (its sign does not change the quadratic form).
+    from scipy.spatial.transform import Rotation
+
+    vector = Rotation.from_matrix(error[:3, :3]).as_quat(canonical=True)[:3]
     xi = np.concatenate([error[:3, 3], vector])
     return float(np.sqrt(max(0.0, xi @ pair.info @ xi / pair.info[0, 0])))
 
