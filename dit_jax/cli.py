@@ -52,6 +52,27 @@ EXIT_SUSPECT = 3
 #: --refine's choices: :data:`dit_jax.pipeline.REFINEMENTS`, spelt out so that parsing imports no JAX.
 
 
+def _add_reading_flags(parser: argparse.ArgumentParser) -> None:
+    """How the clouds are read: the size read whole, and what happens to larger clouds and to non-finite points."""
+    parser.add_argument(
+        "--max-points",
+        type=int,
+        default=DEFAULT_MAX_POINTS,
+        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})",
+    )
+    parser.add_argument(
+        "--no-downsample",
+        action="store_true",
+        help="refuse clouds above --max-points instead of reading a random subset",
+    )
+    parser.add_argument(
+        "--drop-nonfinite",
+        action="store_true",
+        help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
+        "files' pixels without a return) instead of refusing the file",
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
@@ -100,23 +121,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     settings.add_flags(parser)
-    parser.add_argument(
-        "--max-points",
-        type=int,
-        default=DEFAULT_MAX_POINTS,
-        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})",
-    )
-    parser.add_argument(
-        "--no-downsample",
-        action="store_true",
-        help="refuse clouds above --max-points instead of reading a random subset",
-    )
-    parser.add_argument(
-        "--drop-nonfinite",
-        action="store_true",
-        help="leave out points with NaN or Inf coordinates (depth cameras' and organized PCD "
-        "files' pixels without a return) instead of refusing the file",
-    )
+    _add_reading_flags(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument(
         "--plot",
@@ -471,22 +476,7 @@ def _series_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
     settings.add_flags(parser, ("refine",))
-    parser.add_argument(
-        "--max-points",
-        type=int,
-        default=DEFAULT_MAX_POINTS,
-        help=f"largest cloud read whole (default {DEFAULT_MAX_POINTS:,})",
-    )
-    parser.add_argument(
-        "--no-downsample",
-        action="store_true",
-        help="refuse clouds above --max-points instead of reading a random subset",
-    )
-    parser.add_argument(
-        "--drop-nonfinite",
-        action="store_true",
-        help="leave out points with NaN or Inf coordinates instead of refusing the file",
-    )
+    _add_reading_flags(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(

@@ -1,0 +1,236 @@
+"""The training loop behind ``python train.py``: :func:`train`, resumable from its checkpoints."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Iterator
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import optax
+
+from dit_jax import pft
+from dit_jax.data import prefetch
+from dit_jax.training.checkpoints import TrainCheckpointError, _managers, _restore, _save, export_params
+from dit_jax.training.config import TrainConfig
+from dit_jax.training.step import (
+    TrainState,
+    _flat,
+    init_state,
+    is_primary,
+    lr_schedule,
+    make_mesh,
+    make_optimizer,
+    make_train_step,
+    replicate,
+    shard_batch,
+)
+from dit_jax.training.validation import make_datasets, validate
+
+
+def _append_jsonl(path: str, record: dict) -> None:
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
+
+
+def _truncate_log(path: str, after_step: int) -> None:
+    """Drops log lines past ``after_step`` (written by a run that was killed before its next checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        lines = [line for line in f if line.strip() and json.loads(line).get("step", 0) <= after_step]
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        f.writelines(lines)
+    os.replace(tmp, path)
+
+
+def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTransformation) -> TrainState:
+    """``state`` with the params of the model checkpoint at ``path`` and a fresh optimiser state."""
+    from dit_jax import checkpoint
+
+    params, _ = checkpoint.restore(path)
+    shapes = lambda tree: jax.tree.map(lambda a: tuple(a.shape), tree)
+    if shapes(params) != shapes(state.params):
+        # A run of more PFT layers starts from a shallower network grown in depth (same outputs).
+        try:
+            params = {**params, "pft": pft.deepen(params["pft"], state.params["pft"])}
+        except (KeyError, ValueError):
+            pass
+    if shapes(params) != shapes(state.params):
+        raise ValueError(f"init_from {path}: its network does not have this run's shape (model config)")
+    params = jax.tree.map(jnp.asarray, params)
+    return state.replace(params=params, opt_state=optimizer.init(_flat(params)))
+
+
+def train(
+    config: TrainConfig, workdir: str, *, resume: bool = False, prepared_dir: str | None = None, progress: bool = True
+) -> dict:
+    """Trains DIT; returns the final validation metrics and where the results are.
+
+    Writes to ``workdir``: ``checkpoints/`` (the last ``keep``), ``best/`` (lowest validation rotation
+    error of the network alone, see :func:`validate`), ``metrics.jsonl``, ``train_config.json`` and, at the end, ``model/`` (the best params as a model
+    checkpoint for ``evaluate.py``).
+
+    In a multi-process run (:func:`initialize_distributed`) every process calls this with the same arguments
+    and ``workdir`` (a shared file system); they train one model and save checkpoints together (orbax), and
+    process 0 alone writes the log and the config.
+
+    Args:
+      resume: continue from the latest checkpoint in ``workdir`` (step, optimiser, RNG and data order
+        exactly). Without it, a ``workdir`` that holds checkpoints is refused rather than overwritten.
+    """
+    workdir = os.path.abspath(workdir)  # orbax needs absolute paths
+    os.makedirs(workdir, exist_ok=True)
+    model_config = config.model_config()
+    mesh = make_mesh()
+    n_dev = mesh.devices.size
+    if config.batch_size % n_dev:
+        raise ValueError(f"batch_size {config.batch_size} is not divisible by the {n_dev} devices")
+
+    train_ds, val_ds = make_datasets(config, prepared_dir, progress and is_primary())
+    steps_per_epoch = len(train_ds) // config.batch_size
+    if steps_per_epoch == 0:
+        raise ValueError(f"{len(train_ds)} training pairs are fewer than one batch of {config.batch_size}")
+    total_steps = steps_per_epoch * config.epochs
+    if config.max_steps:
+        total_steps = min(total_steps, config.max_steps)
+    optimizer = make_optimizer(config, total_steps)
+    last_mgr, best_mgr = _managers(workdir, config.keep)
+    log_path = os.path.join(workdir, "metrics.jsonl")
+    primary = is_primary()
+    log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
+
+    best_val = math.inf
+    latest = last_mgr.latest_step()
+    if latest is not None:
+        if not resume:
+            raise TrainCheckpointError(
+                f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
+                "continue, or choose a new --workdir"
+            )
+        # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
+        # overwritten, and a checkpoint of another model is refused before anything is compiled.
+        abstract = jax.eval_shape(lambda: init_state(config, optimizer))
+        state, meta = _restore(last_mgr, latest, abstract, config)
+        best_val = meta.get("best_val", math.inf)
+        if primary:
+            _truncate_log(log_path, latest)
+    else:
+        state = init_state(config, optimizer)
+        if config.init_from:
+            state = _initialise_from(state, config.init_from, optimizer)
+        if primary:
+            _truncate_log(log_path, -1)
+            with open(os.path.join(workdir, "train_config.json"), "w") as f:
+                json.dump(config.to_json(), f, indent=2)
+    state = replicate(state, mesh)
+    step_fn = make_train_step(config, optimizer, mesh)
+
+    def meta(step):
+        return {
+            "train_config": config.to_json(),
+            "step": step,
+            "best_val": best_val,
+            "steps_per_epoch": steps_per_epoch,
+        }
+
+    start = int(state.step)
+    bar = None
+    if progress and primary:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", dynamic_ncols=True)
+
+    def batches_from(step: int) -> Iterator[tuple[int, dict]]:
+        epoch, offset = divmod(step, steps_per_epoch)
+        while step < total_steps:
+            for b in prefetch.batches(train_ds, config.batch_size, epoch=epoch, start_batch=offset):
+                yield epoch, b
+                step += 1
+                if step >= total_steps:
+                    return
+            epoch, offset = epoch + 1, 0
+
+    val_metrics = {}
+
+    def run_validation(step: int, epoch: int) -> None:
+        nonlocal val_metrics, best_val
+        # Through the host onto this process's first device, once per validation (not per batch): the
+        # registration program is the one a single-device run compiles (and finds in the compilation cache),
+        # whatever the mesh.
+        params = jax.device_put(jax.device_get(state.params), jax.local_devices()[0])
+        val_metrics = validate(params, val_ds, model_config, config.val_pairs)
+        log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
+        line = (
+            f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
+            f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
+            f"{val_metrics['network_match_accuracy']:.3f}), translation error "
+            f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})"
+        )
+        if bar is not None:
+            bar.write(line)
+        elif primary:
+            print(line, flush=True)
+        if val_metrics["network_rotation_error"] < best_val:
+            best_val = val_metrics["network_rotation_error"]
+            _save(best_mgr, state, meta(step))
+
+    if start == 0 and config.validate_at_start:
+        run_validation(0, 0)  # where training starts from: the first point of every curve
+    t_last = time.time()
+    step = start
+    for epoch, batch in batches_from(start):
+        state, out = step_fn(state, shard_batch(batch, mesh))
+        step += 1
+        if step % config.log_every == 0 or step == total_steps:
+            out = {k: float(v) for k, v in jax.device_get(out).items()}
+            now = time.time()
+            record = {
+                "step": step,
+                "epoch": epoch,
+                "split": "train",
+                "skipped": int(state.skipped),
+                "lr": float(lr_schedule(config, total_steps)(step - 1)),
+                **out,
+                "seconds_per_step": (now - t_last) / config.log_every,
+            }
+            t_last = now
+            log(record)
+            if bar is not None:
+                bar.set_postfix(
+                    loss=f"{out['loss']:.3f}",
+                    disc=f"{out['discrimination']:.3f}",
+                    acc=f"{out['match_accuracy']:.2f}",
+                    rot=f"{out['rotation_error']:.1f}",
+                    trans=f"{out['translation_error']:.3f}",
+                    refresh=False,
+                )
+        if bar is not None:
+            bar.update(1)
+        if step % config.eval_every == 0 or step == total_steps:
+            run_validation(step, epoch)
+        if step % config.ckpt_every == 0 or step == total_steps:
+            _save(last_mgr, state, meta(step))
+    if bar is not None:
+        bar.close()
+    last_mgr.close()
+    best_mgr.close()
+    result = {
+        "step": step,
+        "total_steps": total_steps,
+        "skipped": int(state.skipped),
+        "val": val_metrics,
+        "best_val_network_rotation_error": best_val,
+        "workdir": os.path.abspath(workdir),
+        "processes": jax.process_count(),
+        "devices": n_dev,
+    }
+    if step >= total_steps:
+        # Every process: orbax's managers synchronise the processes (process 0 writes).
+        result["model"] = export_params(workdir, os.path.join(workdir, "model"))
+    return result
