@@ -31,10 +31,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import functools
-import os
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -45,6 +42,18 @@ import numpy as np
 from dit_jax import compile_cache, geometry
 from dit_jax import icp as icp_lib
 from dit_jax.configs import DITConfig
+from dit_jax.result import VERDICT_LEVELS, Result  # noqa: F401  (importable from here as before)
+from dit_jax.sampling import (  # noqa: F401
+    SIZE_RATIO_WARNING,
+    InputError,
+    Normalised,
+    SizeMismatchWarning,
+    check_cloud,
+    farthest_point_sample,
+    normalise,
+    sample_and_normalise,
+    to_caller_units,
+)
 from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importable from here as before)
     CENTRINGS,
     DENSE_POINTS,
@@ -60,351 +69,12 @@ from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importab
 #: The turns of the source that ``rotation_search`` starts the network from: the 24 rotations of a cube, the
 #: identity first (:func:`dit_jax.geometry.cube_rotations`). Every rotation lies within 62.8 degrees of one.
 SEARCH_TURNS = geometry.cube_rotations()
-#: Stage 1 warns (:class:`SizeMismatchWarning`) where one cloud's radius is this many times the other's: two
-#: views of one object differ far less, millimetres and metres 1000 times, and a rigid motion cannot rescale.
-SIZE_RATIO_WARNING = 10.0
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
 #: :func:`second_candidate` keeps the estimate that lays more source points within this many point spacings
 #: of the target: on views that overlap by a third, the trimmed fit can prefer a wrong pose that piles the
 #: source into the target's middle (docs/refinement.md, "Choosing between the two candidates").
 CANDIDATE_OVERLAP = 2.0
-#: The verdict's levels (:func:`verdict_level`), most confident first.
-VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
-
-
-class InputError(ValueError):
-    """A cloud that DIT cannot register; the message names it."""
-
-
-class SizeMismatchWarning(UserWarning):
-    """The two clouds differ in size far more than views of one object do: most likely different units."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Result:
-    """A registration, in the caller's units: ``tgt ~ src @ rotation.T + translation``.
-
-    Attributes:
-      rotation: (3, 3) float64.
-      translation: (3,) float64.
-      matrix: (4, 4) float64 homogeneous transform.
-      source_indices: (n,) rows of the caller's source cloud the network saw.
-      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
-      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
-      inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
-      fitness: share of the sampled source points the motion lays within ``fitness_radius`` point spacings of
-        the target (:func:`dit_jax.geometry.fitness`).
-      seconds: wall time of the network (both directions under the agreement verdict; with
-        ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
-        included unless the call ran several batches (:func:`network`).
-      refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
-      refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
-      candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        the second candidate's (:func:`second_candidate`), kept because it lays more of the source onto the
-        target.
-      candidate_agreement: degrees between the second candidate's refined rotation and the nearer of the
-        network's two refined ones; NaN where no second candidate ran.
-      candidate_seconds: wall time of the second candidate, its refinement included (0 where none ran).
-      verdict: True ("trusted") where the model's own evidence confirms the result, else False.
-      level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
-        right) or "probably wrong" (:func:`verdict_level`).
-      verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
-      threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
-      agreement: degrees between the rotation and the inverse of the one found registering the target onto
-        the source (refined alike); NaN under the fitness verdict.
-      direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
-        ``best_direction`` where it fits better).
-      start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
-        estimate started from; 0 for the unturned start.
-      agreement_band: ``(low, high, pairs, right)``: the band of agreement (low, high] degrees this result
-        falls in, how many validation results fell in it and how many of those were within 5 degrees of the
-        truth; None where the settings record no bands, no agreement was measured or the band is small.
-      network: where ICP refined the result, the network's own result before it (its verdict judged by the
-        network's threshold); None otherwise.
-      first: where a second candidate ran, the refined network's result as it stood before (its own verdict);
-        None otherwise.
-    """
-
-    rotation: np.ndarray
-    translation: np.ndarray
-    matrix: np.ndarray
-    source_indices: np.ndarray
-    correspondences: np.ndarray
-    confidence: np.ndarray
-    inlier_ratio: float
-    fitness: float
-    seconds: float
-    refinement: str | None
-    refine_seconds: float
-    verdict: bool
-    level: str
-    verdict_rule: str
-    threshold: float
-    agreement: float
-    direction: str
-    start_turn: float
-    agreement_band: tuple | None
-    network: Result | None
-    candidate: str = "network"
-    candidate_agreement: float = float("nan")
-    candidate_seconds: float = 0.0
-    first: Result | None = None
-
-    @property
-    def total_seconds(self) -> float:
-        """Network, refinement and any second candidate together."""
-        return self.seconds + self.refine_seconds + self.candidate_seconds
-
-    def apply(self, points: np.ndarray) -> np.ndarray:
-        """Moves (N, 3) points by the estimated transform."""
-        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
-
-    def to_json(self) -> dict:
-        return {
-            "matrix": self.matrix.tolist(),
-            "rotation": self.rotation.tolist(),
-            "translation": self.translation.tolist(),
-            "inlier_ratio": self.inlier_ratio,
-            "fitness": self.fitness,
-            "verdict": self.level,
-            "verdict_rule": self.verdict_rule,
-            "threshold": self.threshold,
-            "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
-            "mean_confidence": float(self.confidence.mean()),
-            "points_used": int(len(self.source_indices)),
-            "seconds": self.seconds,
-            "refinement": self.refinement,
-            "refine_seconds": self.refine_seconds,
-            "direction": self.direction,
-            "start_turn_deg": self.start_turn,
-            "candidate": self.candidate,
-            "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement) else self.candidate_agreement),
-            "candidate_seconds": self.candidate_seconds,
-            "agreement_band": None
-            if self.agreement_band is None
-            else dict(zip(("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band)),
-        }
-
-    def evidence(self) -> str:
-        """One line of what the verdict rests on, e.g. for a report or a warning."""
-        if self.first is not None and np.isnan(self.candidate_agreement):
-            return f"{self.first.evidence()}; a registration by local features found no match"
-        if not np.isnan(self.candidate_agreement):
-            first = self.first.evidence() if self.first is not None else ""
-            line = (
-                f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
-                f"deg from the network's (trusted up to {self.threshold:g} deg)"
-            )
-            if self.candidate == "features":
-                line += " and lays more of the source onto the target, so it is the result"
-            return line
-        if self.verdict_rule == "agreement":
-            line = (
-                f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
-                f"this one's inverse (trusted up to {self.threshold:g} deg)"
-            )
-            if self.agreement_band is not None:
-                low, high, pairs, right = self.agreement_band
-                band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
-                line += (
-                    f"; of the {pairs} validation results that {band} deg, "
-                    f"{100 * right / pairs:.0f} % were within 5 deg"
-                )
-            elif not self.verdict:
-                line += "; no validation results agreed as loosely"
-            return line
-        return (
-            f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
-            f"(trusted from {100 * self.threshold:.0f} %)"
-        )
-
-    def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
-        """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
-        after the motion from two viewpoints, with the motion, inlier ratio and fitness in the title (and the
-        error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
-        from dit_jax import plotting
-
-        return plotting.plot_registration(
-            path,
-            np.asarray(src),
-            np.asarray(tgt),
-            self.rotation,
-            self.translation,
-            title=title,
-            inlier_ratio=self.inlier_ratio,
-            fitness=self.fitness,
-            truth=truth,
-            label=self.label,
-        )
-
-    @property
-    def label(self) -> str:
-        """What found the result, e.g. "DIT + GICP" or "features + ICP"."""
-        found = "DIT" if self.candidate == "network" else "features"
-        return f"{found} + {self.refinement.upper()}" if self.refinement else found
-
-
-# ------------------------------------------------------------------------------ stage 1: sample and normalise
-
-
-def check_cloud(name: str, points, min_points: int) -> np.ndarray:
-    """Returns ``points`` as (N, 3) float64 or raises :class:`InputError` saying what is wrong with it."""
-    try:
-        array = np.asarray(points)
-    except (TypeError, ValueError) as err:
-        raise InputError(f"{name}: not an array of coordinates ({err})") from None
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise InputError(f"{name}: expected N x 3 coordinates, got shape {array.shape}")
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise InputError(f"{name}: expected real coordinates, got dtype {array.dtype}")
-    array = array.astype(np.float64, copy=False)
-    bad = ~np.isfinite(array).all(axis=1)
-    if bad.any():
-        raise InputError(f"{name}: {int(bad.sum())} of {len(array)} points have NaN or Inf coordinates")
-    if len(array) < min_points:
-        raise InputError(f"{name}: {len(array)} points; the model needs at least {min_points}")
-    extent = float(np.ptp(array, axis=0).max())
-    if extent <= 1e-9 * max(1.0, float(np.abs(array).max())):
-        raise InputError(f"{name}: all {len(array)} points are the same point")
-    # A line leaves the rotation about itself undetermined, whatever the other cloud. Its spread across the
-    # line is zero up to rounding; a millionth of the spread along it is a line in float32, the network's type.
-    centred = array - array.mean(axis=0)
-    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))  # ascending
-    if spread[1] <= 1e-6 * spread[2]:
-        raise InputError(
-            f"{name}: its {len(array)} points lie on one line, so no rotation about that line can be told from another"
-        )
-    return array
-
-
-def farthest_point_sample(points: np.ndarray, n: int, *, seed: int = 0, pool: int | None = None) -> np.ndarray:
-    """Indices of ``n`` points spread over the cloud by farthest-point sampling.
-
-    Each point taken is the one farthest from all taken before (ties: the lowest index), starting from a
-    seeded random point, in one jitted loop (:func:`_farthest_points`) in float32.
-
-    Args:
-      points: (N, 3).
-      n: how many to take; all N (in order) when N <= n.
-      seed: picks the first point (and the random thinning).
-      pool: above this many points the cloud is first thinned uniformly at random to ``pool`` points.
-
-    Returns:
-      (min(N, n),) int64 indices into ``points``, no repeats.
-    """
-    count = len(points)
-    if count <= n:
-        return np.arange(count)
-    rng = np.random.default_rng(seed)
-    candidates = np.sort(rng.choice(count, pool, replace=False)) if pool and count > pool else np.arange(count)
-    cloud = np.asarray(points[candidates], np.float64)
-    first = int(rng.integers(len(cloud)))
-    # Centred before float32, so that squared distances keep their digits far from the origin. Padded to one
-    # of a few sizes per power of two (at most 1/8 more), so clouds of similar size share one compilation.
-    cloud = (cloud - cloud.mean(axis=0)).astype(np.float32)
-    step = 1 << max(len(cloud).bit_length() - 4, 0)
-    padded = np.zeros((3, -(-len(cloud) // step) * step), np.float32)
-    padded[:, : len(cloud)] = cloud.T
-    chosen = _farthest_points(padded, np.int32(len(cloud)), np.int32(first), n)
-    return candidates[np.asarray(chosen, np.int64)]
-
-
-@functools.partial(jax.jit, static_argnames=("n",))
-def _farthest_points(xyz: jax.Array, count: jax.Array, first: jax.Array, n: int) -> jax.Array:
-    """Farthest-point sampling of the first ``count`` columns of ``xyz`` (3, P), from column ``first``.
-
-    Coordinates as three rows and the arg-max as a max then a min over indices: XLA's CPU backend vectorises
-    both, where a (P, 3) layout and ``jnp.argmax`` (one reduction of value-index pairs) run several times
-    slower. Padding columns start at distance -1 and are never taken. Returns (n,) int32.
-    """
-    x, y, z = xyz
-    index = jnp.arange(x.shape[0], dtype=jnp.int32)
-
-    def distances(i):
-        return (x - x[i]) ** 2 + (y - y[i]) ** 2 + (z - z[i]) ** 2
-
-    def body(i, state):
-        chosen, nearest = state
-        farthest = jnp.min(jnp.where(nearest == jnp.max(nearest), index, x.shape[0]))
-        return chosen.at[i].set(farthest), jnp.minimum(nearest, distances(farthest))
-
-    nearest = jnp.where(index < count, distances(first), -1.0)
-    chosen = jnp.zeros(n, jnp.int32).at[0].set(first)
-    return jax.lax.fori_loop(1, n, body, (chosen, nearest))[0]
-
-
-def normalise(src: np.ndarray, tgt: np.ndarray, centring: str = "shared"):
-    """Centres (per ``centring``, see :class:`InferenceSettings`) and scales two clouds into the unit sphere
-    with one shared scale, the largest distance of a point from its centre. src (N, 3), tgt (M, 3).
-
-    Returns ``(src_n, tgt_n, src_centre (3,), tgt_centre (3,), scale)``, float64."""
-    src_centre, tgt_centre = src.mean(axis=0), tgt.mean(axis=0)
-    if centring == "auto":
-        radius = max(
-            float(np.linalg.norm(c - centre, axis=1).max()) for c, centre in ((src, src_centre), (tgt, tgt_centre))
-        )
-        centring = "separate" if np.linalg.norm(src_centre - tgt_centre) > FAR_APART * radius else "shared"
-    if centring == "shared":
-        src_centre = tgt_centre = np.concatenate([src, tgt]).mean(axis=0)
-    scale = max(
-        float(np.linalg.norm(src - src_centre, axis=1).max()), float(np.linalg.norm(tgt - tgt_centre, axis=1).max())
-    )
-    return (src - src_centre) / scale, (tgt - tgt_centre) / scale, src_centre, tgt_centre, scale
-
-
-def to_caller_units(
-    rotation: np.ndarray, translation: np.ndarray, src_centre: np.ndarray, tgt_centre: np.ndarray, scale: float
-) -> np.ndarray:
-    """The translation of a motion found between normalised clouds, in the caller's frame:
-    ``s t' + c_y - R c_x``."""
-    return scale * translation + tgt_centre - rotation @ src_centre
-
-
-@dataclasses.dataclass(frozen=True)
-class Normalised:
-    """Stage 1's output for one pair: the caller's clouds (float64), the rows sampled from each, the sampled
-    clouds in the unit sphere (float32) and the centres and scale that map motions back."""
-
-    src: np.ndarray
-    tgt: np.ndarray
-    src_indices: np.ndarray
-    tgt_indices: np.ndarray
-    src_n: np.ndarray
-    tgt_n: np.ndarray
-    src_centre: np.ndarray
-    tgt_centre: np.ndarray
-    scale: float
-
-
-def sample_and_normalise(src, tgt, settings: InferenceSettings, min_points: int) -> Normalised:
-    """Stage 1 for one pair: src (N, 3), tgt (M, 3) in any units; raises :class:`InputError` on a cloud DIT
-    cannot register and warns (:class:`SizeMismatchWarning`) on clouds of very different sizes."""
-    src = check_cloud("source", src, min_points)
-    tgt = check_cloud("target", tgt, min_points)
-    _warn_on_size_mismatch(src, tgt)
-    src_idx = farthest_point_sample(src, settings.n_points, seed=settings.seed, pool=settings.fps_pool)
-    tgt_idx = farthest_point_sample(tgt, settings.n_points, seed=settings.seed + 1, pool=settings.fps_pool)
-    src_n, tgt_n, src_centre, tgt_centre, scale = normalise(src[src_idx], tgt[tgt_idx], settings.centring)
-    return Normalised(
-        src, tgt, src_idx, tgt_idx, src_n.astype(np.float32), tgt_n.astype(np.float32), src_centre, tgt_centre, scale
-    )
-
-
-def _warn_on_size_mismatch(src: np.ndarray, tgt: np.ndarray) -> None:
-    """Warns where the radius of src (N, 3) or tgt (M, 3) is :data:`SIZE_RATIO_WARNING` times the other's."""
-    radius = [float(np.linalg.norm(c - c.mean(axis=0), axis=1).max()) for c in (src, tgt)]
-    big = int(radius[1] > radius[0])
-    ratio = radius[big] / radius[1 - big]
-    if ratio >= SIZE_RATIO_WARNING:
-        names = ("source", "target")
-        warnings.warn(
-            f"{names[big]} is {ratio:,.0f} times the size of {names[1 - big]} (radius {radius[big]:.4g} "
-            f"against {radius[1 - big]:.4g}): are both in the same units, and free of stray far-off points? "
-            "A rigid motion cannot rescale one onto the other",
-            SizeMismatchWarning,
-            stacklevel=5,
-        )
 
 
 # ------------------------------------------------------------------------------------------ stage 2: network

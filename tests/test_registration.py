@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, pipeline, registration
+from dit_jax import checkpoint, configs, model, pipeline, registration, sampling
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -66,9 +66,9 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
     np.testing.assert_array_equal(
         registration.farthest_point_sample(cloud, 200, seed=0), _farthest_point_sample_float64(cloud, 200, 0)
     )
-    before = pipeline._farthest_points._cache_size()
+    before = sampling._farthest_points._cache_size()
     registration.farthest_point_sample(cloud[:2990], 200, seed=0)
-    assert pipeline._farthest_points._cache_size() == before
+    assert sampling._farthest_points._cache_size() == before
 
 
 @pytest.mark.parametrize(

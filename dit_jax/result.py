@@ -1,0 +1,176 @@
+"""The result of a registration (:class:`Result`): the motion, the evidence behind it and the verdict's level, with
+its JSON form, its explanation in words and its plot."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+#: The verdict's levels (:func:`dit_jax.pipeline.verdict_level`), most confident first.
+VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
+
+
+@dataclasses.dataclass(frozen=True)
+class Result:
+    """A registration, in the caller's units: ``tgt ~ src @ rotation.T + translation``.
+
+    Attributes:
+      rotation: (3, 3) float64.
+      translation: (3,) float64.
+      matrix: (4, 4) float64 homogeneous transform.
+      source_indices: (n,) rows of the caller's source cloud the network saw.
+      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
+      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
+      inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
+      fitness: share of the sampled source points the motion lays within ``fitness_radius`` point spacings of
+        the target (:func:`dit_jax.geometry.fitness`).
+      seconds: wall time of the network (both directions under the agreement verdict; with
+        ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
+        included unless the call ran several batches (:func:`dit_jax.pipeline.network`).
+      refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
+      refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
+      candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
+        the second candidate's (:func:`dit_jax.pipeline.second_candidate`), kept because it lays more of the source onto the
+        target.
+      candidate_agreement: degrees between the second candidate's refined rotation and the nearer of the
+        network's two refined ones; NaN where no second candidate ran.
+      candidate_seconds: wall time of the second candidate, its refinement included (0 where none ran).
+      verdict: True ("trusted") where the model's own evidence confirms the result, else False.
+      level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
+        right) or "probably wrong" (:func:`dit_jax.pipeline.verdict_level`).
+      verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
+      threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
+      agreement: degrees between the rotation and the inverse of the one found registering the target onto
+        the source (refined alike); NaN under the fitness verdict.
+      direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
+        ``best_direction`` where it fits better).
+      start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
+        estimate started from; 0 for the unturned start.
+      agreement_band: ``(low, high, pairs, right)``: the band of agreement (low, high] degrees this result
+        falls in, how many validation results fell in it and how many of those were within 5 degrees of the
+        truth; None where the settings record no bands, no agreement was measured or the band is small.
+      network: where ICP refined the result, the network's own result before it (its verdict judged by the
+        network's threshold); None otherwise.
+      first: where a second candidate ran, the refined network's result as it stood before (its own verdict);
+        None otherwise.
+    """
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    matrix: np.ndarray
+    source_indices: np.ndarray
+    correspondences: np.ndarray
+    confidence: np.ndarray
+    inlier_ratio: float
+    fitness: float
+    seconds: float
+    refinement: str | None
+    refine_seconds: float
+    verdict: bool
+    level: str
+    verdict_rule: str
+    threshold: float
+    agreement: float
+    direction: str
+    start_turn: float
+    agreement_band: tuple | None
+    network: Result | None
+    candidate: str = "network"
+    candidate_agreement: float = float("nan")
+    candidate_seconds: float = 0.0
+    first: Result | None = None
+
+    @property
+    def total_seconds(self) -> float:
+        """Network, refinement and any second candidate together."""
+        return self.seconds + self.refine_seconds + self.candidate_seconds
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Moves (N, 3) points by the estimated transform."""
+        return np.asarray(points, np.float64) @ self.rotation.T + self.translation
+
+    def to_json(self) -> dict:
+        return {
+            "matrix": self.matrix.tolist(),
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "inlier_ratio": self.inlier_ratio,
+            "fitness": self.fitness,
+            "verdict": self.level,
+            "verdict_rule": self.verdict_rule,
+            "threshold": self.threshold,
+            "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
+            "mean_confidence": float(self.confidence.mean()),
+            "points_used": int(len(self.source_indices)),
+            "seconds": self.seconds,
+            "refinement": self.refinement,
+            "refine_seconds": self.refine_seconds,
+            "direction": self.direction,
+            "start_turn_deg": self.start_turn,
+            "candidate": self.candidate,
+            "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement) else self.candidate_agreement),
+            "candidate_seconds": self.candidate_seconds,
+            "agreement_band": None
+            if self.agreement_band is None
+            else dict(zip(("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band)),
+        }
+
+    def evidence(self) -> str:
+        """One line of what the verdict rests on, e.g. for a report or a warning."""
+        if self.first is not None and np.isnan(self.candidate_agreement):
+            return f"{self.first.evidence()}; a registration by local features found no match"
+        if not np.isnan(self.candidate_agreement):
+            first = self.first.evidence() if self.first is not None else ""
+            line = (
+                f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
+                f"deg from the network's (trusted up to {self.threshold:g} deg)"
+            )
+            if self.candidate == "features":
+                line += " and lays more of the source onto the target, so it is the result"
+            return line
+        if self.verdict_rule == "agreement":
+            line = (
+                f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
+                f"this one's inverse (trusted up to {self.threshold:g} deg)"
+            )
+            if self.agreement_band is not None:
+                low, high, pairs, right = self.agreement_band
+                band = f"disagreed by more than {low:g}" if high is None else f"agreed within {low:g}-{high:g}"
+                line += (
+                    f"; of the {pairs} validation results that {band} deg, "
+                    f"{100 * right / pairs:.0f} % were within 5 deg"
+                )
+            elif not self.verdict:
+                line += "; no validation results agreed as loosely"
+            return line
+        return (
+            f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
+            f"(trusted from {100 * self.threshold:.0f} %)"
+        )
+
+    def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
+        """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
+        after the motion from two viewpoints, with the motion, inlier ratio and fitness in the title (and the
+        error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
+        from dit_jax import plotting
+
+        return plotting.plot_registration(
+            path,
+            np.asarray(src),
+            np.asarray(tgt),
+            self.rotation,
+            self.translation,
+            title=title,
+            inlier_ratio=self.inlier_ratio,
+            fitness=self.fitness,
+            truth=truth,
+            label=self.label,
+        )
+
+    @property
+    def label(self) -> str:
+        """What found the result, e.g. "DIT + GICP" or "features + ICP"."""
+        found = "DIT" if self.candidate == "network" else "features"
+        return f"{found} + {self.refinement.upper()}" if self.refinement else found
