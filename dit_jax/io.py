@@ -11,9 +11,14 @@ libraries where one reads them:
   vertices are memory-mapped. A PLY file with faces (``vertex_indices``) is a mesh, sampled as the others are.
 * PCD (pypcd4): ``ascii``, ``binary`` and ``binary_compressed``, fields ``x y z`` (others skipped).
 * LAS and LAZ (laspy, with lazrs for LAZ): every version and point format, scaled and offset as the header says.
-* STL (trimesh), ASCII or binary; surface sampling (``trimesh.sample``).
+* STL, ASCII or binary: read here. Binary STL is one NumPy record per facet, faster than trimesh's reader,
+  and trimesh refuses ASCII STL whose lines end in a lone carriage return (old Mac files), which this reads.
 * OBJ and OFF: read here. trimesh drops the vertices of an OBJ without faces (a cloud) and refuses OFF
   files whose counts share the keyword's line (``OFF490 518 0``, as ModelNet's are written).
+* Meshes of every format are sampled over their surface by trimesh (:func:`sample_surface`, seeded).
+
+Where this module parses by hand, the reason is the format case named above or a speed measured against the
+libraries (docs/benchmarks.md, "Reading files").
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third are ignored, ``#`` starts a comment, and a first line that is not three numbers is
   taken for a header and skipped (``x,y,z``, ``//X,Y,Z``, or the point count that opens a .pts file).
