@@ -17,12 +17,13 @@ libraries where one reads them:
   files whose counts share the keyword's line (``OFF490 518 0``, as ModelNet's are written).
 * Meshes of every format are sampled over their surface by trimesh (:func:`sample_surface`, seeded).
 
-Where this module parses by hand, the reason is the format case named above or a speed measured against the
-libraries (docs/benchmarks.md, "Reading files").
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third are ignored, ``#`` starts a comment, and a first line that is not three numbers is
   taken for a header and skipped (``x,y,z``, ``//X,Y,Z``, or the point count that opens a .pts file).
 * NPY: an (N, 3) array of any real dtype, memory-mapped.
+
+Where this module parses by hand, the reason is the format case named above or a speed measured against the
+libraries (docs/benchmarks.md, "Reading files").
 
 :func:`move_file` writes a PLY, PCD, LAS, LAZ or mesh file moved, every other field kept (``dit-register
 --out`` with the source's own extension). Writers (:func:`write`) produce binary little-endian PLY (float or
