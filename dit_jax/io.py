@@ -16,7 +16,6 @@ libraries where one reads them:
 * OBJ and OFF: read here. trimesh drops the vertices of an OBJ without faces (a cloud) and refuses OFF
   files whose counts share the keyword's line (``OFF490 518 0``, as ModelNet's are written).
 * Meshes of every format are sampled over their surface by trimesh (:func:`sample_surface`, seeded).
-
 * Text (.xyz, .txt, .csv, .asc, .pts): one point per line, whitespace, comma or semicolon separated;
   columns after the third are ignored, ``#`` starts a comment, and a first line that is not three numbers is
   taken for a header and skipped (``x,y,z``, ``//X,Y,Z``, or the point count that opens a .pts file).
