@@ -50,3 +50,19 @@ def test_both_checkpoints_run_the_shipped_weights_model_options():
     candidate = registration.Registrar({}, configs.DITConfig(), settings)
     assert candidate.config == shipped.config
     assert settings.refine == "none" and not settings.rotation_search
+
+
+def test_shipped_records_name_the_modelnet40_folder_not_the_machines_path():
+    from dit_jax.release.ship_weights import portable
+
+    record = {
+        "command": "python train.py --config.data_dir=../shared/data/mn40 --unseen",
+        "train_config": {"data_dir": "../shared/data/mn40", "seed": 3},
+        "trained_from": {"data": ["../shared/data/mn40/"]},
+    }
+    assert portable(record, "../shared/data/mn40") == {
+        "command": "python train.py --config.data_dir=$MODELNET40 --unseen",
+        "train_config": {"data_dir": "$MODELNET40", "seed": 3},
+        "trained_from": {"data": ["$MODELNET40/"]},
+    }
+    assert portable(record, None) == record

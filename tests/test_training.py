@@ -419,7 +419,8 @@ def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path
 def test_the_shipped_recipe_files_are_what_trained_the_shipped_weights():
     """configs/shipped/runN.py gives the config the shipped weights record for run N (the last run in
     ``train_config``, each earlier one under ``trained_from``), up to where the weights started from: the
-    records hold that path as it was on the training machine."""
+    records hold that path as it was on the training machine. The records name the ModelNet40 folder
+    ``$MODELNET40``; the recipes give its place beside a clone."""
     from dit_jax import checkpoint, registration
 
     extra, records = checkpoint.read_extra(registration.shipped_weights()), []
@@ -430,6 +431,8 @@ def test_the_shipped_recipe_files_are_what_trained_the_shipped_weights():
     assert len(records) == len(runs)  # run 0 (not kept) records nothing
     for path, record in zip(reversed(runs), records):
         recorded, recipe = training.TrainConfig.from_json(record), training.load_config(path)
+        assert recorded.data_dir == "$MODELNET40" and recipe.data_dir.endswith("modelnet40_ply_hdf5_1024"), path
+        recorded = dataclasses.replace(recorded, data_dir=recipe.data_dir)
         if not recipe.settings:  # one setting: how a mix would be thinned does not apply
             recipe = dataclasses.replace(recipe, mix_one_size=recorded.mix_one_size)
         assert dataclasses.replace(recorded, init_from=None) == dataclasses.replace(recipe, init_from=None), path

@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> None:
     init_from = extra.get("train_config", {}).get("init_from")
     if init_from and os.path.isdir(init_from):
         extra["trained_from"] = checkpoint.read_extra(init_from)
+    extra = portable(extra, extra.get("train_config", {}).get("data_dir"))
     shutil.rmtree(staging)
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
@@ -69,6 +70,20 @@ def main(argv: list[str] | None = None) -> None:
         calibrate.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
     print(f"wrote {args.out} ({size / 2**20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
+
+
+def portable(record, data_dir: str | None):
+    """``record`` with every mention of the training machine's ModelNet40 folder ``data_dir`` written
+    ``$MODELNET40``, as the docs name it: the shipped records hold no path of one machine."""
+    if not data_dir:
+        return record
+    if isinstance(record, dict):
+        return {key: portable(value, data_dir) for key, value in record.items()}
+    if isinstance(record, list):
+        return [portable(value, data_dir) for value in record]
+    if isinstance(record, str):
+        return record.replace(os.path.normpath(data_dir), "$MODELNET40").replace(data_dir, "$MODELNET40")
+    return record
 
 
 if __name__ == "__main__":
