@@ -13,12 +13,12 @@ points) and those whose clouds share no point, as real data (independent_*, scan
 the pairs: a Stanford .conf (scan i with scan i + SKIP, --skips), 3DMatch fragments with gt.log lists, a
 KITTI poses.txt, or source.* and target.* with T_target_source.txt (dit_jax.data.scans).
 
-Methods, from one run of the registration pipeline: the network alone (DIT), the network refined (DIT+ICP:
-ICP on sparse clouds, GICP on scans; --refine sets it, none drops the row) and the default pipeline
-(pipeline: DIT+ICP, then a registration by local features where its result is not trusted; --features off
+Methods, from the registration pipeline: the network alone (DIT), the network refined (DIT+ICP: ICP on
+sparse clouds, GICP on scans; --refine sets it, none drops the row) and the default pipeline (pipeline: on
+scans, local features both ways first, the network where they disagree; elsewhere DIT+ICP; --features off
 drops it); beside them the --baselines, each at the options tuned for the setting on validation pairs
 (docs/baselines_tuning.md). With --scans two more rows may be asked for: open3d_room_5cm, Open3D's tutorial
-recipe for rooms in metres as it stands, and kiss_matcher, the pipeline's feature candidate alone. A folder of
+recipe for rooms in metres as it stands, and features, the pipeline's registration by local features alone. A folder of
 3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans).
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's

@@ -11,7 +11,7 @@ Prints a markdown table: median / mean / worst rotation error after refinement a
 than 1 degree off. Point count: the shipped weights' (as evaluate.py uses). ``--compare`` prints a second
 table: how many pairs each other local objective, started at the truth, leaves by more than 1 degree --
 point-to-plane ICP (coarse to fine, as in :data:`dit_jax.icp.REFINE_CANDIDATES`) and Open3D's generalized
-ICP (plane-to-plane, Segal et al. 2009; needs the ``baselines`` extra) -- so a reader can see whether any
+ICP (plane-to-plane, Segal et al. 2009; through Open3D) -- so a reader can see whether any
 of them holds the truth where the refinement's point fit does not. The last line is one JSON record of it all.
 """
 

@@ -7,7 +7,7 @@
 For each folder of scans with known poses (any layout of :mod:`dit_jax.data.scans`) and each of its pair sets:
 the shipped weights through `Registrar.register` with their own settings (sampling, network both ways,
 refinement, verdict and, where the result is not trusted, the second candidate), timed whole per pair after
-one untimed call that compiles; and a baseline as evaluate.py runs it (the ``baselines`` extra): by default
+one untimed call that compiles; and a baseline as evaluate.py runs it (through Open3D): by default
 Open3D's FPFH + RANSAC + ICP at its tuned options, ``--baseline open3d_room_5cm`` Open3D's room recipe.
 ``--max-pairs``: a seeded sample of a benchmark's list (the first pairs of a series), as evaluate.py takes.
 A pair is registered by its benchmark's criterion (dit_jax.data.scans.CRITERIA), else within 5 degrees. Prints one JSON record per pair set (``confirmed_max_s``: the slowest pair whose first

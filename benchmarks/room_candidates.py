@@ -1,6 +1,6 @@
 """Which global candidate, and which way of choosing among candidates, registers rooms: on a seeded sample of
-3DMatch pairs, the refined network (the pipeline without its second candidate), KISS-Matcher and Open3D's
-room recipe (FPFH + RANSAC at 5 cm, dit_jax.baselines.room_recipe's global stage), each refined by GICP as
+3DMatch pairs, the refined network (the pipeline without local features), the pipeline's registration by
+local features (dit_jax.feature_match.register, one direction) and Open3D's room recipe (FPFH + RANSAC at 5 cm, dit_jax.baselines.room_recipe's global stage), each refined by GICP as
 the pipeline refines scans; then what each choice rule keeps.
 
     python benchmarks/room_candidates.py ../shared/data/3dmatch --max-pairs 40
@@ -35,18 +35,18 @@ def main() -> None:
     for set_name, found in scans_lib.load_pair_sets(args.scenes).items():
         pairs = sample_pairs(found, args.max_pairs, args.seed)
         right = {
-            rule: 0 for rule in ("network", "kiss_matcher", "open3d", "network|kiss", "network|open3d", "all three")
+            rule: 0 for rule in ("network", "features", "open3d", "network|features", "network|open3d", "all three")
         }
-        seconds = {name: [] for name in ("network", "kiss_matcher", "open3d")}
+        seconds = {name: [] for name in ("network", "features", "open3d")}
         for pair in pairs:
             spacing = max(icp.point_spacing(pair.source), icp.point_spacing(pair.target))
             started = time.perf_counter()
             result = model.register(pair.source, pair.target)
             seconds["network"].append(time.perf_counter() - started)
             candidates = {"network": (result.rotation, result.translation)}
-            for name in ("kiss_matcher", "open3d"):
+            for name in ("features", "open3d"):
                 started = time.perf_counter()
-                if name == "kiss_matcher":
+                if name == "features":
                     match = feature_match.register(pair.source, pair.target, spacing=spacing)
                     start = (match.rotation, match.translation)
                 else:
@@ -75,9 +75,9 @@ def main() -> None:
             )
             pick = lambda among: max(among, key=lambda n: (shares[n], n == "network"))
             right["network"] += ok["network"]
-            right["kiss_matcher"] += ok["kiss_matcher"]
+            right["features"] += ok["features"]
             right["open3d"] += ok["open3d"]
-            right["network|kiss"] += ok[pick(["network", "kiss_matcher"])]
+            right["network|features"] += ok[pick(["network", "features"])]
             right["network|open3d"] += ok[pick(["network", "open3d"])]
             right["all three"] += ok[pick(names)]
         record = {
@@ -95,7 +95,7 @@ def main() -> None:
     print(
         "\n| list | pairs | "
         + " | ".join(rules)
-        + " | median s: network, kiss, open3d |\n|---|---|"
+        + " | median s: network, features, open3d |\n|---|---|"
         + "---|" * len(rules)
         + "---|"
     )

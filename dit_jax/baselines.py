@@ -1,4 +1,4 @@
-"""Classical registration baselines through Open3D (the ``baselines`` extra), on the same pairs as DIT.
+"""Classical registration baselines through Open3D, on the same pairs as DIT.
 
 Each baseline maps ``(src (N, 3), tgt (M, 3))`` to ``(R (3, 3), t (3,))`` with ``tgt ~ R src + t``, for clouds
 in the unit sphere (as ModelNet40 and the embedded set are; evaluate.py scales real scans into it):
@@ -99,7 +99,7 @@ def _o3d():
         import open3d as o3d
     except ImportError:
         raise ImportError(
-            "the baselines need Open3D: pip install 'dit-jax[baselines]' (and on Debian: apt-get install libusb-1.0-0)"
+            "the baselines need Open3D, which dit-jax installs; its wheels load libusb (Debian: apt-get install libusb-1.0-0)"
         ) from None
     return o3d
 
@@ -283,9 +283,10 @@ def room_recipe(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) -> tuple[
 #: Baselines at a fixed recipe in the data's own units (metres), not tuned and not scaled into the unit sphere:
 #: ``{name: (src, tgt) -> (R, t)}``.
 RECIPES = {"open3d_room_5cm": room_recipe}
-#: The registration pipeline's feature candidate alone (:func:`dit_jax.feature_match.register`, as the
-#: pipeline calls it, unrefined): a row the real-scan evaluation can put beside the baselines.
-FEATURE_CANDIDATE = "kiss_matcher"
+#: The registration pipeline's first stage on scans alone (:func:`dit_jax.feature_match.register_both_ways`,
+#: as the pipeline calls it, the better fitting direction kept, whatever the verdict): a row the real-scan
+#: evaluation can put beside the baselines.
+FEATURE_CANDIDATE = "features"
 #: Every name the real-scan evaluation takes as a baseline (:mod:`dit_jax.evaluators.scans`).
 SCAN_BASELINES = (*NAMES, *RECIPES, FEATURE_CANDIDATE)
 

@@ -66,6 +66,20 @@ class FeedForward(nn.Module):
         return dense(self.emb_dims, "w_2")(hidden).astype(jnp.float32)
 
 
+def _attend(c: DITConfig, name: str, query: jax.Array, memory: jax.Array) -> jax.Array:
+    """MultiHeadAttention of ``query`` (N, E) over ``memory`` (M, E) as a layer's submodule ``name``."""
+    return MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name=name)(
+        query, memory, memory
+    )
+
+
+def _residual_feed_forward(c: DITConfig, x: jax.Array, norm: str, deterministic: bool) -> jax.Array:
+    """x + FF(LN*(x)), the last sub-block of every layer, with its layer norm named ``norm``."""
+    u = AnnotatedLayerNorm(name=norm)(x)
+    feed_forward = FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision, name="feed_forward")
+    return x + feed_forward(u, deterministic)
+
+
 class EncoderLayer(nn.Module):
     """x += SelfAttn(LN*(x)); x += FF(LN*(x)) (pre-norm)."""
 
@@ -73,15 +87,9 @@ class EncoderLayer(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
-        c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(
-            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="self_attn"
-        )(u, u, u)
-        u = AnnotatedLayerNorm(name="norm1")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision, name="feed_forward")(
-            u, deterministic
-        )
+        x = x + _attend(self.config, "self_attn", u, u)
+        return _residual_feed_forward(self.config, x, "norm1", deterministic)
 
 
 class DecoderLayer(nn.Module):
@@ -91,19 +99,11 @@ class DecoderLayer(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
-        c = self.config
         u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + MultiHeadAttention(
-            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="self_attn"
-        )(u, u, u)
+        x = x + _attend(self.config, "self_attn", u, u)
         u = AnnotatedLayerNorm(name="norm1")(x)
-        x = x + MultiHeadAttention(
-            c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name="src_attn"
-        )(u, memory, memory)
-        u = AnnotatedLayerNorm(name="norm2")(x)
-        return x + FeedForward(c.emb_dims, c.ff_dims, c.dropout, c.compute_dtype, c.precision, name="feed_forward")(
-            u, deterministic
-        )
+        x = x + _attend(self.config, "src_attn", u, memory)
+        return _residual_feed_forward(self.config, x, "norm2", deterministic)
 
 
 class Encoder(nn.Module):

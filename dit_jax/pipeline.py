@@ -1,6 +1,10 @@
 """The registration pipeline: every registration in dit-jax runs through :func:`register_pairs`.
 
-A batch of pairs goes through four stages, each a function of its own:
+A batch of pairs goes through four stages, each a function of its own, after an optional first one:
+
+0. :func:`dit_jax.feature_match.register_both_ways` (where :attr:`InferenceSettings.feature_candidate` says
+   so; dense scans by default): local features register the source onto the target and the target onto the
+   source; where the two agree, the result is theirs (:func:`features_result`) and the network does not run;
 
 1. :func:`sample_and_normalise`: checks both clouds (:func:`check_cloud`), resamples each to the settings'
    point count by farthest-point sampling (:func:`farthest_point_sample`) and moves both into the unit
@@ -14,10 +18,9 @@ A batch of pairs goes through four stages, each a function of its own:
    :attr:`InferenceSettings.best_direction` says so;
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
 
-Where the verdict does not trust the network's result and :attr:`InferenceSettings.feature_candidate` says so,
-:func:`second_candidate` registers the pair once more by local features (:mod:`dit_jax.feature_match`),
-refines that estimate the same way and keeps whichever of the two lays more of the source onto the target;
-the result is trusted where the two independent estimates agree.
+Where the features' two directions disagreed, :func:`combine` keeps whichever of the three motions (the
+refined network's and the features' two) lays the most of the source onto the target, trusted where the
+network's lands on one of the features' (two independent estimates agree).
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
@@ -71,7 +74,7 @@ from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importab
 SEARCH_TURNS = geometry.cube_rotations()
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
-#: :func:`second_candidate` keeps the estimate that lays more source points within this many point spacings
+#: :func:`combine` keeps the estimate that lays the most source points within this many point spacings
 #: of the target: on views that overlap by a third, the trimmed fit can prefer a wrong pose that piles the
 #: source into the target's middle (docs/refinement.md, "Choosing between the two candidates").
 CANDIDATE_OVERLAP = 2.0
@@ -347,10 +350,13 @@ def register_pairs(
     prepared = []
     for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
         prepared.append(sample_and_normalise(src, tgt, settings, need))
+    features = [features_first(p, settings) for p in prepared]
+    settled = [f is not None and _features_agree(f, settings) for f in features]
     both_ways = settings.verdict_rule == "agreement"
     groups: dict[tuple, list[int]] = {}
     for i, p in enumerate(prepared):
-        groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
+        if not settled[i]:
+            groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
     estimates: list[PairEstimate | None] = [None] * len(prepared)
     for rows in groups.values():
         src_n = np.stack([prepared[i].src_n for i in rows])
@@ -361,8 +367,12 @@ def register_pairs(
         for k, i in enumerate(rows):
             estimates[i] = _pair_estimate(prepared[i], forward, backward, k)
     results = []
-    for p, e in zip(prepared, estimates):
-        results.append(_finish(p, e, settings, run_config))
+    for p, e, found, done in zip(prepared, estimates, features, settled):
+        if done:
+            results.append(features_result(p, found, settings, run_config))
+        else:
+            result = _finish(p, e, settings, run_config, spacing=found.spacing if found is not None else None)
+            results.append(result if found is None else combine(p, result, found, settings, run_config))
         if on_pair is not None:
             on_pair(1)
     return results
@@ -384,8 +394,11 @@ def _pair_estimate(p: Normalised, forward: Estimates, backward: Estimates | None
     )
 
 
-def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config: DITConfig) -> Result:
-    """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`)."""
+def _finish(
+    p: Normalised, e: PairEstimate, settings: InferenceSettings, config: DITConfig, spacing: float | None = None
+) -> Result:
+    """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`); ``spacing``:
+    the pair's point spacing where stage 0 measured it."""
     extras = e.extras
     common = dict(
         source_indices=p.src_indices,
@@ -417,8 +430,9 @@ def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config:
     if method == "none":
         return network_result
     backward = (back.rotation, back.translation) if back is not None else None
-    # GICP (and the second candidate) work at the clouds' point spacing: measured once for the pair.
-    spacing = _spacing(p, settings.seed) if method == "gicp" else None
+    # GICP works at the clouds' point spacing: measured once for the pair.
+    if method == "gicp" and spacing is None:
+        spacing = _spacing(p, settings.seed)
     refined = refine_pair(
         p,
         (e.forward.rotation, e.forward.translation),
@@ -446,8 +460,6 @@ def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config:
         network=network_result,
         **common,
     )
-    if not result.verdict and settings.runs_feature_candidate(len(p.src), len(p.tgt)):
-        result = second_candidate(p, result, refined, settings, config, spacing=spacing)
     return result
 
 
@@ -475,76 +487,133 @@ def _fitness_within_spacings(moved: jax.Array, tgt: jax.Array, spacings: jax.Arr
     return geometry.fitness(moved, tgt, spacings * geometry.spacing(tgt))
 
 
-def second_candidate(
-    p: Normalised,
-    result: Result,
-    refined: Refined,
-    settings: InferenceSettings,
-    config: DITConfig,
-    *,
-    spacing: float | None = None,
-) -> Result:
-    """The pipeline's second candidate for a pair whose refined network ``result`` the verdict did not trust.
+# ------------------------------------------------------------------------------- stage 0: local features
 
-    Registers the caller's clouds by local features (:func:`dit_jax.feature_match.register`), refines that
-    estimate by ``result.refinement`` (source onto target), and keeps it where it lays more of the source onto
-    the target than ``result`` does: the share of source points within :data:`CANDIDATE_OVERLAP` point
-    spacings of a target point (:func:`dit_jax.icp.overlap`; ties keep the network's). The two estimates are
-    independent (one learned on sampled points, one from local geometry), so where the candidate's rotation
-    lies within the refinement's agreement threshold (:meth:`InferenceSettings.max_disagreement`) of either of
-    the network's refined directions, the result is trusted; otherwise it keeps ``result``'s level. ``spacing``: the clouds' point
-    spacing (:func:`dit_jax.icp.point_spacing`; measured here otherwise).
-    """
+
+def features_first(p: Normalised, settings: InferenceSettings):
+    """Stage 0 for one pair: :func:`dit_jax.feature_match.register_both_ways` on the caller's clouds where the
+    settings register such clouds by local features first (and refine at all), else None; None too where
+    the clouds have too few features."""
+    if settings.refinement_for(len(p.src), len(p.tgt)) == "none":
+        return None
+    if not settings.runs_feature_candidate(len(p.src), len(p.tgt)):
+        return None
     from dit_jax import feature_match
 
-    started = time.perf_counter()
-    spacing = _spacing(p, settings.seed) if spacing is None else spacing
-    match = feature_match.register(p.src, p.tgt, seed=settings.seed, spacing=spacing)
-    if match.inliers == 0:  # no estimate: the network's result stands, its level unchanged
-        return dataclasses.replace(result, candidate_seconds=time.perf_counter() - started, first=result)
-    own = refine_pair(
-        p,
-        (match.rotation, match.translation),
-        None,
-        best_direction=False,
-        seed=settings.seed,
-        method=result.refinement,
-        spacing=spacing,
+    return feature_match.register_both_ways(p.src, p.tgt, seed=settings.seed)
+
+
+def _features_agree(found, settings: InferenceSettings) -> bool:
+    return found.agrees(settings.max_disagreement_features, settings.max_offset_features)
+
+
+def _landing(p: Normalised, rotation: np.ndarray, translation: np.ndarray, spacing: float) -> dict:
+    """Where a motion found without the network lays the sampled source points: each one's nearest sampled
+    target row, 1 as its confidence where that lies within :data:`CANDIDATE_OVERLAP` point spacings (else
+    0), and the share of such points as the inlier ratio."""
+    from scipy.spatial import cKDTree
+
+    moved = p.src[p.src_indices] @ rotation.T + translation
+    gaps, nearest = cKDTree(p.tgt[p.tgt_indices]).query(moved)
+    confidence = (gaps <= CANDIDATE_OVERLAP * spacing).astype(np.float64)
+    return dict(
+        source_indices=p.src_indices,
+        correspondences=p.tgt_indices[nearest],
+        confidence=confidence,
+        inlier_ratio=float(confidence.mean()),
     )
-    network_rotations = [refined.forward_rotation]
-    if refined.backward_rotation is not None:
-        network_rotations.append(refined.backward_rotation.T)  # target onto source, inverted
-    agreement = min(geometry.rotation_angle_deg(own.rotation.T @ r) for r in network_rotations)
-    threshold = settings.max_disagreement(result.refinement)
-    shares = icp_lib.overlap(
-        p.src,
-        p.tgt,
-        [(result.rotation, result.translation), (own.rotation, own.translation)],
-        CANDIDATE_OVERLAP * spacing,
-        seed=settings.seed,
+
+
+def features_result(p: Normalised, found, settings: InferenceSettings, config: DITConfig) -> Result:
+    """The result of a pair whose features' two directions agree (stage 0): the direction that lays more of
+    the source onto the target, trusted; the network did not run."""
+    rotation, translation = found.kept
+    return _result(
+        rotation,
+        translation,
+        fitness=_fitness(p, rotation, translation, config),
+        seconds=0.0,
+        refinement="icp",
+        refine_seconds=0.0,
+        verdict=True,
+        verdict_rule="agreement",
+        threshold=settings.max_disagreement_features,
+        agreement=found.disagreement,
+        offset=found.offset,
+        max_offset=settings.max_offset_features,
+        direction=found.kept_direction,
+        start_turn=0.0,
+        agreement_band=None,
+        network=None,
+        candidate="features",
+        candidate_seconds=found.seconds,
+        min_right=settings.unconfirmed_min_right,
+        **_landing(p, rotation, translation, found.spacing),
     )
-    better = shares[1] > shares[0]
-    trusted = agreement <= threshold
-    kept = dict(candidate="network")
-    if better:
+
+
+def combine(p: Normalised, result: Result, found, settings: InferenceSettings, config: DITConfig) -> Result:
+    """The result of a pair whose features' two directions disagreed, once the network has run (``result``,
+    refined and judged by its own verdict).
+
+    The network and the features are independent estimates (one learned on sampled points, one from local
+    geometry). Where the network's motion lies within ``max_disagreement_features`` degrees and
+    ``max_offset_features`` point spacings of either feature direction, the result is trusted, and it is
+    the network's motion. Otherwise it is "probably wrong", whatever the network's own verdict (which on
+    rooms trusted wrong results), and the motion is the features' better fitting direction
+    (:attr:`dit_jax.feature_match.FeatureEstimate.kept`), unless the network's own two directions agreed and
+    its motion lays more source points within :data:`CANDIDATE_OVERLAP` point spacings of a target point
+    (:func:`dit_jax.icp.overlap`): on the shared rooms, a network motion its own verdict did not trust was
+    kept by that overlap three times and was wrong each time (docs/refinement.md).
+    """
+    candidates = [(result.rotation, result.translation), found.forward, found.backward]
+    gaps = [
+        (
+            geometry.rotation_angle_deg(result.rotation.T @ r),
+            float(np.linalg.norm(result.translation - t)) / found.spacing,
+        )
+        for r, t in candidates[1:]
+    ]
+    nearest = min(gaps)
+    trusted = nearest[0] <= settings.max_disagreement_features and nearest[1] <= settings.max_offset_features
+    features_best = 2 if found.kept_direction == "backward" else 1
+    best = 0 if trusted else features_best
+    if not trusted and result.verdict:
+        shares = icp_lib.overlap(
+            p.src,
+            p.tgt,
+            [candidates[0], candidates[features_best]],
+            CANDIDATE_OVERLAP * found.spacing,
+            seed=settings.seed,
+        )
+        best = 0 if shares[0] > shares[1] else features_best
+    kept = {}
+    if best > 0:
+        rotation, translation = candidates[best]
         matrix = np.eye(4)
-        matrix[:3, :3], matrix[:3, 3] = own.rotation, own.translation
+        matrix[:3, :3], matrix[:3, 3] = rotation, translation
         kept = dict(
             candidate="features",
-            rotation=own.rotation,
-            translation=own.translation,
+            refinement="icp",
+            rotation=rotation,
+            translation=translation,
             matrix=matrix,
-            fitness=_fitness(p, own.rotation, own.translation, config),
-            direction="forward",
+            fitness=_fitness(p, rotation, translation, config),
+            direction="forward" if best == 1 else "backward",
             start_turn=0.0,
+            **_landing(p, rotation, translation, found.spacing),
         )
     return dataclasses.replace(
         result,
         **kept,
-        verdict=trusted or result.verdict,
-        level="trusted" if trusted else result.level,
-        candidate_agreement=agreement,
-        candidate_seconds=time.perf_counter() - started,
+        verdict=trusted,
+        level="trusted" if trusted else "probably wrong",
+        threshold=settings.max_disagreement_features,
+        candidate_agreement=nearest[0],
+        offset=nearest[1],
+        max_offset=settings.max_offset_features,
+        features_disagreement=found.disagreement,
+        candidate_seconds=found.seconds,
         first=result,
     )
 

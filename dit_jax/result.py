@@ -32,18 +32,27 @@ class Result:
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        the second candidate's (:func:`dit_jax.pipeline.second_candidate`), kept because it lays more of the source onto the
-        target.
-      candidate_agreement: degrees between the second candidate's refined rotation and the nearer of the
-        network's two refined ones; NaN where no second candidate ran.
-      candidate_seconds: wall time of the second candidate, its refinement included (0 where none ran).
+        registration by local features (:mod:`dit_jax.feature_match`): because its two directions agreed
+        (the network did not run), or because it lays more of the source onto the target than the network's
+        (:func:`dit_jax.pipeline.combine`).
+      candidate_agreement: where the network ran after the features' two directions disagreed, degrees
+        between the network's refined rotation and the nearer feature direction's; NaN otherwise.
+      candidate_seconds: wall time of the registration by local features, both directions and their ICP (0
+        where it did not run).
       verdict: True ("trusted") where the model's own evidence confirms the result, else False.
       level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
         right) or "probably wrong" (:func:`dit_jax.pipeline.verdict_level`).
       verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
       threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
       agreement: degrees between the rotation and the inverse of the one found registering the target onto
-        the source (refined alike); NaN under the fitness verdict.
+        the source (refined alike; by local features where ``candidate`` is "features" and ``first`` is
+        None); NaN under the fitness verdict.
+      offset: where the verdict compared two independent motions found for the pair (the features' two
+        directions, or the network's and the nearer feature direction's), the distance between their
+        translations in point spacings; NaN otherwise.
+      max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
+      features_disagreement: where the network ran after the features' two directions disagreed, the degrees
+        between those two; NaN otherwise.
       direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
         ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
@@ -53,8 +62,8 @@ class Result:
         truth; None where the settings record no bands, no agreement was measured or the band is small.
       network: where ICP refined the result, the network's own result before it (its verdict judged by the
         network's threshold); None otherwise.
-      first: where a second candidate ran, the refined network's result as it stood before (its own verdict);
-        None otherwise.
+      first: where the network ran after the features' two directions disagreed, the refined network's result
+        as it stood before (its own verdict); None otherwise.
     """
 
     rotation: np.ndarray
@@ -81,6 +90,9 @@ class Result:
     candidate_agreement: float = float("nan")
     candidate_seconds: float = 0.0
     first: Result | None = None
+    offset: float = float("nan")
+    max_offset: float = float("nan")
+    features_disagreement: float = float("nan")
 
     @property
     def total_seconds(self) -> float:
@@ -101,8 +113,9 @@ class Result:
             "verdict": self.level,
             "verdict_rule": self.verdict_rule,
             "threshold": self.threshold,
-            "agreement_deg": None if np.isnan(self.agreement) else self.agreement,
-            "mean_confidence": float(self.confidence.mean()),
+            "agreement_deg": _number(self.agreement),
+            "offset_spacings": _number(self.offset),
+            "mean_confidence": float(self.confidence.mean()) if len(self.confidence) else None,
             "points_used": int(len(self.source_indices)),
             "seconds": self.seconds,
             "refinement": self.refinement,
@@ -110,7 +123,8 @@ class Result:
             "direction": self.direction,
             "start_turn_deg": self.start_turn,
             "candidate": self.candidate,
-            "candidate_agreement_deg": (None if np.isnan(self.candidate_agreement) else self.candidate_agreement),
+            "candidate_agreement_deg": _number(self.candidate_agreement),
+            "features_disagreement_deg": _number(self.features_disagreement),
             "candidate_seconds": self.candidate_seconds,
             "agreement_band": None
             if self.agreement_band is None
@@ -119,17 +133,22 @@ class Result:
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
-        if self.first is not None and np.isnan(self.candidate_agreement):
-            return f"{self.first.evidence()}; a registration by local features found no match"
-        if not np.isnan(self.candidate_agreement):
-            first = self.first.evidence() if self.first is not None else ""
+        if self.first is not None:
             line = (
-                f"{first}; a registration by local features, refined alike, lands {self.candidate_agreement:.2f} "
-                f"deg from the network's (trusted up to {self.threshold:g} deg)"
+                f"{self.first.evidence()}; registering by local features both ways gave two motions "
+                f"{self.features_disagreement:.2f} deg apart; the nearer lands {self.candidate_agreement:.2f} deg and "
+                f"{self.offset:.1f} point spacings from the network's (trusted up to "
+                f"{self.threshold:g} deg and {self.max_offset:g} spacings)"
             )
             if self.candidate == "features":
-                line += " and lays more of the source onto the target, so it is the result"
+                line += ", and lays more of the source onto the target, so it is the result"
             return line
+        if self.candidate == "features":
+            return (
+                f"registering by local features both ways gives motions {self.agreement:.2f} deg and "
+                f"{self.offset:.1f} point spacings apart (trusted up to {self.threshold:g} deg and "
+                f"{self.max_offset:g} spacings)"
+            )
         if self.verdict_rule == "agreement":
             line = (
                 f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "
@@ -174,3 +193,8 @@ class Result:
         """What found the result, e.g. "DIT + GICP" or "features + ICP"."""
         found = "DIT" if self.candidate == "network" else "features"
         return f"{found} + {self.refinement.upper()}" if self.refinement else found
+
+
+def _number(value: float) -> float | None:
+    """A float for JSON: None for NaN."""
+    return None if np.isnan(value) else float(value)

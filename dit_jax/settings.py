@@ -20,9 +20,9 @@ from dit_jax.configs import PRECISIONS, DITConfig, Record
 REFINEMENTS = ("none", "icp", "gicp", "auto")
 #: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
 #: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's);
-#: ``feature_candidate="auto"`` runs the second candidate on such clouds only.
+#: ``feature_candidate="auto"`` registers such clouds by local features first.
 DENSE_POINTS = 5_000
-#: When the pipeline runs its second candidate (:attr:`InferenceSettings.feature_candidate`).
+#: When the pipeline registers by local features first (:attr:`InferenceSettings.feature_candidate`).
 FEATURE_CANDIDATES = ("auto", "on", "off")
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
 CENTRINGS = ("auto", "shared", "separate")
@@ -57,10 +57,13 @@ class InferenceSettings(Record):
         "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
-      feature_candidate: with a refinement, where the verdict does not trust the result, register the pair by
-        local features too and keep whichever lays more of the source onto the target (:func:`second_candidate`):
-        "on", "off", or "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse
-        shapes it measured worse than the refined network alone, docs/refinement.md).
+      feature_candidate: with a refinement, register the pair by local features first, both ways
+        (:func:`dit_jax.feature_match.register_both_ways`): where the two directions agree (within
+        ``max_disagreement_features`` degrees and ``max_offset_features`` point spacings) the result is theirs
+        and the network does not run; otherwise the network runs too and the result is whichever of the three
+        lays the most of the source onto the target (:func:`dit_jax.pipeline.combine`). "on", "off", or
+        "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse shapes it
+        measured worse than the refined network alone, docs/refinement.md).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -73,6 +76,10 @@ class InferenceSettings(Record):
       agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
         agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
         :attr:`Result.agreement_band`.
+      max_disagreement_features, max_offset_features: how close (degrees, point spacings) two motions found
+        independently (the features' two directions, or the network's and a feature direction) must lie for
+        the result to be trusted on clouds the features register (calibrated on real scans,
+        docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
         the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
     """
@@ -97,6 +104,8 @@ class InferenceSettings(Record):
     agreement_bands_network: tuple | None = None
     agreement_bands_icp: tuple | None = None
     unconfirmed_min_right: float = 0.5
+    max_disagreement_features: float = 2.0
+    max_offset_features: float = 4.0
 
     def __post_init__(self):
         if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
@@ -132,7 +141,7 @@ class InferenceSettings(Record):
         return refinement_for(self.refine, src_points, tgt_points)
 
     def runs_feature_candidate(self, src_points: int, tgt_points: int) -> bool:
-        """Whether the second candidate runs (where the result is not trusted) on clouds of these sizes."""
+        """Whether the pipeline registers clouds of these sizes by local features first."""
         if self.feature_candidate == "auto":
             return min(src_points, tgt_points) >= DENSE_POINTS
         return self.feature_candidate == "on"
@@ -208,9 +217,9 @@ FLAGS = {
         Flag(
             "--features",
             ("feature_candidate",),
-            "where the verdict does not trust the refined result, also register by local features "
-            "(KISS-Matcher) and keep whichever lays more of the source onto the target; auto: where both "
-            f"clouds have {DENSE_POINTS:,} points or more",
+            "register by local features (FPFH + RANSAC, both ways) first: where the two directions agree the "
+            "result is theirs, else the network runs too and the best fitting of the three is kept; auto: "
+            f"where both clouds have {DENSE_POINTS:,} points or more",
             choices=FEATURE_CANDIDATES,
         ),
         Flag(

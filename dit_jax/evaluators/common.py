@@ -74,14 +74,21 @@ class Estimates:
 def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None) -> dict[str, Estimates]:
     """DIT's estimates of ``pairs`` ((src, tgt), ...) through the registration pipeline, as users get them:
     ``{METHOD_DIT: the network's result, METHOD_DIT_ICP: the refined one, METHOD_PIPELINE: the pipeline's
-    result}`` (the second where the registrar's settings refine, the third where they also run the second
-    candidate). One run of the pipeline gives all three: each result keeps the stages before it."""
+    result}`` (the second where the registrar's settings refine, the third where they also register by local
+    features). Each result keeps the network's stages before it, so one run gives all three, unless the
+    features settle some pairs before the network runs (dense scans): then the network's rows come from a
+    second run without the features."""
+    settings = registrar.settings
     results = registrar.register_pairs(pairs, batch_size=batch_size, on_pair=bar.update if bar else None)
-    refined = [r.first or r for r in results]
+    network_results = results
+    if any(r.candidate == "features" and r.first is None for r in results):
+        without = type(registrar)(registrar.params, registrar.config, settings, feature_candidate="off")
+        network_results = without.register_pairs(pairs, batch_size=batch_size)
+    refined = [r.first or r for r in network_results]
     out = {METHOD_DIT: Estimates.from_results([r.network or r for r in refined])}
-    if registrar.settings.refine != "none":
+    if settings.refine != "none":
         out[METHOD_DIT_ICP] = Estimates.from_results(refined)
-        if registrar.settings.feature_candidate != "off":
+        if settings.feature_candidate != "off":
             out[METHOD_PIPELINE] = Estimates.from_results(results, own_verdict=True)
     return out
 

@@ -40,10 +40,10 @@ def refinement_line(r: dict) -> str:
 
 
 def candidate_sentence(kept: int) -> str:
-    """What the pipeline's second candidate did, for a verdict line."""
+    """What the pipeline's registration by local features did, for a verdict line."""
     return (
-        f" Where DIT+ICP was not trusted it also registered by local features, and kept that match on "
-        f"{kept} pairs (it laid more of the source onto the target)."
+        f" The result is the registration by local features on {kept} pairs (its two directions agreed, or it "
+        f"laid more of the source onto the target than the network's)."
     )
 
 

@@ -38,8 +38,9 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     if name == baselines_lib.FEATURE_CANDIDATE:
         from dit_jax import feature_match
 
-        match = feature_match.register(src, tgt)
-        return match.rotation, match.translation, time.perf_counter() - started
+        found = feature_match.register_both_ways(src, tgt)
+        rotation, translation = found.kept if found is not None else (np.eye(3), np.zeros(3))
+        return rotation, translation, time.perf_counter() - started
     if name in baselines_lib.RECIPES:
         rotation, translation = baselines_lib.RECIPES[name](src, tgt)
         return rotation, translation, time.perf_counter() - started
@@ -258,7 +259,11 @@ def evaluate_scans(
                     else fitness_rule(registrar.settings.min_fitness)
                 )
                 if method == METHOD_PIPELINE:
-                    rule += ", or the feature match agrees with it as closely"
+                    rule = (
+                        "on scans, local features both ways agree, or the network lands on one of them, within "
+                        f"{registrar.settings.max_disagreement_features:g} deg and "
+                        f"{registrar.settings.max_offset_features:g} point spacings; elsewhere {rule}"
+                    )
                 summary["verdict"] = verdict_summary(
                     np.array([r["rot_err"] for r in rows]), np.array([r["verdict"] for r in rows]), rule
                 )
