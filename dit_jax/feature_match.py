@@ -29,7 +29,8 @@ import numpy as np
 #: point spacing is about 1.3 cm.
 VOXEL_SPACINGS = 3.75
 #: On larger scans the voxel grows so that a surface sampled by the larger cloud's points keeps about this
-#: many voxels (a surface's count falls with the square of the voxel): the time stays bounded.
+#: many voxels (a surface's count falls with the square of the voxel), and then until neither cloud occupies
+#: more than this many (a LiDAR sweep, dense near the sensor, needs the second): RANSAC's time stays bounded.
 FEATURE_POINTS = 10_000
 #: RANSAC's largest number of draws and its confidence (it stops sooner once this sure of its best motion).
 RANSAC_DRAWS = 1_000_000
@@ -118,8 +119,20 @@ def _o3d():
     return open3d
 
 
+def _capped_voxel(points: np.ndarray, voxel: float, most: int) -> float:
+    """``voxel``, grown until ``points`` (N, 3) occupy at most about ``most`` of its cells (a surface's count
+    falls with the square of the voxel; a few rounds settle clouds whose density varies)."""
+    for _ in range(8):
+        occupied = occupied_voxels(points, voxel)
+        if occupied <= 1.1 * most:
+            break
+        voxel *= float(np.sqrt(occupied / most))
+    return voxel
+
+
 class _Cloud:
-    """One cloud as Open3D holds it: every point with normals (for ICP), and the thinned points with FPFH."""
+    """One cloud as Open3D holds it: every point with normals (for ICP), and the points of the features' voxel
+    grid with FPFH."""
 
     def __init__(self, points: np.ndarray, voxel: float):
         o3d = _o3d()
@@ -173,6 +186,8 @@ def _prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
         spacing = max(icp_lib.point_spacing(src, seed=seed), icp_lib.point_spacing(tgt, seed=seed))
     voxel = feature_voxel(spacing, max(len(src), len(tgt)), voxel_spacings)
     enough = np.isfinite(voxel) and voxel > 0
+    if enough:
+        voxel = max(_capped_voxel(src, voxel, FEATURE_POINTS), _capped_voxel(tgt, voxel, FEATURE_POINTS))
     enough = enough and all(occupied_voxels(c[:: max(1, len(c) // 4096)], voxel) >= MIN_VOXELS for c in (src, tgt))
     return src, tgt, spacing, voxel, enough
 

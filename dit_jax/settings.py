@@ -104,8 +104,8 @@ class InferenceSettings(Record):
     agreement_bands_network: tuple | None = None
     agreement_bands_icp: tuple | None = None
     unconfirmed_min_right: float = 0.5
-    max_disagreement_features: float = 2.0
-    max_offset_features: float = 4.0
+    max_disagreement_features: float = 1.0
+    max_offset_features: float = 2.0
 
     def __post_init__(self):
         if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"

@@ -63,12 +63,12 @@ def test_a_few_points_give_no_estimate_instead_of_a_crash():
 
 def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_sphere():
     """The evidence the verdict reads: two independent samplings of a bumpy surface, half a turn apart, give
-    one motion both ways (within the pipeline's default bounds) that is right; a featureless sphere gives
+    one motion both ways (within the pipeline's default bounds, 1 degree and 2 spacings) that is right; a featureless sphere gives
     no motion to trust, and no NaN either."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     found = feature_match.register_both_ways(src, other @ truth.T + t_truth)
-    assert found.agrees(2.0, 4.0) and min(found.inliers) > 0 and found.seconds > 0
+    assert found.agrees(1.0, 2.0) and min(found.inliers) > 0 and found.seconds > 0
     rotation, translation = found.kept
     assert rotation_angle_deg(rotation.T @ truth) < 2.0 and np.linalg.norm(translation - t_truth) < 4 * found.spacing
     assert found.overlap.shape == (2,) and np.all((0 <= found.overlap) & (found.overlap <= 1))
