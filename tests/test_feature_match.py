@@ -18,18 +18,21 @@ def _surface(n: int, seed: int) -> np.ndarray:
 
 
 def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_units():
-    """No start needed: 150 degrees apart, within 5 degrees of the truth; in millimetres the same motion,
-    since the voxel comes from the clouds' point spacing."""
+    """No start needed: 150 degrees apart. RANSAC alone lands near the truth (4.7 degrees off on this pair,
+    measured; its threaded draws can land elsewhere near it from run to run), and ICP after it within half a
+    degree; in millimetres the refined motion is the same, since every length comes from the point spacing."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     tgt = other @ truth.T + t_truth
-    metres = feature_match.register(src, tgt)
-    assert metres.inliers > 0
-    assert rotation_angle_deg(metres.rotation.T @ truth) < 5.0
-    assert np.linalg.norm(metres.translation - t_truth) < 0.1
-    millimetres = feature_match.register(src * 1000, tgt * 1000)
-    assert rotation_angle_deg(millimetres.rotation.T @ metres.rotation) < 0.5
-    np.testing.assert_allclose(millimetres.translation / 1000, metres.translation, atol=0.02)
+    coarse = feature_match.register(src, tgt)
+    assert coarse.inliers > 0
+    assert rotation_angle_deg(coarse.rotation.T @ truth) < 10.0
+    assert np.linalg.norm(coarse.translation - t_truth) < 5 * coarse.voxel
+    metres = feature_match.register_both_ways(src, tgt)
+    millimetres = feature_match.register_both_ways(src * 1000, tgt * 1000)
+    assert rotation_angle_deg(metres.kept[0].T @ truth) < 0.5
+    assert rotation_angle_deg(millimetres.kept[0].T @ metres.kept[0]) < 0.1
+    np.testing.assert_allclose(millimetres.kept[1] / 1000, metres.kept[1], atol=0.01)
     assert millimetres.voxel == pytest.approx(1000 * metres.voxel, rel=1e-6)
 
 
