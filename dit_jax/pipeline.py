@@ -563,8 +563,8 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
     rooms trusted wrong results), and the motion is the features' better fitting direction
     (:attr:`dit_jax.feature_match.FeatureEstimate.kept`), unless the network's own two directions agreed and
     its motion lays more source points within :data:`CANDIDATE_OVERLAP` point spacings of a target point
-    (:func:`dit_jax.icp.overlap`): on the shared rooms, a network motion its own verdict did not trust was
-    kept by that overlap three times and was wrong each time (docs/refinement.md).
+    (:func:`dit_jax.icp.overlap`): a network motion is handed back only where some evidence supports it (on
+    the shared rooms this registered the same pairs as choosing by the overlap alone, docs/refinement.md).
     """
     candidates = [(result.rotation, result.translation), found.forward, found.backward]
     gaps = [
