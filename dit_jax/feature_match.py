@@ -16,6 +16,9 @@ points within 0.4 voxels (the tutorial's ratios).
 :func:`register_both_ways` registers the source onto the target and the target onto the source from the same
 features. Two RANSAC runs that land on one motion are the evidence the pipeline's verdict reads
 (:class:`FeatureEstimate`): a wrong motion found by chance in one direction is rarely found again in the other.
+
+RANSAC is seeded, and a run alone repeats exactly; under load it may not, since Open3D's threads draw from one
+random stream in whatever order they get to it.
 """
 
 from __future__ import annotations

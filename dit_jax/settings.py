@@ -47,7 +47,9 @@ class InferenceSettings(Record):
       n_points: points per cloud the network sees (stage 1).
       fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
         sampling, which keeps sampling linear in the cloud's size.
-      seed: farthest-point sampling's start and ICP's subsets: results are deterministic for a seed.
+      seed: farthest-point sampling's start, ICP's subsets and RANSAC's draws: results are deterministic for a
+        seed, except the registration by local features under load (Open3D's RANSAC threads share one
+        random stream, so which thread draws what depends on timing).
       centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
         its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
         more than :data:`FAR_APART` radii apart, else "shared".
