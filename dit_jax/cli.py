@@ -23,9 +23,10 @@ well, and the result is trusted where the two motions agree closely (``--verdict
 the source lands on the target, one registration instead of two). A result not trusted is "unconfirmed"
 where validation results that agreed as closely were mostly right (exit status 0, a one-line note on
 stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
-way it is printed and written. How often each level was right: docs/verdict.md. Where the refined result is
-not trusted, the pair is registered once more by local features (KISS-Matcher; ``--features off`` skips it):
-the better fitting of the two is printed, and trusted where the two agree.
+way it is printed and written. How often each level was right: docs/verdict.md. Scans (5,000 points or more
+each) are registered by local features first, both ways (``--features off`` skips it): where the two agree
+that is the result, trusted; otherwise the network runs too, and the result is trusted only where it lands
+on one of them.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time
