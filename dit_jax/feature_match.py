@@ -1,11 +1,14 @@
 """Registration by local features: the pipeline's candidate that needs no start and no training data.
 
 Both clouds are thinned on a voxel grid; each kept point gets FPFH features (Rusu et al., "Fast Point Feature
-Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours; RANSAC draws three mutual feature matches
-at a time and keeps the motion most matches agree with; point-to-plane ICP on every point refines it. Open3D
-does each step (the global-registration recipe of its tutorial, which registered the most 3DMatch pairs of
-the candidates measured in docs/benchmarks.md, "Candidates on rooms"). It finds a motion at any turn, so it
-covers what the network never learned: rooms turned by anything, LiDAR, scans of any object.
+Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours; features are matched mutually (each
+point's nearest in feature space, kept where that point's nearest is the first); RANSAC draws three matches at
+a time and keeps the motion that lays the most thinned source points near the target; point-to-plane ICP on
+every point refines it. This is the global-registration recipe of Open3D's tutorial, which registered the most
+3DMatch pairs of the candidates measured in docs/benchmarks.md ("Candidates on rooms"). Open3D does each step
+but the matching, which is computed here once for both directions where Open3D would search the features
+again for each. It finds a motion at any turn, so it covers what the network never learned: rooms turned by
+anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
 :data:`VOXEL_SPACINGS` point spacings (:func:`dit_jax.icp.point_spacing`), coarser on very large scans so that
@@ -17,8 +20,7 @@ points within 0.4 voxels (the tutorial's ratios).
 features. Two RANSAC runs that land on one motion are the evidence the pipeline's verdict reads
 (:class:`FeatureEstimate`): a wrong motion found by chance in one direction is rarely found again in the other.
 
-RANSAC is seeded, and a run alone repeats exactly; under load it may not, since Open3D's threads draw from one
-random stream in whatever order they get to it.
+RANSAC is seeded: a pair gives the same motion on every run.
 """
 
 from __future__ import annotations
@@ -35,9 +37,12 @@ VOXEL_SPACINGS = 3.75
 #: many voxels (a surface's count falls with the square of the voxel), and then until neither cloud occupies
 #: more than this many (a LiDAR sweep, dense near the sensor, needs the second): RANSAC's time stays bounded.
 FEATURE_POINTS = 10_000
-#: RANSAC's largest number of draws and its confidence (it stops sooner once this sure of its best motion).
+#: RANSAC's largest number of draws and its confidence (it stops sooner once this sure of its best motion), the
+#: number of its best motions it checks against every point, and how alike a drawn triangle's edges must be.
 RANSAC_DRAWS = 1_000_000
 RANSAC_CONFIDENCE = 0.999
+RANSAC_FINALISTS = 16
+EDGE_SIMILARITY = 0.9
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
 
@@ -48,7 +53,8 @@ class FeatureMatch:
 
     Attributes:
       rotation: (3, 3) float64; translation: (3,) float64.
-      inliers: feature matches within RANSAC's distance of the motion (0: no estimate, the identity).
+      inliers: thinned source points the motion lays within RANSAC's distance of the target (0: no estimate,
+        the identity).
       voxel: the voxel the features were computed on, in the caller's units.
     """
 
@@ -69,7 +75,8 @@ class FeatureEstimate:
       offset: distance between the two translations, in point spacings.
       overlap: (2,) the share of source points each lays within 2 point spacings of the target
         (:func:`dit_jax.icp.overlap`).
-      inliers: (2,) RANSAC's feature matches of each direction (0: that direction found nothing).
+      inliers: (2,) each direction's RANSAC inliers, as :class:`FeatureMatch` counts them (0: that direction
+        found nothing).
       spacing: the pair's point spacing; voxel: the features' voxel (both in the caller's units).
       seconds: wall time, features to ICP.
     """
@@ -149,25 +156,128 @@ class _Cloud:
         )
 
 
-def _ransac(src: _Cloud, tgt: _Cloud, voxel: float, seed: int) -> tuple[np.ndarray, int]:
-    """RANSAC on mutual feature matches: (4 x 4 motion, inlier matches)."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    o3d.utility.random.seed(seed)
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):  # "too few matches" warnings
-        found = reg.registration_ransac_based_on_feature_matching(
-            src.thinned,
-            tgt.thinned,
-            src.features,
-            tgt.features,
-            True,
-            1.5 * voxel,
-            reg.TransformationEstimationPointToPoint(False),
-            3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
-            reg.RANSACConvergenceCriteria(RANSAC_DRAWS, RANSAC_CONFIDENCE),
-        )
-    return np.asarray(found.transformation), len(found.correspondence_set)
+#: Open3D falls back from mutual matches to every source point's nearest match when fewer than this share of
+#: the source's points match mutually (its ``mutual_consistency_ratio``); the same rule here.
+MUTUAL_SHARE = 0.1
+
+
+def _nearest(queries: np.ndarray, pool: np.ndarray) -> np.ndarray:
+    """For each row of ``queries`` (Q, D), the index of the nearest row of ``pool`` (P, D) in Euclidean distance:
+    (Q,) int. Distances come from products in blocks: in FPFH's 33 dimensions a k-d tree gains nothing."""
+    squared = np.einsum("pd,pd->p", pool, pool)
+    nearest = np.empty(len(queries), np.int64)
+    for start in range(0, len(queries), 2048):
+        block = queries[start : start + 2048]
+        nearest[start : start + 2048] = np.argmin(squared[None, :] - 2.0 * block @ pool.T, axis=1)
+    return nearest
+
+
+def _matches(src: _Cloud, tgt: _Cloud) -> tuple[np.ndarray, np.ndarray]:
+    """Feature matches of each direction, as Open3D's RANSAC on features takes them with its mutual filter:
+    (K, 2) index pairs (source, target) and (K', 2) pairs (target, source). Mutual matches serve both; where
+    too few match mutually (:data:`MUTUAL_SHARE`), each direction takes its points' nearest matches.
+
+    Computed once for both directions (Open3D would search the features again for each)."""
+    src_features = np.asarray(src.features.data, np.float32).T
+    tgt_features = np.asarray(tgt.features.data, np.float32).T
+    there = _nearest(src_features, tgt_features)
+    back = _nearest(tgt_features, src_features)
+    source_index = np.arange(len(there))
+    mutual = back[there] == source_index
+    pairs = np.stack([source_index[mutual], there[mutual]], axis=1)
+    forward = pairs if mutual.sum() >= MUTUAL_SHARE * len(there) else np.stack([source_index, there], axis=1)
+    reverse = pairs[:, ::-1] if mutual.sum() >= MUTUAL_SHARE * len(back) else np.stack([np.arange(len(back)), back], 1)
+    return np.ascontiguousarray(forward, np.int32), np.ascontiguousarray(reverse, np.int32)
+
+
+def _similar_edges(src_matched: np.ndarray, tgt_matched: np.ndarray, triples: np.ndarray) -> np.ndarray:
+    """The (T, 3) ``triples`` of matches that span like triangles in both clouds: every edge's two lengths within
+    :data:`EDGE_SIMILARITY` of each other (Open3D's edge-length check). Matched points: (K, 3) each. Each edge
+    is measured only on the triples the edges before it kept."""
+    for a, b in ((0, 1), (1, 2), (0, 2)):
+        src_edge = np.sum((src_matched[triples[:, a]] - src_matched[triples[:, b]]) ** 2, axis=1)
+        tgt_edge = np.sum((tgt_matched[triples[:, a]] - tgt_matched[triples[:, b]]) ** 2, axis=1)
+        shorter, longer = np.minimum(src_edge, tgt_edge), np.maximum(src_edge, tgt_edge)
+        triples = triples[(shorter >= EDGE_SIMILARITY**2 * longer) & (shorter > 0)]
+    return triples
+
+
+def _matches_within(
+    rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
+) -> np.ndarray:
+    """How many of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H,) int."""
+    counts = np.empty(len(rotations), np.int64)
+    for start in range(0, len(rotations), 1024):  # (1024, K, 3) at a time
+        moved = np.einsum("hij,kj->hki", rotations[start : start + 1024], src_matched)
+        moved += translations[start : start + 1024, None]
+        counts[start : start + 1024] = np.sum(np.sum((moved - tgt_matched) ** 2, axis=2) < distance**2, axis=1)
+    return counts
+
+
+def _draws_needed(inlier_share: float) -> float:
+    """RANSAC's bound: the draws after which a triple of inliers has been drawn with :data:`RANSAC_CONFIDENCE`,
+    where ``inlier_share`` of the matches are inliers."""
+    if inlier_share <= 0:
+        return np.inf
+    if inlier_share >= 1:
+        return 0
+    return np.log(1 - RANSAC_CONFIDENCE) / np.log1p(-(inlier_share**3))
+
+
+def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int) -> tuple[np.ndarray, int]:
+    """RANSAC on (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers).
+
+    Draws three matches at a time, in rounds of doubling size; keeps triples whose triangles agree
+    (:func:`_similar_edges`) and whose motion (:func:`dit_jax.icp.procrustes`) brings each of its three matches
+    within the distance (1.5 voxels); counts the matches each motion brings within it. It stops after
+    :data:`RANSAC_DRAWS` draws or once the best count makes an all-inlier triple sure (:func:`_draws_needed`).
+    Of the :data:`RANSAC_FINALISTS` motions with the most matches, the one that lays the most thinned source
+    points within the distance of the thinned target wins; that count is its inliers.
+
+    Open3D's RANSAC scores every motion by that last count, a k-d tree search of every thinned point, and
+    that search was most of its time: its 1,000,000 draws took 2-8 s on 3DLoMatch pairs where these take
+    under a second (docs/benchmarks.md, "The registration by local features, both ways"). Seeded numpy draws
+    also repeat exactly, under any load.
+    """
+    from scipy.spatial import cKDTree
+
+    from dit_jax import icp as icp_lib
+
+    distance = 1.5 * voxel
+    if len(matches) < 3:
+        return np.eye(4), 0
+    src_points, tgt_points = np.asarray(src.thinned.points), np.asarray(tgt.thinned.points)
+    src_matched = src_points[matches[:, 0]].astype(np.float32)
+    tgt_matched = tgt_points[matches[:, 1]].astype(np.float32)
+    rng = np.random.default_rng(seed)
+    rotations, translations, counts = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    drawn, needed, round_size = 0, float(RANSAC_DRAWS), 2_000
+    while drawn < min(needed, RANSAC_DRAWS):
+        triples = rng.integers(0, len(matches), (min(round_size, RANSAC_DRAWS - drawn), 3))
+        drawn, round_size = drawn + len(triples), min(2 * round_size, 100_000)
+        triples = _similar_edges(src_matched, tgt_matched, triples)
+        rotation, translation = icp_lib.procrustes(src_matched[triples], tgt_matched[triples])
+        moved = np.einsum("hij,hkj->hki", rotation, src_matched[triples]) + translation[:, None]
+        close = np.all(np.sum((moved - tgt_matched[triples]) ** 2, axis=2) < distance**2, axis=1)
+        rotation, translation = rotation[close].astype(np.float32), translation[close].astype(np.float32)
+        found = _matches_within(rotation, translation, src_matched, tgt_matched, distance)
+        best = np.argsort(-np.concatenate([counts, found]), kind="stable")[:RANSAC_FINALISTS]
+        rotations = np.concatenate([rotations, rotation])[best]
+        translations = np.concatenate([translations, translation])[best]
+        counts = np.concatenate([counts, found])[best]
+        if len(counts):
+            needed = _draws_needed(counts[0] / len(matches))
+    if not len(counts):
+        return np.eye(4), 0
+    tree = cKDTree(tgt_points)
+    laid = [
+        np.sum(np.isfinite(tree.query(src_points @ r.T + t, distance_upper_bound=distance, workers=-1)[0]))
+        for r, t in zip(rotations.astype(np.float64), translations.astype(np.float64))
+    ]
+    winner = int(np.argmax(laid))  # ties: the motion with more matches
+    motion = np.eye(4)
+    motion[:3, :3], motion[:3, 3] = rotations[winner], translations[winner]
+    return motion, int(laid[winner])
 
 
 def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
@@ -221,7 +331,8 @@ def register(
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
-    motion, inliers = _ransac(_Cloud(src, voxel), _Cloud(tgt, voxel), voxel, seed)
+    source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
+    motion, inliers = _ransac(source, target, _matches(source, target)[0], voxel, seed)
     if inliers == 0 or not np.all(np.isfinite(motion)):
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
     return FeatureMatch(*_split(motion), inliers, voxel)
@@ -247,8 +358,9 @@ def register_both_ways(
     if not enough:
         return None
     source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
-    there, inliers_there = _ransac(source, target, voxel, seed)
-    back, inliers_back = _ransac(target, source, voxel, seed)
+    forward_matches, backward_matches = _matches(source, target)
+    there, inliers_there = _ransac(source, target, forward_matches, voxel, seed)
+    back, inliers_back = _ransac(target, source, backward_matches, voxel, seed)
     starts = [m if np.all(np.isfinite(m)) else np.eye(4) for m in (there, back)]
     forward = _split(_icp(source, target, starts[0], voxel))
     backward = _split(np.linalg.inv(_icp(target, source, starts[1], voxel)))

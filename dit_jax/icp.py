@@ -83,13 +83,16 @@ class ICPResult:
 
 
 def procrustes(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rigid motion (R (3, 3), t (3,)) minimising ``sum |R src_i + t - tgt_i|^2`` over paired rows of
-    src, tgt (K, 3), in float64 (Kabsch, with the reflection removed)."""
-    src_mean, tgt_mean = src.mean(axis=0), tgt.mean(axis=0)
-    u, _, vt = np.linalg.svd((tgt - tgt_mean).T @ (src - src_mean))
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    rotation = u @ np.diag([1.0, 1.0, d]) @ vt
-    return rotation, tgt_mean - rotation @ src_mean
+    """The rigid motion (R (..., 3, 3), t (..., 3)) minimising ``sum |R src_i + t - tgt_i|^2`` over paired rows of
+    src, tgt (..., K, 3), for every leading index at once, in float64 (Kabsch, with the reflection removed)."""
+    src, tgt = np.asarray(src, np.float64), np.asarray(tgt, np.float64)
+    src_mean, tgt_mean = src.mean(axis=-2), tgt.mean(axis=-2)
+    cross = np.swapaxes(tgt - tgt_mean[..., None, :], -1, -2) @ (src - src_mean[..., None, :])
+    u, _, vt = np.linalg.svd(cross)
+    flip = np.ones(u.shape[:-1])
+    flip[..., 2] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
+    rotation = (u * flip[..., None, :]) @ vt
+    return rotation, tgt_mean - np.einsum("...ij,...j->...i", rotation, src_mean)
 
 
 def estimate_normals(points: np.ndarray, k: int = 20, tree=None) -> np.ndarray:

@@ -66,11 +66,14 @@ class FeedForward(nn.Module):
         return dense(self.emb_dims, "w_2")(hidden).astype(jnp.float32)
 
 
-def _attend(c: DITConfig, name: str, query: jax.Array, memory: jax.Array) -> jax.Array:
-    """MultiHeadAttention of ``query`` (N, E) over ``memory`` (M, E) as a layer's submodule ``name``."""
-    return MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name=name)(
-        query, memory, memory
-    )
+def _residual_attention(c: DITConfig, x: jax.Array, norm: str, name: str, memory: jax.Array | None = None) -> jax.Array:
+    """x + Attn(LN*(x), memory), a layer's attention sub-block: x (N, E) attends over ``memory`` (M, E), or
+    over its own normalised self where ``memory`` is None; the layer norm is submodule ``norm``, the attention
+    submodule ``name``."""
+    u = AnnotatedLayerNorm(name=norm)(x)
+    memory = u if memory is None else memory
+    attention = MultiHeadAttention(c.emb_dims, c.n_heads, c.attention_chunk, c.compute_dtype, c.precision, name=name)
+    return x + attention(u, memory, memory)
 
 
 def _residual_feed_forward(c: DITConfig, x: jax.Array, norm: str, deterministic: bool) -> jax.Array:
@@ -87,8 +90,7 @@ class EncoderLayer(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
-        u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + _attend(self.config, "self_attn", u, u)
+        x = _residual_attention(self.config, x, "norm0", "self_attn")
         return _residual_feed_forward(self.config, x, "norm1", deterministic)
 
 
@@ -99,10 +101,8 @@ class DecoderLayer(nn.Module):
 
     @nn.compact
     def __call__(self, x: jax.Array, memory: jax.Array, deterministic: bool = True) -> jax.Array:
-        u = AnnotatedLayerNorm(name="norm0")(x)
-        x = x + _attend(self.config, "self_attn", u, u)
-        u = AnnotatedLayerNorm(name="norm1")(x)
-        x = x + _attend(self.config, "src_attn", u, memory)
+        x = _residual_attention(self.config, x, "norm0", "self_attn")
+        x = _residual_attention(self.config, x, "norm1", "src_attn", memory)
         return _residual_feed_forward(self.config, x, "norm2", deterministic)
 
 

@@ -48,8 +48,7 @@ class InferenceSettings(Record):
       fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
         sampling, which keeps sampling linear in the cloud's size.
       seed: farthest-point sampling's start, ICP's subsets and RANSAC's draws: results are deterministic for a
-        seed, except the registration by local features under load (Open3D's RANSAC threads share one
-        random stream, so which thread draws what depends on timing).
+        seed.
       centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
         its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
         more than :data:`FAR_APART` radii apart, else "shared".

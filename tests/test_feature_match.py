@@ -18,8 +18,7 @@ def _surface(n: int, seed: int) -> np.ndarray:
 
 
 def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_units():
-    """No start needed: 150 degrees apart. RANSAC alone lands near the truth (4.7 degrees off on this pair,
-    measured; its threaded draws can land elsewhere near it from run to run), and ICP after it within half a
+    """No start needed: 150 degrees apart. RANSAC alone lands near the truth, and ICP after it within half a
     degree; in millimetres the refined motion is the same, since every length comes from the point spacing."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
@@ -81,3 +80,30 @@ def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_spher
     turned = (e / np.linalg.norm(e, axis=1, keepdims=True)) @ euler_zyx_to_matrix([40.0, 0.0, 0.0]).T
     spun = feature_match.register_both_ways(sphere, turned)
     assert spun is not None and np.isfinite(spun.disagreement) and np.isfinite(spun.offset)
+
+
+def test_ransac_repeats_exactly_for_a_seed_and_draws_what_its_bound_asks():
+    """Seeded numpy draws: the same pair and seed give the same motion on every run. The bound is RANSAC's
+    usual one: with half the matches inliers, 0.999 confidence needs log(0.001) / log(1 - 1/8) = 52 draws;
+    with none, every draw."""
+    src, other = _surface(8000, seed=1), _surface(8000, seed=2)
+    tgt = other @ euler_zyx_to_matrix([150.0, -30.0, 20.0]).T
+    runs = [feature_match.register(src, tgt, seed=5) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].rotation, runs[1].rotation)
+    assert runs[0].inliers == runs[1].inliers > 0
+    assert feature_match._draws_needed(0.5) == pytest.approx(np.log(0.001) / np.log(1 - 0.125))
+    assert feature_match._draws_needed(0.0) == np.inf and feature_match._draws_needed(1.0) == 0
+
+
+def test_triangles_whose_edges_differ_are_not_drawn_and_each_feature_finds_its_nearest():
+    """A triple is kept only where each edge's two lengths are within 10 % (Open3D's edge check); the
+    blocked products find every feature's nearest, as a search would."""
+    src = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    tgt = src.copy()
+    tgt[3] = [0, 0, 2]  # the fourth match stretches every edge it is on
+    kept = feature_match._similar_edges(src, tgt, np.array([[0, 1, 2], [0, 1, 3], [1, 2, 3]]))
+    np.testing.assert_array_equal(kept, [[0, 1, 2]])
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(50, 33)).astype(np.float32)
+    nearest = feature_match._nearest(features[::-1] + 0.01, features)
+    np.testing.assert_array_equal(nearest, np.arange(50)[::-1])

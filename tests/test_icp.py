@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 
 from dit_jax import icp
@@ -83,6 +84,21 @@ def test_procrustes_is_a_proper_rotation_even_for_reflected_points():
     mirrored = src * [1, 1, -1]
     rotation, _ = icp.procrustes(src, mirrored)
     assert abs(np.linalg.det(rotation) - 1) < 1e-9 and np.allclose(rotation @ rotation.T, np.eye(3))
+
+
+def test_procrustes_solves_a_batch_of_triples_as_it_solves_each():
+    """RANSAC hands it (H, 3, 3) triples at once: each motion is the one found alone, and recovers the truth."""
+    rng = np.random.default_rng(0)
+    truth = Rotation.random(4, random_state=1).as_matrix()
+    src = rng.normal(size=(4, 3, 3))
+    tgt = np.einsum("hij,hkj->hki", truth, src) + [1.0, -2.0, 0.5]
+    rotations, translations = icp.procrustes(src, tgt)
+    assert rotations.shape == (4, 3, 3) and translations.shape == (4, 3)
+    np.testing.assert_allclose(rotations, truth, atol=1e-9)
+    for h in range(4):
+        alone = icp.procrustes(src[h], tgt[h])
+        np.testing.assert_allclose(alone[0], rotations[h], atol=1e-12)
+        np.testing.assert_allclose(alone[1], translations[h], atol=1e-12)
 
 
 def test_unknown_method_is_refused():
