@@ -23,7 +23,7 @@ well, and the result is trusted where the two motions agree closely (``--verdict
 the source lands on the target, one registration instead of two). A result not trusted is "unconfirmed"
 where validation results that agreed as closely were mostly right (exit status 0, a one-line note on
 stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
-way it is printed and written. How often each level was right: docs/verdict.md. Scans (5,000 points or more
+way it is printed and written. How often each level was right: docs/verdict.md. Scans (2,000 points or more
 each) are registered by local features first, both ways (``--features off`` skips it): where the two agree
 that is the result, trusted; otherwise the network runs too, and the result is trusted only where it lands
 on one of them.

@@ -235,9 +235,8 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
     points within the distance of the thinned target wins; that count is its inliers.
 
     Open3D's RANSAC scores every motion by that last count, a k-d tree search of every thinned point, and
-    that search was most of its time: its 1,000,000 draws took 2-8 s on 3DLoMatch pairs where these take
-    under a second (docs/benchmarks.md, "The registration by local features, both ways"). Seeded numpy draws
-    also repeat exactly, under any load.
+    that search was most of its time; scoring by the matches first affords every draw the bound asks for
+    (docs/benchmarks.md, "RANSAC on rooms"). Seeded numpy draws also repeat exactly, under any load.
     """
     from scipy.spatial import cKDTree
 

@@ -64,6 +64,7 @@ from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importab
     FEATURE_CANDIDATES,
     MODEL_OVERRIDES,
     REFINEMENTS,
+    SCAN_POINTS,
     VERDICTS,
     InferenceSettings,
     refinement_for,

@@ -19,9 +19,12 @@ from dit_jax.configs import PRECISIONS, DITConfig, Record
 #: (:func:`refinement_for`).
 REFINEMENTS = ("none", "icp", "gicp", "auto")
 #: ``refine="auto"`` refines by GICP where both clouds have at least this many points (scans, whose point
-#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's);
-#: ``feature_candidate="auto"`` registers such clouds by local features first.
+#: spacing GICP's voxel grid and local covariances need), else by ICP (sparse clouds such as ModelNet's).
 DENSE_POINTS = 5_000
+#: ``feature_candidate="auto"`` registers clouds of at least this many points each by local features first:
+#: scans (3DMatch's fragments have 2,051 or more), not sparse shapes such as ModelNet's 1,024-point clouds,
+#: where local features register far fewer pairs than the network (docs/refinement.md).
+SCAN_POINTS = 2_000
 #: When the pipeline registers by local features first (:attr:`InferenceSettings.feature_candidate`).
 FEATURE_CANDIDATES = ("auto", "on", "off")
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
@@ -63,7 +66,7 @@ class InferenceSettings(Record):
         ``max_disagreement_features`` degrees and ``max_offset_features`` point spacings) the result is theirs
         and the network does not run; otherwise the network runs too and the result is whichever of the three
         lays the most of the source onto the target (:func:`dit_jax.pipeline.combine`). "on", "off", or
-        "auto": where both clouds have at least :data:`DENSE_POINTS` points (scans; on sparse shapes it
+        "auto": where both clouds have at least :data:`SCAN_POINTS` points (scans; on sparse shapes it
         measured worse than the refined network alone, docs/refinement.md).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
@@ -144,7 +147,7 @@ class InferenceSettings(Record):
     def runs_feature_candidate(self, src_points: int, tgt_points: int) -> bool:
         """Whether the pipeline registers clouds of these sizes by local features first."""
         if self.feature_candidate == "auto":
-            return min(src_points, tgt_points) >= DENSE_POINTS
+            return min(src_points, tgt_points) >= SCAN_POINTS
         return self.feature_candidate == "on"
 
     def max_disagreement(self, refine: str) -> float:
@@ -220,7 +223,7 @@ FLAGS = {
             ("feature_candidate",),
             "register by local features (FPFH + RANSAC, both ways) first: where the two directions agree the "
             "result is theirs, else the network runs too and the best fitting of the three is kept; auto: "
-            f"where both clouds have {DENSE_POINTS:,} points or more",
+            f"where both clouds have {SCAN_POINTS:,} points or more",
             choices=FEATURE_CANDIDATES,
         ),
         Flag(

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 import pytest
+from scipy.spatial.transform import Rotation
 
 from dit_jax import icp
 from dit_jax.data.pairs import euler_zyx_to_matrix

@@ -82,10 +82,12 @@ def test_auto_refines_scans_by_gicp_and_sparse_clouds_by_icp():
     assert pipeline.InferenceSettings(refine="auto").refinement_for(1024, 1024) == "icp"
 
 
-def test_the_second_candidate_runs_on_scans_unless_told_otherwise():
-    dense = pipeline.DENSE_POINTS
+def test_the_features_run_first_on_scans_unless_told_otherwise():
+    """Scans (3DMatch's smallest fragments included) run them; ModelNet's 1,024-point shapes do not."""
+    scan, dense = pipeline.SCAN_POINTS, pipeline.DENSE_POINTS
     auto = pipeline.InferenceSettings(feature_candidate="auto")
-    assert auto.runs_feature_candidate(dense, dense) and not auto.runs_feature_candidate(1024, 10 * dense)
+    assert auto.runs_feature_candidate(2051, 2051) and auto.runs_feature_candidate(scan, scan)
+    assert not auto.runs_feature_candidate(scan - 1, dense) and not auto.runs_feature_candidate(1024, 10 * dense)
     assert pipeline.InferenceSettings(feature_candidate="on").runs_feature_candidate(100, 100)
     assert not pipeline.InferenceSettings(feature_candidate="off").runs_feature_candidate(dense, dense)
     # Settings stored as a bool before "auto" read as "on" and "off".

@@ -233,7 +233,18 @@ def levels_table() -> list[str]:
                 for method in NETWORK:
                     r = methods.get(method)
                     refined = methods.get(common.METHOD_DIT_ICP)
-                    if method == common.METHOD_PIPELINE and r and refined and "agreement" in refined["rows"][0]:
+                    if method == common.METHOD_PIPELINE and r and "level" in r["rows"][0]:
+                        # Its own level, as it reported it (the features' evidence on scans).
+                        sets.append(
+                            (
+                                set_name,
+                                method,
+                                [row["level"] for row in r["rows"]],
+                                [scans_evaluator.is_right(row, criterion) for row in r["rows"]],
+                                "levels",
+                            )
+                        )
+                    elif method == common.METHOD_PIPELINE and r and refined and "agreement" in refined["rows"][0]:
                         # Its level: trusted where it says so, else the level of DIT+ICP's own agreement.
                         sets.append(
                             (
@@ -272,7 +283,16 @@ def levels_table() -> list[str]:
                         )
         for set_name, method, agreement, right, confirmed in sets:
             refine = "none" if method == common.METHOD_DIT else "icp"
-            counts = level_counts(np.asarray(agreement, float), right, settings, refine, confirmed)
+            if isinstance(confirmed, str):  # "levels": each result's own level, in ``agreement``'s place
+                counts = {
+                    level: (
+                        sum(a == level for a in agreement),
+                        sum(a == level and ok for a, ok in zip(agreement, right)),
+                    )
+                    for level in pipeline.VERDICT_LEVELS
+                }
+            else:
+                counts = level_counts(np.asarray(agreement, float), right, settings, refine, confirmed)
             cells = " | ".join(f"{n}, {100 * ok / n:.0f} %" if n else "0" for n, ok in counts.values())
             lines.append(f"| {title}: {set_name} | {method} | {cells} |")
     return lines
