@@ -1,17 +1,19 @@
-"""How far apart the two directions of the registration by local features land, on right and wrong results:
-the evidence behind the verdict's bounds on scans (InferenceSettings.max_disagreement_features and
-max_offset_features).
+"""How far apart the two directions of the registration by local features land, and how strong a rival their
+RANSAC saw, on right and wrong results: the evidence behind the verdict's bounds on scans
+(InferenceSettings.max_disagreement_features, max_offset_features and max_rival_features).
 
     python benchmarks/feature_agreement.py ../shared/data/3dmatch ../shared/data/stanford_dragon_stand \\
-        --max-pairs 40
+        --max-pairs 0 --record docs/feature_agreement.jsonl
 
 For each folder of scans with known poses and each of its pair sets (a seeded sample of --max-pairs per
 benchmark list, the first pairs of a series): dit_jax.feature_match.register_both_ways as the pipeline calls
 it; the kept direction (the larger overlap) is right by the data's criterion (3DMatch: the benchmark's RMSE
 at most 0.2 m; otherwise within 5 degrees). For each pair of bounds (degrees, point spacings): how many results
 the bounds trust, how many of those are right, and how many of the wrong ones they leave flagged, per pair
-set and per scene, so a bound can be read with one scene left out. Prints one JSON record per pair set, then
-Markdown tables.
+set and per scene, so a bound can be read with one scene left out; ``right_15`` counts right by the lists'
+own criterion (15 degrees and 0.3 m) where the data have one. ``--max-pairs 0`` takes every pair. Prints one
+JSON record per pair set, then Markdown tables; ``--record`` writes the records to a file, which the verdict's
+rival table in docs/verdict.md is generated from (python -m dit_jax.release.results_page).
 """
 
 import argparse
@@ -20,14 +22,19 @@ import json
 
 import numpy as np
 
-BOUNDS = ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))
+#: (degrees, point spacings, rival share) bounds measured; the rival's inf is no bound.
+BOUNDS = (
+    *((d, s, np.inf) for d, s in ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))),
+    *((1.0, 2.0, r) for r in (1.0, 0.6, 0.4, 0.3)),
+)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scans", nargs="+", help="folders of scans with known poses")
-    parser.add_argument("--max-pairs", type=int, default=40)
+    parser.add_argument("--max-pairs", type=int, default=40, help="per benchmark list; 0: every pair")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--record", default=None, help="also write the records to this file (JSON lines)")
     args = parser.parse_args()
 
     from dit_jax import feature_match, geometry
@@ -38,23 +45,31 @@ def main() -> None:
     for folder in args.scans:
         for set_name, found in scans_lib.load_pair_sets(folder).items():
             rows = []
-            for pair in sample_pairs(found, args.max_pairs, args.seed):
+            for pair in sample_pairs(found, args.max_pairs or None, args.seed):
                 estimate = feature_match.register_both_ways(pair.source, pair.target, seed=args.seed)
                 if estimate is None:
-                    rows.append(dict(scene=pair.scene, right=False, disagreement=np.inf, offset=np.inf, seconds=0.0))
+                    rows.append(
+                        dict(scene=pair.scene, right=False, right_15=False, disagreement=np.inf, offset=np.inf)
+                        | dict(rival=np.inf, seconds=0.0)
+                    )
                     continue
                 rotation, translation = estimate.kept
+                degrees = geometry.rotation_angle_deg(rotation.T @ pair.rotation)
                 if pair.info is not None:
                     rmse = scans_lib.benchmark_rmse(rotation, translation, pair)
                     right = bool(rmse <= scans_lib.BENCHMARK_RMSE)
                 else:
-                    right = bool(geometry.rotation_angle_deg(rotation.T @ pair.rotation) <= 5.0)
+                    right = bool(degrees <= 5.0)
+                criterion = found.criterion or (5.0, np.inf)
+                right_15 = degrees <= criterion[0] and np.linalg.norm(translation - pair.translation) <= criterion[1]
                 rows.append(
                     dict(
                         scene=pair.scene,
                         right=right,
+                        right_15=bool(right_15),
                         disagreement=estimate.disagreement,
                         offset=estimate.offset,
+                        rival=max(estimate.rival),
                         seconds=estimate.seconds,
                     )
                 )
@@ -68,14 +83,17 @@ def main() -> None:
                 "bounds": [],
                 "date": datetime.date.today().isoformat(),
             }
-            for degrees, spacings in BOUNDS:
-                entry = {"degrees": degrees, "spacings": spacings}
+            for degrees, spacings, rival in BOUNDS:
+                entry = {"degrees": degrees, "spacings": spacings, "rival": None if np.isinf(rival) else rival}
                 for scene in [None, *scenes] if len(scenes) > 1 else [None]:
                     subset = [r for r in rows if scene is None or r["scene"] == scene]
-                    trusted = [r["disagreement"] <= degrees and r["offset"] <= spacings for r in subset]
+                    trusted = [
+                        r["disagreement"] <= degrees and r["offset"] <= spacings and r["rival"] <= rival for r in subset
+                    ]
                     counts = {
                         "trusted": int(sum(trusted)),
                         "trusted_right": int(sum(t and r["right"] for t, r in zip(trusted, subset))),
+                        "trusted_right_15": int(sum(t and r["right_15"] for t, r in zip(trusted, subset))),
                         "wrong": int(sum(not r["right"] for r in subset)),
                         "wrong_flagged": int(sum(not t and not r["right"] for t, r in zip(trusted, subset))),
                     }
@@ -84,15 +102,18 @@ def main() -> None:
             records.append(record)
             print(json.dumps(record), flush=True)
 
-    print("\n| data | set | pairs | right | bounds (deg, spacings) | trusted | of those right | wrong flagged |")
+    if args.record:
+        with open(args.record, "w") as f:
+            f.writelines(json.dumps(record) + "\n" for record in records)
+    print("\n| data | set | pairs | right | bounds (deg, spacings, rival) | trusted | of those right | wrong flagged |")
     print("|---|---|---|---|---|---|---|---|")
     for record in records:
         for entry in record["bounds"]:
             counts = entry["all"]
             print(
                 f"| {record['data']} | {record['set']} | {record['pairs']} | {record['right']} | "
-                f"{entry['degrees']:g}, {entry['spacings']:g} | {counts['trusted']} | {counts['trusted_right']} | "
-                f"{counts['wrong_flagged']} of {counts['wrong']} |"
+                f"{entry['degrees']:g}, {entry['spacings']:g}, {entry['rival'] or '-'} | {counts['trusted']} | "
+                f"{counts['trusted_right']} | {counts['wrong_flagged']} of {counts['wrong']} |"
             )
 
 

@@ -10,8 +10,22 @@ refinement, verdict and, where the result is not trusted, the second candidate),
 one untimed call that compiles; and a baseline as evaluate.py runs it (through Open3D): by default
 Open3D's FPFH + RANSAC + ICP at its tuned options, ``--baseline open3d_room_5cm`` Open3D's room recipe.
 ``--max-pairs``: a seeded sample of a benchmark's list (the first pairs of a series), as evaluate.py takes.
-A pair is registered by its benchmark's criterion (dit_jax.data.scans.CRITERIA), else within 5 degrees. Prints one JSON record per pair set (``confirmed_max_s``: the slowest pair whose first
-candidate was trusted, the figure the 1.5 s target is about), then a Markdown table.
+A pair is registered by its benchmark's criterion (dit_jax.data.scans.CRITERIA), else within 5 degrees. Prints
+one JSON record per pair set (``confirmed_max_s``: the slowest pair whose first candidate was trusted, the figure
+the 1.5 s target is about), then a Markdown table.
+
+``--pairs-out FILE`` also writes one JSON line per pair (both methods' errors, the benchmark's RMSE where the
+data define one, seconds, the pipeline's level and candidate) and resumes from the pairs FILE holds, so a run
+over whole benchmark lists survives an interruption; each set's record then adds the benchmark's figures
+(``figures``: dit_jax.evaluators.scans.benchmark_summary of each method) and the verdict's (``exit_0``: the
+results trusted or unconfirmed and how many were right; ``flagged``: the wrong results and how many were
+"probably wrong"), by the set's criterion and by the benchmark's RMSE.
+
+    python benchmarks/register_scans.py ../shared/data/3dmatch --baseline open3d_room_5cm \\
+        --pairs-out runs/rooms_pairs.jsonl --record docs/rooms_full_lists.jsonl
+
+``--record`` writes the per-set records to a file: docs/rooms_full_lists.jsonl is the one the rooms' full-list
+table of docs/results.md and the README is generated from (python -m dit_jax.release.results_page).
 """
 
 import argparse
@@ -23,14 +37,66 @@ import time
 import numpy as np
 
 
-def registered(rotation, translation, pair, criterion) -> bool:
-    from dit_jax import geometry
-
+def registered(row: dict, criterion) -> bool:
+    """Whether a :func:`pair_row` is within the data's criterion (degrees, distance), else within 5 degrees."""
     degrees, distance = criterion or (5.0, np.inf)
-    return bool(
-        geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation) <= degrees
-        and np.linalg.norm(np.asarray(translation) - pair.translation) <= distance
-    )
+    return bool(row["rot_err"] <= degrees and row["trans_err"] <= distance)
+
+
+def pair_row(pair, rotation, translation, seconds: float) -> dict:
+    """One method's row for a pair, in the form dit_jax.evaluators.scans.benchmark_summary reads."""
+    from dit_jax import geometry
+    from dit_jax.data import scans as scans_lib
+
+    rmse = scans_lib.benchmark_rmse(rotation, translation, pair)
+    return {
+        "rot_err": float(geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation)),
+        "trans_err": float(np.linalg.norm(np.asarray(translation) - pair.translation)),
+        "rmse": None if np.isnan(rmse) else float(rmse),
+        "seconds": float(seconds),
+        "scene": pair.scene,
+        "consecutive": bool(pair.consecutive),
+    }
+
+
+def verdict_figures(lines: list[dict], right) -> dict:
+    """``exit_0``: [results trusted or unconfirmed, of them right]; ``flagged``: [wrong results, of them
+    "probably wrong"], where ``right(line)`` says whether the pipeline's result was right."""
+    exit_0 = [line for line in lines if line["level"] != "probably wrong"]
+    wrong = [line for line in lines if not right(line)]
+    return {
+        "exit_0": [len(exit_0), sum(map(right, exit_0))],
+        "flagged": [len(wrong), sum(line["level"] == "probably wrong" for line in wrong)],
+    }
+
+
+def set_figures(lines: list[dict], baseline: str, criterion) -> dict:
+    """The benchmark's and the verdict's figures of one pair set's per-pair lines (``--pairs-out``)."""
+    from dit_jax.data.scans import BENCHMARK_RMSE
+    from dit_jax.evaluators.scans import benchmark_summary
+
+    criterion = criterion or (5.0, np.inf)
+
+    def within(row) -> bool:
+        return row["rot_err"] <= criterion[0] and row["trans_err"] <= criterion[1]
+
+    out = {"verdict": {"criterion": verdict_figures(lines, lambda line: within(line["pipeline"]))}}
+    if any(line["pipeline"]["rmse"] is not None for line in lines):
+        # Benchmark lists: a pair without an information matrix counts as not registered, as the benchmark does.
+        def rmse_right(row) -> bool:
+            return row["rmse"] is not None and row["rmse"] <= BENCHMARK_RMSE
+
+        out["verdict"]["rmse"] = verdict_figures(lines, lambda line: rmse_right(line["pipeline"]))
+        methods = ["pipeline"] + ([baseline] if all(baseline in line for line in lines) else [])
+        rows = {m: [line[m] | {"rmse": line[m]["rmse"] or np.inf} for line in lines] for m in methods}
+        out["figures"] = {m: benchmark_summary(rows[m], criterion) for m in methods}
+        if len(methods) == 2:
+            ok = {m: [rmse_right(line[m]) for line in lines] for m in methods}
+            out["only"] = {
+                m: [line["pair"] for line, a, b in zip(lines, ok[m], ok[methods[1 - k]]) if a and not b]
+                for k, m in enumerate(methods)
+            }
+    return out
 
 
 def main() -> None:
@@ -40,6 +106,8 @@ def main() -> None:
     parser.add_argument("--baseline", default="fpfh_ransac_icp", help="a name of dit_jax.baselines.SCAN_BASELINES")
     parser.add_argument("--max-pairs", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0, help="the sample's seed")
+    parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
+    parser.add_argument("--record", default=None, help="also write the per-set records to this file (JSON lines)")
     args = parser.parse_args()
     baseline = args.baseline
 
@@ -48,32 +116,50 @@ def main() -> None:
     from dit_jax.evaluators.scans import register_baseline, sample_pairs
 
     model = registration.load()
+    done = {}
+    if args.pairs_out and os.path.exists(args.pairs_out):
+        with open(args.pairs_out) as f:
+            done = {(line["data"], line["set"], line["pair"]): line for line in map(json.loads, f)}
+    pairs_file = open(args.pairs_out, "a") if args.pairs_out else None
     records = []
     for folder in args.scans:
         for set_name, found in scans_lib.load_pair_sets(folder).items():
+            data = os.path.basename(os.path.normpath(folder))
             pairs = sample_pairs(found, args.max_pairs, args.seed)
             model.register(pairs[0].source, pairs[0].target)  # compiles (or warms) once per folder's sizes
             pipeline_s, pipeline_ok, confirmed_s, trusted, trusted_right = [], 0, [], 0, 0
             baseline_s, baseline_ok = [], 0
+            lines = []
             for pair in pairs:
-                started = time.perf_counter()
-                result = model.register(pair.source, pair.target)
-                pipeline_s.append(time.perf_counter() - started)
-                ok = registered(result.rotation, result.translation, pair, found.criterion)
+                line = done.get((data, set_name, pair.name))
+                if line is None:
+                    started = time.perf_counter()
+                    result = model.register(pair.source, pair.target)
+                    seconds = time.perf_counter() - started
+                    line = {"data": data, "set": set_name, "pair": pair.name, "level": result.level}
+                    line |= {"candidate": result.candidate, "confirmed": bool((result.first or result).verdict)}
+                    line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
+                    if not args.no_baseline:
+                        line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))
+                    if pairs_file:
+                        pairs_file.write(json.dumps(line) + "\n")
+                        pairs_file.flush()
+                lines.append(line)
+                pipeline_s.append(line["pipeline"]["seconds"])
+                ok = registered(line["pipeline"], found.criterion)
                 pipeline_ok += ok
-                trusted += result.verdict
-                trusted_right += result.verdict and ok
-                if (result.first or result).verdict:
+                trusted += line["level"] == "trusted"
+                trusted_right += line["level"] == "trusted" and ok
+                if line["confirmed"]:
                     confirmed_s.append(pipeline_s[-1])
-                if not args.no_baseline:
-                    rotation, translation, seconds = register_baseline(baseline, pair.source, pair.target)
-                    baseline_s.append(seconds)
-                    baseline_ok += registered(rotation, translation, pair, found.criterion)
+                if baseline in line:
+                    baseline_s.append(line[baseline]["seconds"])
+                    baseline_ok += registered(line[baseline], found.criterion)
             record = {
                 "benchmark": "register_scans",
                 "date": datetime.date.today().isoformat(),
                 "cpus": os.cpu_count(),
-                "data": os.path.basename(os.path.normpath(folder)),
+                "data": data,
                 "set": set_name,
                 "pairs": len(pairs),
                 "points": [
@@ -91,6 +177,8 @@ def main() -> None:
                     "confirmed_max_s": float(np.max(confirmed_s)) if confirmed_s else None,
                 },
             }
+            if args.pairs_out:
+                record |= set_figures(lines, baseline, found.criterion)
             if baseline_s:
                 record[baseline] = {
                     "registered": int(baseline_ok),
@@ -99,6 +187,9 @@ def main() -> None:
                 }
             print(json.dumps(record), flush=True)
             records.append(record)
+    if args.record:
+        with open(args.record, "w") as f:
+            f.writelines(json.dumps(record) + "\n" for record in records)
     print(f"\n{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, shipped weights with their settings\n")
     print(
         f"| data | pairs | points a cloud | pipeline: registered, trusted (right) | pipeline s / pair: median, "

@@ -25,8 +25,8 @@ where validation results that agreed as closely were mostly right (exit status 0
 stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
 way it is printed and written. How often each level was right: docs/verdict.md. Scans (2,000 points or more
 each) are registered by local features first, both ways (``--features off`` skips it): where the two agree
-that is the result, trusted; otherwise the network runs too, and the result is trusted only where it lands
-on one of them.
+and no rival motion explains the features' matches as well, that is the result, trusted; otherwise the
+network runs too, and the result is trusted only where it lands on one of them.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time

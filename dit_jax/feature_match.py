@@ -43,6 +43,13 @@ RANSAC_DRAWS = 1_000_000
 RANSAC_CONFIDENCE = 0.999
 RANSAC_FINALISTS = 16
 EDGE_SIMILARITY = 0.9
+#: The motions with the most matches that :func:`_ransac` keeps to find the winner's best rival, and how far
+#: from the winner a rival must lie: turned by more degrees, or moving the matched source points' centre by
+#: more voxels. Closer motions are the winner's neighbours, which bring other matches of the same surfaces
+#: within reach; a room's rival is a quarter or half turn, or a slide along a corridor (docs/verdict.md).
+RANSAC_RIVALS = 512
+RIVAL_DEGREES = 30.0
+RIVAL_VOXELS = 20.0
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
 
@@ -77,8 +84,13 @@ class FeatureEstimate:
         (:func:`dit_jax.icp.overlap`).
       inliers: (2,) each direction's RANSAC inliers, as :class:`FeatureMatch` counts them (0: that direction
         found nothing).
+      rival: (2,) each direction's rival share (:func:`_ransac`): the matches that back another motion and not
+        the winner, as a share of the winner's own (inf where that direction found nothing). Near 1, two
+        motions explain the matches about as well (a room's walls after a quarter turn); the two directions,
+        drawn from the same matches, then tend to agree on one of them.
       spacing: the pair's point spacing; voxel: the features' voxel (both in the caller's units).
       seconds: wall time, features to ICP.
+      clouds: the two clouds as ICP holds them, for :meth:`polish`.
     """
 
     forward: tuple[np.ndarray, np.ndarray]
@@ -87,9 +99,21 @@ class FeatureEstimate:
     offset: float
     overlap: np.ndarray
     inliers: tuple[int, int]
+    rival: tuple[float, float]
     spacing: float
     voxel: float
     seconds: float
+    clouds: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    def polish(self, motion: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """``motion`` (R (3, 3), t (3,)) of the source onto the target, refined by the ICP that refined the two
+        directions (every point, pairs within 0.4 voxels) on the clouds already built, so that it can be set
+        beside them: (R, t). It corrects small errors only; start it near the answer."""
+        if self.clouds is None:
+            raise ValueError("this estimate keeps no clouds to refine on")
+        start = np.eye(4)
+        start[:3, :3], start[:3, 3] = motion
+        return _split(_icp(*self.clouds, start, self.voxel))
 
     @property
     def kept(self) -> tuple[np.ndarray, np.ndarray]:
@@ -100,9 +124,15 @@ class FeatureEstimate:
     def kept_direction(self) -> str:
         return "backward" if self.overlap[1] > self.overlap[0] else "forward"
 
-    def agrees(self, max_degrees: float, max_spacings: float) -> bool:
-        """Whether both directions found one motion: within ``max_degrees`` and ``max_spacings``."""
-        return bool(self.disagreement <= max_degrees and self.offset <= max_spacings and min(self.inliers) > 0)
+    def agrees(self, max_degrees: float, max_spacings: float, max_rival: float = np.inf) -> bool:
+        """Whether both directions found one motion, within ``max_degrees`` and ``max_spacings``, and each found
+        it with no rival backed by more than ``max_rival`` of its matches (:attr:`rival`)."""
+        return bool(
+            self.disagreement <= max_degrees
+            and self.offset <= max_spacings
+            and min(self.inliers) > 0
+            and max(self.rival) <= max_rival
+        )
 
 
 def feature_voxel(spacing: float, points: int, spacings: float = VOXEL_SPACINGS) -> float:
@@ -202,15 +232,28 @@ def _similar_edges(src_matched: np.ndarray, tgt_matched: np.ndarray, triples: np
     return triples
 
 
+def _brought_within(
+    rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
+) -> np.ndarray:
+    """Which of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H, K) bool."""
+    within = np.empty((len(rotations), len(src_matched)), bool)
+    for start in range(0, len(rotations), 1024):  # (1024, K, 3) at a time
+        moved = np.einsum("hij,kj->hki", rotations[start : start + 1024], src_matched)
+        moved += translations[start : start + 1024, None]
+        within[start : start + 1024] = np.sum((moved - tgt_matched) ** 2, axis=2) < distance**2
+    return within
+
+
 def _matches_within(
     rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
 ) -> np.ndarray:
     """How many of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H,) int."""
     counts = np.empty(len(rotations), np.int64)
-    for start in range(0, len(rotations), 1024):  # (1024, K, 3) at a time
-        moved = np.einsum("hij,kj->hki", rotations[start : start + 1024], src_matched)
-        moved += translations[start : start + 1024, None]
-        counts[start : start + 1024] = np.sum(np.sum((moved - tgt_matched) ** 2, axis=2) < distance**2, axis=1)
+    for start in range(0, len(rotations), 1024):
+        chunk = slice(start, start + 1024)
+        counts[chunk] = _brought_within(rotations[chunk], translations[chunk], src_matched, tgt_matched, distance).sum(
+            1
+        )
     return counts
 
 
@@ -224,15 +267,18 @@ def _draws_needed(inlier_share: float) -> float:
     return np.log(1 - RANSAC_CONFIDENCE) / np.log1p(-(inlier_share**3))
 
 
-def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int) -> tuple[np.ndarray, int]:
-    """RANSAC on (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers).
+def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int) -> tuple[np.ndarray, int, float]:
+    """RANSAC on (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival share).
 
     Draws three matches at a time, in rounds of doubling size; keeps triples whose triangles agree
     (:func:`_similar_edges`) and whose motion (:func:`dit_jax.icp.procrustes`) brings each of its three matches
     within the distance (1.5 voxels); counts the matches each motion brings within it. It stops after
     :data:`RANSAC_DRAWS` draws or once the best count makes an all-inlier triple sure (:func:`_draws_needed`).
     Of the :data:`RANSAC_FINALISTS` motions with the most matches, the one that lays the most thinned source
-    points within the distance of the thinned target wins; that count is its inliers.
+    points within the distance of the thinned target wins; that count is its inliers. Its rival share is the
+    largest number of matches that one of the :data:`RANSAC_RIVALS` motions with the most matches, far from
+    the winner (:data:`RIVAL_DEGREES`, :data:`RIVAL_VOXELS`), brings within the distance and the winner does
+    not, divided by the winner's matches: a second explanation of the matches that the winner leaves out.
 
     Open3D's RANSAC scores every motion by that last count, a k-d tree search of every thinned point, and
     that search was most of its time; scoring by the matches first affords every draw the bound asks for
@@ -244,7 +290,7 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
 
     distance = 1.5 * voxel
     if len(matches) < 3:
-        return np.eye(4), 0
+        return np.eye(4), 0, np.inf
     src_points, tgt_points = np.asarray(src.thinned.points), np.asarray(tgt.thinned.points)
     src_matched = src_points[matches[:, 0]].astype(np.float32)
     tgt_matched = tgt_points[matches[:, 1]].astype(np.float32)
@@ -260,23 +306,42 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
         close = np.all(np.sum((moved - tgt_matched[triples]) ** 2, axis=2) < distance**2, axis=1)
         rotation, translation = rotation[close].astype(np.float32), translation[close].astype(np.float32)
         found = _matches_within(rotation, translation, src_matched, tgt_matched, distance)
-        best = np.argsort(-np.concatenate([counts, found]), kind="stable")[:RANSAC_FINALISTS]
+        best = np.argsort(-np.concatenate([counts, found]), kind="stable")[:RANSAC_RIVALS]
         rotations = np.concatenate([rotations, rotation])[best]
         translations = np.concatenate([translations, translation])[best]
         counts = np.concatenate([counts, found])[best]
         if len(counts):
             needed = _draws_needed(counts[0] / len(matches))
     if not len(counts):
-        return np.eye(4), 0
+        return np.eye(4), 0, np.inf
     tree = cKDTree(tgt_points)
     laid = [
         np.sum(np.isfinite(tree.query(src_points @ r.T + t, distance_upper_bound=distance, workers=-1)[0]))
-        for r, t in zip(rotations.astype(np.float64), translations.astype(np.float64))
+        for r, t in zip(rotations[:RANSAC_FINALISTS].astype(np.float64), translations[:RANSAC_FINALISTS])
     ]
     winner = int(np.argmax(laid))  # ties: the motion with more matches
+    centre = src_matched.mean(axis=0)
+    cosines = (np.einsum("ij,hij->h", rotations[winner], rotations) - 1) / 2
+    moved = np.einsum("hij,j->hi", rotations, centre) + translations
+    far = (cosines < np.cos(np.radians(RIVAL_DEGREES))) | (
+        np.linalg.norm(moved - moved[winner], axis=1) > RIVAL_VOXELS * voxel
+    )
+    rival = 0.0
+    if far.any():
+        within = _brought_within(
+            rotations[far].astype(np.float32), translations[far], src_matched, tgt_matched, distance
+        )
+        winners = _brought_within(
+            rotations[winner : winner + 1].astype(np.float32),
+            translations[winner : winner + 1],
+            src_matched,
+            tgt_matched,
+            distance,
+        )[0]
+        rival = np.max(np.sum(within & ~winners, axis=1)) / max(int(counts[winner]), 1)
     motion = np.eye(4)
     motion[:3, :3], motion[:3, 3] = rotations[winner], translations[winner]
-    return motion, int(laid[winner])
+    return motion, int(laid[winner]), float(rival)
 
 
 def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
@@ -331,7 +396,7 @@ def register(
     if not enough:
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
     source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
-    motion, inliers = _ransac(source, target, _matches(source, target)[0], voxel, seed)
+    motion, inliers, _ = _ransac(source, target, _matches(source, target)[0], voxel, seed)
     if inliers == 0 or not np.all(np.isfinite(motion)):
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
     return FeatureMatch(*_split(motion), inliers, voxel)
@@ -358,8 +423,8 @@ def register_both_ways(
         return None
     source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
     forward_matches, backward_matches = _matches(source, target)
-    there, inliers_there = _ransac(source, target, forward_matches, voxel, seed)
-    back, inliers_back = _ransac(target, source, backward_matches, voxel, seed)
+    there, inliers_there, rival_there = _ransac(source, target, forward_matches, voxel, seed)
+    back, inliers_back, rival_back = _ransac(target, source, backward_matches, voxel, seed)
     starts = [m if np.all(np.isfinite(m)) else np.eye(4) for m in (there, back)]
     forward = _split(_icp(source, target, starts[0], voxel))
     backward = _split(np.linalg.inv(_icp(target, source, starts[1], voxel)))
@@ -371,7 +436,9 @@ def register_both_ways(
         offset=float(np.linalg.norm(forward[1] - backward[1]) / spacing),
         overlap=shares,
         inliers=(inliers_there, inliers_back),
+        rival=(rival_there, rival_back),
         spacing=spacing,
         voxel=voxel,
         seconds=time.perf_counter() - started,
+        clouds=(source, target),
     )

@@ -18,9 +18,10 @@ A batch of pairs goes through four stages, each a function of its own, after an 
    :attr:`InferenceSettings.best_direction` says so;
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
 
-Where the features' two directions disagreed, :func:`combine` keeps whichever of the three motions (the
-refined network's and the features' two) lays the most of the source onto the target, trusted where the
-network's lands on one of the features' (two independent estimates agree).
+Where the features did not settle the pair, the network runs one way only and stage 3 refines its motion
+(:func:`confirm_by_network`); :func:`combine` trusts the result where that motion lands on one of
+the features' two (two independent estimates agree), and otherwise keeps whichever of the network's and the
+features' better fitting motion lays more of the source onto the target.
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
@@ -52,6 +53,7 @@ from dit_jax.sampling import (  # noqa: F401
     Normalised,
     SizeMismatchWarning,
     check_cloud,
+    check_pair,
     farthest_point_sample,
     normalise,
     sample_and_normalise,
@@ -75,10 +77,15 @@ from dit_jax.settings import (  # noqa: F401  (the pipeline's settings, importab
 SEARCH_TURNS = geometry.cube_rotations()
 #: :attr:`Result.agreement_band` is quoted only from a band of at least this many validation results.
 MIN_BAND_PAIRS = 10
-#: :func:`combine` keeps the estimate that lays the most source points within this many point spacings
-#: of the target: on views that overlap by a third, the trimmed fit can prefer a wrong pose that piles the
-#: source into the target's middle (docs/refinement.md, "Choosing between the two candidates").
+#: A result found without the network counts a source point as landing on the target within this many
+#: point spacings of a target point (its ``confidence`` and ``inlier_ratio``).
 CANDIDATE_OVERLAP = 2.0
+#: The network's reach, in degrees: it trained on turns up to 45 and confirmed real pairs up to about 60 (on
+#: the shared 3DMatch scenes, one of 26 beyond, docs/verdict.md). Where neither of the features' motions
+#: turns by less, the network does not run (it cannot land on either); where it runs,
+#: :func:`confirm_by_network` refines its motion only where that lies within this many degrees of one of the
+#: features' two (further off, refinement rarely brings them together), and the refinement's time is saved.
+CONFIRM_REACH = 60.0
 
 
 # ------------------------------------------------------------------------------------------ stage 2: network
@@ -348,32 +355,42 @@ def register_pairs(
     """
     run_config = settings.model_config(config)
     need = run_config.min_points
-    prepared = []
+    clouds = []
     for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
-        prepared.append(sample_and_normalise(src, tgt, settings, need))
-    features = [features_first(p, settings) for p in prepared]
+        clouds.append(check_pair(src, tgt, need))
+    features = [features_first(src, tgt, settings) for src, tgt in clouds]
     settled = [f is not None and _features_agree(f, settings) for f in features]
+    # Where the features did not settle the pair and both their motions turn further than the network was
+    # trained to, the network cannot confirm either: it does not run.
+    alone = [done or (f is not None and not _network_can_confirm(f)) for f, done in zip(features, settled)]
+    prepared = [None if skip else sample_and_normalise(*pair, settings) for pair, skip in zip(clouds, alone)]
     both_ways = settings.verdict_rule == "agreement"
+    # Where the features ran but did not settle the pair, the network runs one way only: its motion is a third
+    # estimate to set beside the features' two (confirm_by_network), which are the evidence.
     groups: dict[tuple, list[int]] = {}
     for i, p in enumerate(prepared):
-        if not settled[i]:
-            groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
+        if not alone[i]:
+            both = both_ways and features[i] is None
+            groups.setdefault((len(p.src_n), len(p.tgt_n), both), []).append(i)
     estimates: list[PairEstimate | None] = [None] * len(prepared)
-    for rows in groups.values():
+    for (_, _, both), rows in groups.items():
         src_n = np.stack([prepared[i].src_n for i in rows])
         tgt_n = np.stack([prepared[i].tgt_n for i in rows])
         options = dict(rotation_search=settings.rotation_search, seed=settings.seed, batch_size=batch_size)
         forward = network(params, run_config, src_n, tgt_n, **options)
-        backward = network(params, run_config, tgt_n, src_n, **options) if both_ways else None
+        backward = network(params, run_config, tgt_n, src_n, **options) if both else None
         for k, i in enumerate(rows):
             estimates[i] = _pair_estimate(prepared[i], forward, backward, k)
     results = []
-    for p, e, found, done in zip(prepared, estimates, features, settled):
-        if done:
-            results.append(features_result(p, found, settings, run_config))
+    for (src, tgt), p, e, found, done, skip in zip(clouds, prepared, estimates, features, settled, alone):
+        if skip:
+            results.append(features_result(src, tgt, found, settings, run_config, trusted=done))
+        elif found is not None:
+            results.append(
+                combine(p, confirm_by_network(p, e, found, settings, run_config), found, settings, run_config)
+            )
         else:
-            result = _finish(p, e, settings, run_config, spacing=found.spacing if found is not None else None)
-            results.append(result if found is None else combine(p, result, found, settings, run_config))
+            results.append(_finish(p, e, settings, run_config))
         if on_pair is not None:
             on_pair(1)
     return results
@@ -401,15 +418,7 @@ def _finish(
     """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`); ``spacing``:
     the pair's point spacing where stage 0 measured it."""
     extras = e.extras
-    common = dict(
-        source_indices=p.src_indices,
-        correspondences=p.tgt_indices[np.asarray(extras["correspondences"])],
-        confidence=np.asarray(extras["weights"], np.float64),
-        inlier_ratio=float(extras["inlier_ratio"]),
-        seconds=e.seconds,
-        verdict_rule=settings.verdict_rule,
-        min_right=settings.unconfirmed_min_right,
-    )
+    common = _network_fields(p, e, settings)
     back = e.backward
     judged = judge(settings, "none", float(extras["fitness"]), e.forward.rotation, back and back.rotation)
     network_result = _result(
@@ -464,6 +473,19 @@ def _finish(
     return result
 
 
+def _network_fields(p: Normalised, e: PairEstimate, settings: InferenceSettings) -> dict:
+    """The fields of a :class:`Result` that come from the network's run, whatever refines its motion."""
+    return dict(
+        source_indices=p.src_indices,
+        correspondences=p.tgt_indices[np.asarray(e.extras["correspondences"])],
+        confidence=np.asarray(e.extras["weights"], np.float64),
+        inlier_ratio=float(e.extras["inlier_ratio"]),
+        seconds=e.seconds,
+        verdict_rule=settings.verdict_rule,
+        min_right=settings.unconfirmed_min_right,
+    )
+
+
 def _spacing(p: Normalised, seed: int) -> float:
     """The pair's point spacing: the larger of its two clouds' (:func:`dit_jax.icp.point_spacing`)."""
     return max(icp_lib.point_spacing(p.src, seed=seed), icp_lib.point_spacing(p.tgt, seed=seed))
@@ -491,52 +513,74 @@ def _fitness_within_spacings(moved: jax.Array, tgt: jax.Array, spacings: jax.Arr
 # ------------------------------------------------------------------------------- stage 0: local features
 
 
-def features_first(p: Normalised, settings: InferenceSettings):
-    """Stage 0 for one pair: :func:`dit_jax.feature_match.register_both_ways` on the caller's clouds where the
-    settings register such clouds by local features first (and refine at all), else None; None too where
-    the clouds have too few features."""
-    if settings.refinement_for(len(p.src), len(p.tgt)) == "none":
+def features_first(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings):
+    """Stage 0 for one pair: :func:`dit_jax.feature_match.register_both_ways` on the caller's clouds src (N, 3)
+    and tgt (M, 3) where the settings register such clouds by local features first (and refine at all), else
+    None; None too where the clouds have too few features."""
+    if settings.refinement_for(len(src), len(tgt)) == "none":
         return None
-    if not settings.runs_feature_candidate(len(p.src), len(p.tgt)):
+    if not settings.runs_feature_candidate(len(src), len(tgt)):
         return None
     from dit_jax import feature_match
 
-    return feature_match.register_both_ways(p.src, p.tgt, seed=settings.seed)
+    return feature_match.register_both_ways(src, tgt, seed=settings.seed)
 
 
-def _features_agree(found, settings: InferenceSettings) -> bool:
-    return found.agrees(settings.max_disagreement_features, settings.max_offset_features)
-
-
-def _landing(p: Normalised, rotation: np.ndarray, translation: np.ndarray, spacing: float) -> dict:
-    """Where a motion found without the network lays the sampled source points: each one's nearest sampled
-    target row, 1 as its confidence where that lies within :data:`CANDIDATE_OVERLAP` point spacings (else
-    0), and the share of such points as the inlier ratio."""
-    from scipy.spatial import cKDTree
-
-    moved = p.src[p.src_indices] @ rotation.T + translation
-    gaps, nearest = cKDTree(p.tgt[p.tgt_indices]).query(moved)
-    confidence = (gaps <= CANDIDATE_OVERLAP * spacing).astype(np.float64)
-    return dict(
-        source_indices=p.src_indices,
-        correspondences=p.tgt_indices[nearest],
-        confidence=confidence,
-        inlier_ratio=float(confidence.mean()),
+def _network_can_confirm(found) -> bool:
+    """Whether one of the features' two motions turns by at most :data:`CONFIRM_REACH` degrees, where the
+    network, trained on such turns, can land on it."""
+    return (
+        min(geometry.rotation_angle_deg(rotation) for rotation, _ in (found.forward, found.backward)) <= CONFIRM_REACH
     )
 
 
-def features_result(p: Normalised, found, settings: InferenceSettings, config: DITConfig) -> Result:
-    """The result of a pair whose features' two directions agree (stage 0): the direction that lays more of
-    the source onto the target, trusted; the network did not run."""
+def _features_agree(found, settings: InferenceSettings) -> bool:
+    return found.agrees(settings.max_disagreement_features, settings.max_offset_features, settings.max_rival_features)
+
+
+def _landing(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    spacing: float,
+    settings: InferenceSettings,
+    config: DITConfig,
+) -> dict:
+    """Where a motion found without the network lays src (N, 3) on tgt (M, 3), on a seeded random
+    ``settings.n_points`` of the source rows: each one's nearest target row, 1 as its confidence where that lies
+    within :data:`CANDIDATE_OVERLAP` point ``spacing`` (else 0), the share of such rows as the inlier ratio,
+    and the share within ``config.fitness_radius`` point spacings as the fitness."""
+    from scipy.spatial import cKDTree
+
+    rows = np.arange(len(src))
+    if len(src) > settings.n_points:
+        rows = np.sort(np.random.default_rng(settings.seed).choice(len(src), settings.n_points, replace=False))
+    gaps, nearest = cKDTree(tgt).query(src[rows] @ rotation.T + translation)
+    confidence = (gaps <= CANDIDATE_OVERLAP * spacing).astype(np.float64)
+    return dict(
+        source_indices=rows,
+        correspondences=nearest,
+        confidence=confidence,
+        inlier_ratio=float(confidence.mean()),
+        fitness=float(np.mean(gaps <= config.fitness_radius * spacing)),
+    )
+
+
+def features_result(
+    src: np.ndarray, tgt: np.ndarray, found, settings: InferenceSettings, config: DITConfig, *, trusted: bool = True
+) -> Result:
+    """The result of a pair of clouds src (N, 3), tgt (M, 3) that the network did not register: the features'
+    direction that lays more of the source onto the target, ``trusted`` where the features settled the pair
+    (stage 0), else "probably wrong" (the network could not confirm it, :func:`_network_can_confirm`)."""
     rotation, translation = found.kept
     return _result(
         rotation,
         translation,
-        fitness=_fitness(p, rotation, translation, config),
         seconds=0.0,
         refinement="icp",
         refine_seconds=0.0,
-        verdict=True,
+        verdict=trusted,
         verdict_rule="agreement",
         threshold=settings.max_disagreement_features,
         agreement=found.disagreement,
@@ -548,24 +592,76 @@ def features_result(p: Normalised, found, settings: InferenceSettings, config: D
         network=None,
         candidate="features",
         candidate_seconds=found.seconds,
+        rival=max(found.rival),
+        max_rival=settings.max_rival_features,
         min_right=settings.unconfirmed_min_right,
-        **_landing(p, rotation, translation, found.spacing),
+        **_landing(src, tgt, rotation, translation, found.spacing, settings, config),
+    )
+
+
+def confirm_by_network(p: Normalised, e: PairEstimate, found, settings: InferenceSettings, config: DITConfig) -> Result:
+    """Stage 3 for a pair the features did not settle: the network's estimate ``e`` (one direction) refined
+    as the settings refine (:func:`refine_pair`, one direction) and then by the features' own ICP
+    (:meth:`dit_jax.feature_match.FeatureEstimate.polish`), where it lies within :data:`CONFIRM_REACH`
+    degrees of one of the features' two motions; else the network's estimate as it is (``refinement``
+    None). Unjudged: :func:`combine` gives the verdict."""
+    common = _network_fields(p, e, settings)
+    unjudged = dict(
+        verdict=False,
+        threshold=float("nan"),
+        agreement=float("nan"),
+        direction="forward",
+        start_turn=e.forward.start_turn,
+        agreement_band=None,
+    )
+    raw = _result(
+        e.forward.rotation,
+        e.forward.translation,
+        fitness=float(e.extras["fitness"]),
+        refinement=None,
+        refine_seconds=0.0,
+        network=None,
+        **unjudged,
+        **common,
+    )
+    reach = min(geometry.rotation_angle_deg(e.forward.rotation.T @ r) for r, _ in (found.forward, found.backward))
+    if reach > CONFIRM_REACH:
+        return raw
+    method = settings.refinement_for(len(p.src), len(p.tgt))
+    refined = refine_pair(
+        p,
+        (e.forward.rotation, e.forward.translation),
+        None,
+        best_direction=False,
+        seed=settings.seed,
+        method=method,
+        spacing=found.spacing,
+    )
+    # Polished by the features' own ICP, so that the network's motion and theirs are optima of one criterion.
+    started = time.perf_counter()
+    rotation, translation = found.polish((refined.rotation, refined.translation))
+    return _result(
+        rotation,
+        translation,
+        fitness=_fitness(p, rotation, translation, config),
+        refinement=method,
+        refine_seconds=refined.seconds + time.perf_counter() - started,
+        network=raw,
+        **unjudged,
+        **common,
     )
 
 
 def combine(p: Normalised, result: Result, found, settings: InferenceSettings, config: DITConfig) -> Result:
-    """The result of a pair whose features' two directions disagreed, once the network has run (``result``,
-    refined and judged by its own verdict).
+    """The result of a pair the features did not settle, once the network has run (``result``, from
+    :func:`confirm_by_network`).
 
     The network and the features are independent estimates (one learned on sampled points, one from local
     geometry). Where the network's motion lies within ``max_disagreement_features`` degrees and
     ``max_offset_features`` point spacings of either feature direction, the result is trusted, and it is
-    the network's motion. Otherwise it is "probably wrong", whatever the network's own verdict (which on
-    rooms trusted wrong results), and the motion is the features' better fitting direction
-    (:attr:`dit_jax.feature_match.FeatureEstimate.kept`), unless the network's own two directions agreed and
-    its motion lays more source points within :data:`CANDIDATE_OVERLAP` point spacings of a target point
-    (:func:`dit_jax.icp.overlap`): a network motion is handed back only where some evidence supports it (on
-    the shared rooms this registered the same pairs as choosing by the overlap alone, docs/refinement.md).
+    the network's motion. Otherwise it is "probably wrong", and the motion is the features' better fitting
+    direction (:attr:`dit_jax.feature_match.FeatureEstimate.kept`): on the shared rooms, the network's
+    unconfirmed motions were mostly wrong where they laid more of the source onto the target.
     """
     candidates = [(result.rotation, result.translation), found.forward, found.backward]
     gaps = [
@@ -579,15 +675,6 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
     trusted = nearest[0] <= settings.max_disagreement_features and nearest[1] <= settings.max_offset_features
     features_best = 2 if found.kept_direction == "backward" else 1
     best = 0 if trusted else features_best
-    if not trusted and result.verdict:
-        shares = icp_lib.overlap(
-            p.src,
-            p.tgt,
-            [candidates[0], candidates[features_best]],
-            CANDIDATE_OVERLAP * found.spacing,
-            seed=settings.seed,
-        )
-        best = 0 if shares[0] > shares[1] else features_best
     kept = {}
     if best > 0:
         rotation, translation = candidates[best]
@@ -599,10 +686,9 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
             rotation=rotation,
             translation=translation,
             matrix=matrix,
-            fitness=_fitness(p, rotation, translation, config),
             direction="forward" if best == 1 else "backward",
             start_turn=0.0,
-            **_landing(p, rotation, translation, found.spacing),
+            **_landing(p.src, p.tgt, rotation, translation, found.spacing, settings, config),
         )
     return dataclasses.replace(
         result,
@@ -615,6 +701,8 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
         max_offset=settings.max_offset_features,
         features_disagreement=found.disagreement,
         candidate_seconds=found.seconds,
+        rival=max(found.rival),
+        max_rival=settings.max_rival_features,
         first=result,
     )
 

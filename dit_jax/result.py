@@ -20,13 +20,17 @@ class Result:
       rotation: (3, 3) float64.
       translation: (3,) float64.
       matrix: (4, 4) float64 homogeneous transform.
-      source_indices: (n,) rows of the caller's source cloud the network saw.
-      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration.
-      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1].
+      source_indices: (n,) rows of the caller's source cloud the network saw (where ``candidate`` is
+        "features", a seeded random ``n_points`` of them).
+      correspondences: (n,) rows of the caller's target cloud matched to them in the last iteration (for
+        "features", each one's nearest target row after the motion).
+      confidence: (n,) the last iteration's Procrustes weight of each such source point, in [0, 1] (for
+        "features", 1 where the nearest target row lies within 2 point spacings, else 0).
       inlier_ratio: share of the sampled source points GMCCE accepted in the last kept iteration.
       fitness: share of the sampled source points the motion lays within ``fitness_radius`` point spacings of
         the target (:func:`dit_jax.geometry.fitness`).
-      seconds: wall time of the network (both directions under the agreement verdict; with
+      seconds: wall time of the network (both directions under the agreement verdict, unless the features ran
+        first; with
         ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
         included unless the call ran several batches (:func:`dit_jax.pipeline.network`).
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
@@ -53,6 +57,9 @@ class Result:
       max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
       features_disagreement: where the network ran after the features' two directions disagreed, the degrees
         between those two; NaN otherwise.
+      rival, max_rival: where local features ran, the strongest rival motion their RANSAC saw, as a share of the
+        winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
+        features do not settle the pair alone; NaN otherwise.
       direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
         ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
@@ -62,8 +69,8 @@ class Result:
         truth; None where the settings record no bands, no agreement was measured or the band is small.
       network: where ICP refined the result, the network's own result before it (its verdict judged by the
         network's threshold); None otherwise.
-      first: where the network ran after the features' two directions disagreed, the refined network's result
-        as it stood before (its own verdict); None otherwise.
+      first: where the network ran after the features did not settle the pair, its result (refined where it
+        lay within reach of theirs), before :func:`dit_jax.pipeline.combine` judged it; None otherwise.
     """
 
     rotation: np.ndarray
@@ -93,6 +100,8 @@ class Result:
     offset: float = float("nan")
     max_offset: float = float("nan")
     features_disagreement: float = float("nan")
+    rival: float = float("nan")
+    max_rival: float = float("nan")
 
     @property
     def total_seconds(self) -> float:
@@ -125,6 +134,7 @@ class Result:
             "candidate": self.candidate,
             "candidate_agreement_deg": _number(self.candidate_agreement),
             "features_disagreement_deg": _number(self.features_disagreement),
+            "rival_share": _number(self.rival),
             "candidate_seconds": self.candidate_seconds,
             "agreement_band": None
             if self.agreement_band is None
@@ -135,20 +145,28 @@ class Result:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
         if self.first is not None:
             line = (
-                f"{self.first.evidence()}; registering by local features both ways gave two motions "
-                f"{self.features_disagreement:.2f} deg apart; the nearer lands {self.candidate_agreement:.2f} deg and "
-                f"{self.offset:.1f} point spacings from the network's (trusted up to "
-                f"{self.threshold:g} deg and {self.max_offset:g} spacings)"
+                f"registering by local features both ways gave two motions {self.features_disagreement:.2f} deg "
+                f"apart; the network's motion lands {self.candidate_agreement:.2f} deg "
+                f"and {self.offset:.1f} point spacings from the nearer (trusted up to {self.threshold:g} deg and "
+                f"{self.max_offset:g} spacings)"
             )
             if self.candidate == "features":
-                line += ", and lays more of the source onto the target, so it is the result"
+                line += "; the features' motion lays more of the source onto the target, so it is the result"
             return line
         if self.candidate == "features":
-            return (
+            line = (
                 f"registering by local features both ways gives motions {self.agreement:.2f} deg and "
                 f"{self.offset:.1f} point spacings apart (trusted up to {self.threshold:g} deg and "
                 f"{self.max_offset:g} spacings)"
             )
+            if self.rival > self.max_rival:
+                line += (
+                    f", but another motion backs {self.rival:.2f} of the matches the features found "
+                    f"(trusted up to {self.max_rival:g})"
+                )
+            if not self.verdict:
+                line += "; both motions turn further than the network learned, so it cannot confirm them"
+            return line
         if self.verdict_rule == "agreement":
             line = (
                 f"registering the target onto the source gives a rotation {self.agreement:.2f} deg from "

@@ -1,5 +1,6 @@
 """Stage 1 of the pipeline: each cloud checked, resampled by farthest-point sampling to the settings' point count,
-and both moved into the unit sphere with one shared scale (:func:`sample_and_normalise`)."""
+and both moved into the unit sphere with one shared scale (:func:`sample_and_normalise`), once
+:func:`check_pair` has checked them."""
 
 from __future__ import annotations
 
@@ -155,12 +156,19 @@ class Normalised:
     scale: float
 
 
-def sample_and_normalise(src, tgt, settings: InferenceSettings, min_points: int) -> Normalised:
-    """Stage 1 for one pair: src (N, 3), tgt (M, 3) in any units; raises :class:`InputError` on a cloud DIT
-    cannot register and warns (:class:`SizeMismatchWarning`) on clouds of very different sizes."""
+def check_pair(src, tgt, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """src (N, 3), tgt (M, 3) in any units, checked (:func:`check_cloud`) and as float64 arrays; raises
+    :class:`InputError` on a cloud DIT cannot register and warns (:class:`SizeMismatchWarning`) on clouds of
+    very different sizes."""
     src = check_cloud("source", src, min_points)
     tgt = check_cloud("target", tgt, min_points)
     _warn_on_size_mismatch(src, tgt)
+    return src, tgt
+
+
+def sample_and_normalise(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings) -> Normalised:
+    """Stage 1 for one pair of clouds :func:`check_pair` checked: each resampled to ``settings.n_points`` by
+    farthest-point sampling, both moved into the unit sphere (:func:`normalise`)."""
     src_idx = farthest_point_sample(src, settings.n_points, seed=settings.seed, pool=settings.fps_pool)
     tgt_idx = farthest_point_sample(tgt, settings.n_points, seed=settings.seed + 1, pool=settings.fps_pool)
     src_n, tgt_n, src_centre, tgt_centre, scale = normalise(src[src_idx], tgt[tgt_idx], settings.centring)

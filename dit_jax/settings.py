@@ -63,11 +63,12 @@ class InferenceSettings(Record):
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
       feature_candidate: with a refinement, register the pair by local features first, both ways
         (:func:`dit_jax.feature_match.register_both_ways`): where the two directions agree (within
-        ``max_disagreement_features`` degrees and ``max_offset_features`` point spacings) the result is theirs
-        and the network does not run; otherwise the network runs too and the result is whichever of the three
-        lays the most of the source onto the target (:func:`dit_jax.pipeline.combine`). "on", "off", or
-        "auto": where both clouds have at least :data:`SCAN_POINTS` points (scans; on sparse shapes it
-        measured worse than the refined network alone, docs/refinement.md).
+        ``max_disagreement_features`` degrees and ``max_offset_features`` point spacings, neither with a rival
+        past ``max_rival_features``) the result is theirs and the network does not run; otherwise the network
+        runs one way, the features' ICP refines its motion, and the result is trusted where that lands on one
+        of the features' two (:func:`dit_jax.pipeline.combine`). "on", "off", or "auto": where both clouds have
+        at least :data:`SCAN_POINTS` points (scans; on sparse shapes it measured worse than the refined network
+        alone, docs/refinement.md).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -83,6 +84,11 @@ class InferenceSettings(Record):
       max_disagreement_features, max_offset_features: how close (degrees, point spacings) two motions found
         independently (the features' two directions, or the network's and a feature direction) must lie for
         the result to be trusted on clouds the features register (calibrated on real scans,
+        docs/verdict.md).
+      max_rival_features: the features' two directions settle the pair only where neither's RANSAC saw a
+        rival motion backed by more than this share of its own matches
+        (:attr:`dit_jax.feature_match.FeatureEstimate.rival`): on rooms, the two directions share their
+        matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,
         docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
         the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
@@ -110,6 +116,7 @@ class InferenceSettings(Record):
     unconfirmed_min_right: float = 0.5
     max_disagreement_features: float = 1.0
     max_offset_features: float = 2.0
+    max_rival_features: float = 0.4
 
     def __post_init__(self):
         if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"
@@ -221,9 +228,10 @@ FLAGS = {
         Flag(
             "--features",
             ("feature_candidate",),
-            "register by local features (FPFH + RANSAC, both ways) first: where the two directions agree the "
-            "result is theirs, else the network runs too and the best fitting of the three is kept; auto: "
-            f"where both clouds have {SCAN_POINTS:,} points or more",
+            "register by local features (FPFH + RANSAC, both ways) first: where the two directions agree on "
+            "a motion without a close rival the result is theirs, else the network runs too and the result is "
+            "trusted only where its motion lands on one of theirs; auto: where both clouds have "
+            f"{SCAN_POINTS:,} points or more",
             choices=FEATURE_CANDIDATES,
         ),
         Flag(

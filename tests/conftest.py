@@ -63,6 +63,7 @@ REFERENCE_FILE = SHARED / "reference" / "dit_reference_a.npz"
 MODELNET_DIR = SHARED / "data" / "modelnet40_ply_hdf5_1024"
 TEST_DATA = ROOT / "tests" / "data"
 DRAGON_DIR = SHARED / "data" / "stanford_dragon_stand"
+ROOMS_DIR = SHARED / "data" / "3dmatch"
 
 
 @pytest.fixture(scope="session")
@@ -94,6 +95,13 @@ def dragon_dir() -> pathlib.Path:
     if not (DRAGON_DIR / "dragonStandRight.conf").exists():
         pytest.skip(f"the Stanford Dragon scans are not here ({DRAGON_DIR}); they ship with ../shared")
     return DRAGON_DIR
+
+
+@pytest.fixture(scope="session")
+def rooms_dir() -> pathlib.Path:
+    if not (ROOMS_DIR / "hotel3" / "cloud_bin_35.ply").exists():
+        pytest.skip(f"the 3DMatch scenes are not here ({ROOMS_DIR}); they ship with ../shared")
+    return ROOMS_DIR
 
 
 @pytest.fixture(scope="session")

@@ -16,6 +16,13 @@ Tables:
 * ``rooms`` (docs/results.md): the 3DMatch benchmark's figures of the room scenes (``eval_3dmatch``), per list:
   registration recall (pooled and per scene), the share within 15 degrees and 0.3 m, median errors and
   seconds, and how often each level of the pipeline's verdict was right.
+* ``rooms_full`` (docs/results.md and README.md): the default pipeline beside Open3D's room recipe on every
+  pair of the 3DMatch scenes' lists, as benchmarks/register_scans.py measured them side by side
+  (docs/rooms_full_lists.jsonl): the benchmark's recall, the share within the lists' criterion, seconds, how
+  often exit 0 was right and how many wrong results were flagged.
+* ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
+  RANSAC's rival and how many of those were right, as benchmarks/feature_agreement.py measured them
+  (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
 * ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
   was right, per setting and pair set, for DIT alone and DIT+ICP.
@@ -56,13 +63,19 @@ PAGES = {
     "expect": ROOT / "README.md",
     "results": DOCS / "results.md",
     "rooms": DOCS / "results.md",
+    "rooms_full": (DOCS / "results.md", ROOT / "README.md"),
     "levels": DOCS / "verdict.md",
+    "rival": DOCS / "verdict.md",
     "bands": DOCS / "verdict.md",
 }
 #: The README's table: the real sets and one synthetic directory.
 EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "eval_modelnet40_unseen")
 #: The rooms table's source: the 3DMatch benchmark's scenes.
 ROOMS_SOURCE = "eval_3dmatch"
+#: The records of benchmarks/feature_agreement.py: the features' verdict under each bound.
+FEATURE_AGREEMENT = DOCS / "feature_agreement.jsonl"
+#: The records of benchmarks/register_scans.py on the scenes' whole lists.
+ROOMS_FULL = DOCS / "rooms_full_lists.jsonl"
 
 
 def _load(name: str) -> dict | None:
@@ -321,6 +334,68 @@ def rooms_table() -> list[str]:
     return lines[:-1]
 
 
+def rooms_full_table() -> list[str]:
+    """Per list of the 3DMatch scenes, every pair: the default pipeline beside the baseline it was measured
+    with, from :data:`ROOMS_FULL`."""
+    if not ROOMS_FULL.exists():
+        return ["(no full-list measurement in docs/rooms_full_lists.jsonl yet)"]
+    records = [json.loads(line) for line in ROOMS_FULL.read_text().splitlines() if line.strip()]
+    lines = [
+        "| list | pairs | recall: default, recipe | within 15 deg and 0.3 m: default, recipe | s / pair: default, "
+        "recipe (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
+        "one only: default, recipe |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        methods = list(r["figures"])
+        ours, theirs = (r["figures"][m] for m in methods)
+        verdict = r["verdict"]
+
+        def share(pair: list) -> str:
+            return f"{pair[1]} of {pair[0]} ({100 * pair[1] / pair[0]:.0f} %)" if pair[0] else "none"
+
+        lines.append(
+            f"| {r['set']} | {r['pairs']} | {100 * ours['recall']:.1f} %, {100 * theirs['recall']:.1f} % | "
+            f"{100 * ours['criterion_share']:.1f} %, {100 * theirs['criterion_share']:.1f} % | "
+            f"{ours['seconds_median']:.2f}, {theirs['seconds_median']:.2f} | "
+            f"{share(verdict['rmse']['exit_0'])}; {share(verdict['criterion']['exit_0'])} | "
+            f"{share(verdict['rmse']['flagged'])} | "
+            f"{len(r['only'][methods[0]])}, {len(r['only'][methods[1]])} |"
+        )
+    return lines
+
+
+def rival_table() -> list[str]:
+    """Per pair set of :data:`FEATURE_AGREEMENT`, each bound on the rival (at the settings' degrees and
+    spacings): results trusted, right by the data's own measure and by the lists' criterion, wrong flagged."""
+    if not FEATURE_AGREEMENT.exists():
+        return ["(no measurement in docs/feature_agreement.jsonl yet)"]
+    settings = pipeline.InferenceSettings()
+    records = [json.loads(line) for line in FEATURE_AGREEMENT.read_text().splitlines() if line.strip()]
+    lines = [
+        "| data | pairs | rival bound | trusted | right | right by 15 deg and 0.3 m | wrong flagged |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in records:
+        for entry in r["bounds"]:
+            if (entry["degrees"], entry["spacings"]) != (
+                settings.max_disagreement_features,
+                settings.max_offset_features,
+            ):
+                continue
+            c = entry["all"]
+            bound = "none" if entry["rival"] is None else f"{entry['rival']:g}"
+            if entry["rival"] == settings.max_rival_features:
+                bound = f"**{bound}** (default)"
+            right = f"{c['trusted_right']} ({100 * c['trusted_right'] / c['trusted']:.1f} %)" if c["trusted"] else "-"
+            right_15 = "-" if r["data"] != "3dmatch" else f"{c['trusted_right_15']}"
+            lines.append(
+                f"| {r['data']} {r['set']} | {r['pairs']} | {bound} | {c['trusted']} | {right} | {right_15} | "
+                f"{c['wrong_flagged']} of {c['wrong']} |"
+            )
+    return lines
+
+
 def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
     """The agreement bands the weights carry (as recorded with ``source``'s results): per band of agreement,
     how many validation results fell in it and the share of them within 5 degrees."""
@@ -353,6 +428,8 @@ TABLES = {
     "expect": expect_table,
     "results": results_tables,
     "rooms": rooms_table,
+    "rooms_full": rooms_full_table,
+    "rival": rival_table,
     "levels": levels_table,
     "bands": bands_table,
 }
@@ -365,9 +442,14 @@ def _replace(text: str, name: str, table: list[str]) -> str:
     return pattern.sub(lambda m: m.group(1) + "\n".join(table) + "\n" + m.group(2), text)
 
 
-def render(name: str) -> tuple[str, str]:
-    """(the page's text now, the page's text with table ``name`` regenerated)."""
-    page = PAGES[name].read_text()
+def _pages(name: str) -> tuple[pathlib.Path, ...]:
+    return PAGES[name] if isinstance(PAGES[name], tuple) else (PAGES[name],)
+
+
+def render(name: str, page_path: pathlib.Path | None = None) -> tuple[str, str]:
+    """(the page's text now, the page's text with table ``name`` regenerated); ``page_path``: which of the
+    table's pages (default: its first)."""
+    page = (page_path or _pages(name)[0]).read_text()
     return page, _replace(page, name, TABLES[name]())
 
 
@@ -377,11 +459,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     stale = []
     for name in TABLES:
-        now, generated = render(name)
-        if now != generated:
-            stale.append(f"{PAGES[name].relative_to(ROOT)} ({name})")
-            if not args.check:
-                PAGES[name].write_text(generated)
+        for path in _pages(name):
+            now, generated = render(name, path)
+            if now != generated:
+                stale.append(f"{path.relative_to(ROOT)} ({name})")
+                if not args.check:
+                    path.write_text(generated)
     if args.check and stale:
         print("stale tables: " + ", ".join(stale) + "; run python -m dit_jax.release.results_page", file=sys.stderr)
         return 1
