@@ -36,10 +36,9 @@ class Result:
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        registration by local features (:mod:`dit_jax.feature_match`): because its two directions agreed
-        (the network did not run), or because it lays more of the source onto the target than the network's
-        (:func:`dit_jax.pipeline.combine`).
-      candidate_agreement: where the network ran after the features' two directions disagreed, degrees
+        registration by local features (:mod:`dit_jax.feature_match`): because they settled the pair (the
+        network did not run), or because the network did not confirm them (:func:`dit_jax.pipeline.combine`).
+      candidate_agreement: where the network ran after the features did not settle the pair, degrees
         between the network's refined rotation and the nearer feature direction's; NaN otherwise.
       candidate_seconds: wall time of the registration by local features, both directions and their ICP (0
         where it did not run).
@@ -55,7 +54,7 @@ class Result:
         directions, or the network's and the nearer feature direction's), the distance between their
         translations in point spacings; NaN otherwise.
       max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
-      features_disagreement: where the network ran after the features' two directions disagreed, the degrees
+      features_disagreement: where the network ran after the features did not settle the pair, the degrees
         between those two; NaN otherwise.
       rival, max_rival: where local features ran, the strongest rival motion their RANSAC saw, as a share of the
         winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
