@@ -20,8 +20,8 @@ A batch of pairs goes through four stages, each a function of its own, after an 
 
 Where the features did not settle the pair, the network runs one way only and stage 3 refines its motion
 (:func:`confirm_by_network`); :func:`combine` trusts the result where that motion lands on one of
-the features' two (two independent estimates agree), and otherwise keeps whichever of the network's and the
-features' better fitting motion lays more of the source onto the target.
+the features' two (two independent estimates agree), and otherwise keeps the features' better fitting motion,
+"probably wrong".
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
@@ -412,11 +412,8 @@ def _pair_estimate(p: Normalised, forward: Estimates, backward: Estimates | None
     )
 
 
-def _finish(
-    p: Normalised, e: PairEstimate, settings: InferenceSettings, config: DITConfig, spacing: float | None = None
-) -> Result:
-    """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`); ``spacing``:
-    the pair's point spacing where stage 0 measured it."""
+def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config: DITConfig) -> Result:
+    """Stages 3 and 4 for one pair from its network estimates ``e`` (see :func:`register_pairs`)."""
     extras = e.extras
     common = _network_fields(p, e, settings)
     back = e.backward
@@ -441,8 +438,7 @@ def _finish(
         return network_result
     backward = (back.rotation, back.translation) if back is not None else None
     # GICP works at the clouds' point spacing: measured once for the pair.
-    if method == "gicp" and spacing is None:
-        spacing = _spacing(p, settings.seed)
+    spacing = _spacing(p, settings.seed) if method == "gicp" else None
     refined = refine_pair(
         p,
         (e.forward.rotation, e.forward.translation),

@@ -150,7 +150,7 @@ class Result:
                 f"{self.max_offset:g} spacings)"
             )
             if self.candidate == "features":
-                line += "; the features' motion lays more of the source onto the target, so it is the result"
+                line += "; unconfirmed, the features' better fitting motion is the result"
             return line
         if self.candidate == "features":
             line = (
