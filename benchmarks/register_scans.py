@@ -43,6 +43,11 @@ def registered(row: dict, criterion) -> bool:
     return bool(row["rot_err"] <= degrees and row["trans_err"] <= distance)
 
 
+def _finite(value: float) -> float | None:
+    """A float for JSON: None for NaN or inf."""
+    return float(value) if np.isfinite(value) else None
+
+
 def pair_row(pair, rotation, translation, seconds: float) -> dict:
     """One method's row for a pair, in the form dit_jax.evaluators.scans.benchmark_summary reads."""
     from dit_jax import geometry
@@ -138,6 +143,7 @@ def main() -> None:
                     seconds = time.perf_counter() - started
                     line = {"data": data, "set": set_name, "pair": pair.name, "level": result.level}
                     line |= {"candidate": result.candidate, "confirmed": bool((result.first or result).verdict)}
+                    line |= {"rival": _finite(result.rival), "twin": _finite(result.twin)}
                     line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
                     if not args.no_baseline:
                         line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))

@@ -4,7 +4,7 @@ Both clouds are thinned on a voxel grid; each kept point gets FPFH features (Rus
 Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours; features are matched mutually (each
 point's nearest in feature space, kept where that point's nearest is the first); RANSAC draws three matches at
 a time and keeps the motion that lays the most thinned source points near the target; point-to-plane ICP on
-every point refines it. This is the global-registration recipe of Open3D's tutorial, which registered the most
+every point (on :data:`ICP_POINTS` of larger clouds) refines it. This is the global-registration recipe of Open3D's tutorial, which registered the most
 3DMatch pairs of the candidates measured in docs/benchmarks.md ("Candidates on rooms"). Open3D does each step
 but the matching, which is computed here once for both directions where Open3D would search the features
 again for each. It finds a motion at any turn, so it covers what the network never learned: rooms turned by
@@ -25,6 +25,7 @@ RANSAC is seeded: a pair gives the same motion on every run.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
 
@@ -50,6 +51,14 @@ EDGE_SIMILARITY = 0.9
 RANSAC_RIVALS = 512
 RIVAL_DEGREES = 30.0
 RIVAL_VOXELS = 20.0
+#: ICP refines on every point of clouds up to this size; larger ones (full-resolution fragments, LiDAR sweeps)
+#: are thinned to about this many first (:func:`icp_voxel`): finer than the features' voxel by far, and ICP's
+#: time stays bounded.
+ICP_POINTS = 50_000
+#: The turns of a result that :meth:`FeatureEstimate.twin_fit` tries, in degrees, about each of the target's
+#: three main normal directions: a room after a quarter or half turn about its floor's or a wall's normal
+#: can look like itself.
+TWIN_TURNS = (90.0, 180.0, 270.0)
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
 
@@ -88,6 +97,8 @@ class FeatureEstimate:
         the winner, as a share of the winner's own (inf where that direction found nothing). Near 1, two
         motions explain the matches about as well (a room's walls after a quarter turn); the two directions,
         drawn from the same matches, then tend to agree on one of them.
+      twin: (2,) each direction's :func:`twin_fit`: how many points a quarter- or half-turned copy of it lays on
+        the target, as a share of its own count (near 1: the two cannot be told apart).
       spacing: the pair's point spacing; voxel: the features' voxel (both in the caller's units).
       seconds: wall time, features to ICP.
       clouds: the two clouds as ICP holds them, for :meth:`polish`.
@@ -100,6 +111,7 @@ class FeatureEstimate:
     overlap: np.ndarray
     inliers: tuple[int, int]
     rival: tuple[float, float]
+    twin: tuple[float, float]
     spacing: float
     voxel: float
     seconds: float
@@ -107,13 +119,20 @@ class FeatureEstimate:
 
     def polish(self, motion: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """``motion`` (R (3, 3), t (3,)) of the source onto the target, refined by the ICP that refined the two
-        directions (every point, pairs within 0.4 voxels) on the clouds already built, so that it can be set
+        directions (pairs within 0.4 voxels) on the clouds already built, so that it can be set
         beside them: (R, t). It corrects small errors only; start it near the answer."""
         if self.clouds is None:
             raise ValueError("this estimate keeps no clouds to refine on")
         start = np.eye(4)
         start[:3, :3], start[:3, 3] = motion
         return _split(_icp(*self.clouds, start, self.voxel))
+
+    def twin_fit(self, motion: tuple[np.ndarray, np.ndarray]) -> float:
+        """:func:`twin_fit` of ``motion`` (R (3, 3), t (3,)) of the source onto the target, on this pair's
+        thinned clouds."""
+        if self.clouds is None:
+            raise ValueError("this estimate keeps no clouds to compare on")
+        return twin_fit(*self.clouds, self.voxel, motion)
 
     @property
     def kept(self) -> tuple[np.ndarray, np.ndarray]:
@@ -124,14 +143,18 @@ class FeatureEstimate:
     def kept_direction(self) -> str:
         return "backward" if self.overlap[1] > self.overlap[0] else "forward"
 
-    def agrees(self, max_degrees: float, max_spacings: float, max_rival: float = np.inf) -> bool:
-        """Whether both directions found one motion, within ``max_degrees`` and ``max_spacings``, and each found
-        it with no rival backed by more than ``max_rival`` of its matches (:attr:`rival`)."""
+    def agrees(
+        self, max_degrees: float, max_spacings: float, max_rival: float = np.inf, max_twin: float = np.inf
+    ) -> bool:
+        """Whether both directions found one motion, within ``max_degrees`` and ``max_spacings``, each with no
+        rival backed by more than ``max_rival`` of its matches (:attr:`rival`) and no turned twin laying more
+        than ``max_twin`` of its points (:attr:`twin`)."""
         return bool(
             self.disagreement <= max_degrees
             and self.offset <= max_spacings
             and min(self.inliers) > 0
             and max(self.rival) <= max_rival
+            and max(self.twin) <= max_twin
         )
 
 
@@ -170,14 +193,22 @@ def _capped_voxel(points: np.ndarray, voxel: float, most: int) -> float:
     return voxel
 
 
-class _Cloud:
-    """One cloud as Open3D holds it: every point with normals (for ICP), and the points of the features' voxel
-    grid with FPFH."""
+def icp_voxel(spacing: float, points: int) -> float | None:
+    """The grid ICP thins clouds of this point ``spacing`` and at most ``points`` points on, so that a surface
+    keeps about :data:`ICP_POINTS` of them; None (every point) for clouds no larger than that."""
+    return spacing * float(np.sqrt(points / ICP_POINTS)) if points > ICP_POINTS else None
 
-    def __init__(self, points: np.ndarray, voxel: float):
+
+class _Cloud:
+    """One cloud as Open3D holds it: its points with normals for ICP (thinned on ``thin``, where given), and the
+    points of the features' voxel grid with FPFH."""
+
+    def __init__(self, points: np.ndarray, voxel: float, thin: float | None = None):
         o3d = _o3d()
         search = o3d.geometry.KDTreeSearchParamHybrid
         self.full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        if thin is not None:
+            self.full = self.full.voxel_down_sample(thin)
         self.full.estimate_normals(search(radius=2 * voxel, max_nn=30))
         self.thinned = self.full.voxel_down_sample(voxel)
         self.thinned.estimate_normals(search(radius=2 * voxel, max_nn=30))
@@ -235,12 +266,25 @@ def _similar_edges(src_matched: np.ndarray, tgt_matched: np.ndarray, triples: np
 def _brought_within(
     rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
 ) -> np.ndarray:
-    """Which of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H, K) bool."""
-    within = np.empty((len(rotations), len(src_matched)), bool)
-    for start in range(0, len(rotations), 1024):  # (1024, K, 3) at a time
-        moved = np.einsum("hij,kj->hki", rotations[start : start + 1024], src_matched)
-        moved += translations[start : start + 1024, None]
-        within[start : start + 1024] = np.sum((moved - tgt_matched) ** 2, axis=2) < distance**2
+    """Which of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H, K) bool.
+
+    |R s + t - q|^2 expands into |s|^2 + |q|^2 + |t|^2 - 2 t.q + 2 (R^T t).s - 2 R:(q s^T), three matrix
+    products over the hypotheses and the matches instead of (H, K, 3) moved points: in float64, so that the
+    expansion loses nothing at any scale of coordinates."""
+    src = np.asarray(src_matched, np.float64)
+    tgt = np.asarray(tgt_matched, np.float64)
+    rotations = np.asarray(rotations, np.float64).reshape(-1, 3, 3)
+    translations = np.asarray(translations, np.float64).reshape(-1, 3)
+    lengths = np.sum(src * src, axis=1) + np.sum(tgt * tgt, axis=1)  # (K,)
+    outer = (tgt[:, :, None] * src[:, None, :]).reshape(len(src), 9)  # (K, 9): q_i s_j
+    within = np.empty((len(rotations), len(src)), bool)
+    for start in range(0, len(rotations), 1024):  # (1024, K) at a time
+        r, t = rotations[start : start + 1024], translations[start : start + 1024]
+        squared = np.sum(t * t, axis=1)[:, None] + lengths[None]
+        squared -= 2.0 * (t @ tgt.T)
+        squared += 2.0 * (np.einsum("hij,hi->hj", r, t) @ src.T)
+        squared -= 2.0 * (r.reshape(len(r), 9) @ outer.T)
+        within[start : start + 1024] = squared < distance**2
     return within
 
 
@@ -344,14 +388,49 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
     return motion, int(laid[winner]), float(rival)
 
 
+def twin_fit(source: _Cloud, target: _Cloud, voxel: float, motion: tuple[np.ndarray, np.ndarray]) -> float:
+    """How well ``motion`` (R (3, 3), t (3,)) of the source onto the target can be told from its turned twins.
+
+    The motion is turned by each of :data:`TWIN_TURNS` about each of the thinned target's three main normal
+    directions (eigenvectors of its normals' scatter), through the centre of the thinned source points it lays
+    within RANSAC's distance (1.5 ``voxel``) of the thinned target. Returns the most such points one twin lays
+    there, as a share of the count the motion itself lays (inf where it lays none). Near 1 or above, a turned
+    copy of the result fits the clouds about as well, as in a box-shaped room: the features cannot tell the two
+    apart (docs/verdict.md)."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    tree = cKDTree(np.asarray(target.thinned.points))
+    distance = 1.5 * voxel
+    rotation, translation = motion
+    moved = np.asarray(source.thinned.points) @ np.asarray(rotation).T + translation
+    laid = tree.query(moved, distance_upper_bound=distance)[0] < distance
+    if not laid.any():
+        return float("inf")
+    centre = moved[laid].mean(axis=0)
+    normals = np.asarray(target.thinned.normals)
+    axes = np.linalg.eigh(normals.T @ normals)[1].T  # (3, 3): one direction per row
+    turns = Rotation.from_rotvec(np.concatenate([axes * np.radians(angle) for angle in TWIN_TURNS])).as_matrix()
+    twins = np.einsum("hij,nj->hni", turns, moved - centre) + centre  # (9, N, 3)
+    gaps = tree.query(twins.reshape(-1, 3), distance_upper_bound=distance, workers=-1)[0]
+    return float(np.max(np.sum(gaps.reshape(len(turns), -1) < distance, axis=1)) / laid.sum())
+
+
 def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
-    """Point-to-plane ICP over every point, pairs within 0.4 voxels: the refined 4 x 4 motion."""
+    """Point-to-plane ICP over the clouds' ICP points, pairs within 0.4 voxels: the refined 4 x 4 motion."""
     reg = _o3d().pipelines.registration
     return np.asarray(
         reg.registration_icp(
             src.full, tgt.full, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane()
         ).transformation
     )
+
+
+def _ransac_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int):
+    """One direction of :func:`register_both_ways`: RANSAC (:func:`_ransac`), then ICP from its motion (from the
+    identity where it found none): (4 x 4 motion, inliers, rival share)."""
+    motion, inliers, rival = _ransac(src, tgt, matches, voxel, seed)
+    return _icp(src, tgt, motion if np.all(np.isfinite(motion)) else np.eye(4), voxel), inliers, rival
 
 
 def _prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
@@ -421,13 +500,16 @@ def register_both_ways(
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
         return None
-    source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
-    forward_matches, backward_matches = _matches(source, target)
-    there, inliers_there, rival_there = _ransac(source, target, forward_matches, voxel, seed)
-    back, inliers_back, rival_back = _ransac(target, source, backward_matches, voxel, seed)
-    starts = [m if np.all(np.isfinite(m)) else np.eye(4) for m in (there, back)]
-    forward = _split(_icp(source, target, starts[0], voxel))
-    backward = _split(np.linalg.inv(_icp(target, source, starts[1], voxel)))
+    # The two clouds, then the two directions, are independent: each pair of them runs on two threads (Open3D's
+    # normals and features and numpy's products release the interpreter while they work).
+    with concurrent.futures.ThreadPoolExecutor(2) as threads:
+        thin = icp_voxel(spacing, max(len(src), len(tgt)))
+        source, target = threads.map(_Cloud, (src, tgt), (voxel, voxel), (thin, thin))
+        forward_matches, backward_matches = _matches(source, target)
+        there = threads.submit(_ransac_then_icp, source, target, forward_matches, voxel, seed)
+        back = threads.submit(_ransac_then_icp, target, source, backward_matches, voxel, seed)
+        (there, inliers_there, rival_there), (back, inliers_back, rival_back) = there.result(), back.result()
+    forward, backward = _split(there), _split(np.linalg.inv(back))
     shares = icp_lib.overlap(src, tgt, [forward, backward], 2.0 * spacing, seed=seed)
     return FeatureEstimate(
         forward=forward,
@@ -437,6 +519,7 @@ def register_both_ways(
         overlap=shares,
         inliers=(inliers_there, inliers_back),
         rival=(rival_there, rival_back),
+        twin=(twin_fit(source, target, voxel, forward), twin_fit(source, target, voxel, backward)),
         spacing=spacing,
         voxel=voxel,
         seconds=time.perf_counter() - started,

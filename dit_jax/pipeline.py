@@ -531,7 +531,12 @@ def _network_can_confirm(found) -> bool:
 
 
 def _features_agree(found, settings: InferenceSettings) -> bool:
-    return found.agrees(settings.max_disagreement_features, settings.max_offset_features, settings.max_rival_features)
+    return found.agrees(
+        settings.max_disagreement_features,
+        settings.max_offset_features,
+        settings.max_rival_features,
+        settings.max_twin_features,
+    )
 
 
 def _landing(
@@ -590,6 +595,8 @@ def features_result(
         candidate_seconds=found.seconds,
         rival=max(found.rival),
         max_rival=settings.max_rival_features,
+        twin=max(found.twin),
+        max_twin=settings.max_twin_features,
         min_right=settings.unconfirmed_min_right,
         **_landing(src, tgt, rotation, translation, found.spacing, settings, config),
     )
@@ -654,8 +661,9 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
 
     The network and the features are independent estimates (one learned on sampled points, one from local
     geometry). Where the network's motion lies within ``max_disagreement_features`` degrees and
-    ``max_offset_features`` point spacings of either feature direction, the result is trusted, and it is
-    the network's motion. Otherwise it is "probably wrong", and the motion is the features' better fitting
+    ``max_offset_features`` point spacings of either feature direction, and no turned twin of that direction
+    fits past ``max_twin_features`` (:func:`dit_jax.feature_match.twin_fit`), the result is trusted, and it
+    is the network's motion. Otherwise it is "probably wrong", and the motion is the features' better fitting
     direction (:attr:`dit_jax.feature_match.FeatureEstimate.kept`): on the shared rooms, the network's
     unconfirmed motions were mostly wrong where they laid more of the source onto the target.
     """
@@ -668,7 +676,12 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
         for r, t in candidates[1:]
     ]
     nearest = min(gaps)
-    trusted = nearest[0] <= settings.max_disagreement_features and nearest[1] <= settings.max_offset_features
+    twin = found.twin[gaps.index(nearest)]  # landing on that direction, the network's motion shares its twins
+    trusted = (
+        nearest[0] <= settings.max_disagreement_features
+        and nearest[1] <= settings.max_offset_features
+        and twin <= settings.max_twin_features
+    )
     features_best = 2 if found.kept_direction == "backward" else 1
     best = 0 if trusted else features_best
     kept = {}
@@ -699,6 +712,8 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
         candidate_seconds=found.seconds,
         rival=max(found.rival),
         max_rival=settings.max_rival_features,
+        twin=twin,
+        max_twin=settings.max_twin_features,
         first=result,
     )
 

@@ -59,6 +59,9 @@ class Result:
       rival, max_rival: where local features ran, the strongest rival motion their RANSAC saw, as a share of the
         winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
         features do not settle the pair alone; NaN otherwise.
+      twin, max_twin: where local features ran, how many points the best quarter- or half-turned twin of the
+        features' motion (the one the result lies on) lays on the target, as a share of the motion's own
+        (:func:`dit_jax.feature_match.twin_fit`), and the bound past which it is not trusted; NaN otherwise.
       direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
         ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's
@@ -101,6 +104,8 @@ class Result:
     features_disagreement: float = float("nan")
     rival: float = float("nan")
     max_rival: float = float("nan")
+    twin: float = float("nan")
+    max_twin: float = float("nan")
 
     @property
     def total_seconds(self) -> float:
@@ -134,6 +139,7 @@ class Result:
             "candidate_agreement_deg": _number(self.candidate_agreement),
             "features_disagreement_deg": _number(self.features_disagreement),
             "rival_share": _number(self.rival),
+            "twin_fit": _number(self.twin),
             "candidate_seconds": self.candidate_seconds,
             "agreement_band": None
             if self.agreement_band is None
@@ -149,6 +155,8 @@ class Result:
                 f"and {self.offset:.1f} point spacings from the nearer (trusted up to {self.threshold:g} deg and "
                 f"{self.max_offset:g} spacings)"
             )
+            if self.twin > self.max_twin:
+                line += self._twin_clause()
             if self.candidate == "features":
                 line += "; unconfirmed, the features' better fitting motion is the result"
             return line
@@ -163,6 +171,8 @@ class Result:
                     f", but another motion backs {self.rival:.2f} of the matches the features found "
                     f"(trusted up to {self.max_rival:g})"
                 )
+            if self.twin > self.max_twin:
+                line += self._twin_clause()
             if not self.verdict:
                 line += "; both motions turn further than the network learned, so it cannot confirm them"
             return line
@@ -184,6 +194,12 @@ class Result:
         return (
             f"{100 * self.fitness:.0f} % of the sampled source points land on the target "
             f"(trusted from {100 * self.threshold:.0f} %)"
+        )
+
+    def _twin_clause(self) -> str:
+        return (
+            f", but a quarter- or half-turned copy of the motion lays {self.twin:.2f} as many points on the "
+            f"target (trusted up to {self.max_twin:g}): the scene looks alike turned"
         )
 
     def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:

@@ -90,6 +90,10 @@ class InferenceSettings(Record):
         (:attr:`dit_jax.feature_match.FeatureEstimate.rival`): on rooms, the two directions share their
         matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,
         docs/verdict.md).
+      max_twin_features: a motion the features found (alone, or with the network landing on it) is trusted
+        only where none of its quarter- or half-turned twins lays more than this share of its own count of
+        points on the target (:func:`dit_jax.feature_match.twin_fit`): a box-shaped room fits itself turned,
+        and no evidence from matches tells the two apart (calibrated on the 3DMatch scenes, docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
         the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
     """
@@ -117,6 +121,7 @@ class InferenceSettings(Record):
     max_disagreement_features: float = 1.0
     max_offset_features: float = 2.0
     max_rival_features: float = 0.4
+    max_twin_features: float = 0.8
 
     def __post_init__(self):
         if isinstance(self.feature_candidate, bool):  # as settings stored it before "auto"

@@ -107,3 +107,30 @@ def test_triangles_whose_edges_differ_are_not_drawn_and_each_feature_finds_its_n
     features = rng.normal(size=(50, 33)).astype(np.float32)
     nearest = feature_match._nearest(features[::-1] + 0.01, features)
     np.testing.assert_array_equal(nearest, np.arange(50)[::-1])
+
+
+def _box_room(n: int, seed: int) -> np.ndarray:
+    """Floor and four walls of a 4 x 4 x 2.5 room, sampled at random: a quarter turn about the floor's normal
+    maps it onto itself."""
+    rng = np.random.default_rng(seed)
+    corner, up = np.array([-2.0, -2.0, 0.0]), np.array([0.0, 0.0, 2.5])
+    sides = [(corner, [4.0, 0, 0], [0, 4.0, 0])]
+    sides += [(corner, [4.0, 0, 0], up), (corner + [0, 4, 0], [4.0, 0, 0], up)]
+    sides += [(corner, [0, 4.0, 0], up), (corner + [4, 0, 0], [0, 4.0, 0], up)]
+    shares = rng.uniform(0, 1, (len(sides), n // len(sides), 2))
+    points = [o + s[:, :1] * np.array(u) + s[:, 1:] * np.array(v) for (o, u, v), s in zip(sides, shares)]
+    return np.concatenate(points)
+
+
+def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
+    """twin_fit: in a bare box room the true motion turned a quarter about the floor's normal lays as many
+    points on the target as the motion itself (share about 1); a blob with no symmetry (near a sphere, so its
+    twins still lay 0.6 of its points within RANSAC's distance) stays under the pipeline's bound of 0.8."""
+    truth, t_truth = euler_zyx_to_matrix([30.0, 0.0, 0.0]), np.array([0.3, -0.2, 0.0])
+    room = feature_match.register_both_ways(_box_room(30000, 1), _box_room(30000, 2) @ truth.T + t_truth)
+    assert room.twin_fit((truth, t_truth)) > 0.95 and min(room.twin) > 0.95
+    src, other = _surface(8000, seed=1), _surface(8000, seed=2)
+    truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
+    bumpy = feature_match.register_both_ways(src, other @ truth.T + t_truth)
+    assert bumpy.twin_fit((truth, t_truth)) < 0.75 and max(bumpy.twin) < 0.75
+    assert bumpy.agrees(1.0, 2.0, max_twin=0.8) and not room.agrees(1.0, 2.0, max_twin=0.8)
