@@ -1,6 +1,7 @@
-"""How far apart the two directions of the registration by local features land, and how strong a rival their
-RANSAC saw, on right and wrong results: the evidence behind the verdict's bounds on scans
-(InferenceSettings.max_disagreement_features, max_offset_features and max_rival_features).
+"""How far apart the two directions of the registration by local features land, how strong a rival their
+RANSAC saw and how well a turned twin of their motion fits, on right and wrong results: the evidence behind
+the verdict's bounds on scans (InferenceSettings.max_disagreement_features, max_offset_features,
+max_rival_features and max_twin_features).
 
     python benchmarks/feature_agreement.py ../shared/data/3dmatch ../shared/data/stanford_dragon_stand \\
         --max-pairs 0 --record docs/feature_agreement.jsonl
@@ -22,10 +23,11 @@ import json
 
 import numpy as np
 
-#: (degrees, point spacings, rival share) bounds measured; the rival's inf is no bound.
+#: (degrees, point spacings, rival share, twin's share) bounds measured; inf is no bound.
 BOUNDS = (
-    *((d, s, np.inf) for d, s in ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))),
-    *((1.0, 2.0, r) for r in (1.0, 0.6, 0.4, 0.3)),
+    *((d, s, np.inf, np.inf) for d, s in ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))),
+    *((1.0, 2.0, r, np.inf) for r in (1.0, 0.6, 0.4, 0.3)),
+    *((1.0, 2.0, 0.4, t) for t in (1.0, 0.9, 0.8, 0.7)),
 )
 
 
@@ -50,7 +52,7 @@ def main() -> None:
                 if estimate is None:
                     rows.append(
                         dict(scene=pair.scene, right=False, right_15=False, disagreement=np.inf, offset=np.inf)
-                        | dict(rival=np.inf, seconds=0.0)
+                        | dict(rival=np.inf, twin=np.inf, seconds=0.0)
                     )
                     continue
                 rotation, translation = estimate.kept
@@ -70,6 +72,7 @@ def main() -> None:
                         disagreement=estimate.disagreement,
                         offset=estimate.offset,
                         rival=max(estimate.rival),
+                        twin=max(estimate.twin),
                         seconds=estimate.seconds,
                     )
                 )
@@ -83,12 +86,17 @@ def main() -> None:
                 "bounds": [],
                 "date": datetime.date.today().isoformat(),
             }
-            for degrees, spacings, rival in BOUNDS:
-                entry = {"degrees": degrees, "spacings": spacings, "rival": None if np.isinf(rival) else rival}
+            for degrees, spacings, rival, twin in BOUNDS:
+                entry = {"degrees": degrees, "spacings": spacings}
+                entry |= {"rival": None if np.isinf(rival) else rival, "twin": None if np.isinf(twin) else twin}
                 for scene in [None, *scenes] if len(scenes) > 1 else [None]:
                     subset = [r for r in rows if scene is None or r["scene"] == scene]
                     trusted = [
-                        r["disagreement"] <= degrees and r["offset"] <= spacings and r["rival"] <= rival for r in subset
+                        r["disagreement"] <= degrees
+                        and r["offset"] <= spacings
+                        and r["rival"] <= rival
+                        and r["twin"] <= twin
+                        for r in subset
                     ]
                     counts = {
                         "trusted": int(sum(trusted)),
@@ -105,14 +113,17 @@ def main() -> None:
     if args.record:
         with open(args.record, "w") as f:
             f.writelines(json.dumps(record) + "\n" for record in records)
-    print("\n| data | set | pairs | right | bounds (deg, spacings, rival) | trusted | of those right | wrong flagged |")
+    print(
+        "\n| data | set | pairs | right | bounds (deg, spacings, rival, twin) | trusted | of those right | wrong flagged |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for record in records:
         for entry in record["bounds"]:
             counts = entry["all"]
             print(
                 f"| {record['data']} | {record['set']} | {record['pairs']} | {record['right']} | "
-                f"{entry['degrees']:g}, {entry['spacings']:g}, {entry['rival'] or '-'} | {counts['trusted']} | "
+                f"{entry['degrees']:g}, {entry['spacings']:g}, {entry['rival'] or '-'}, {entry['twin'] or '-'} | "
+                f"{counts['trusted']} | "
                 f"{counts['trusted_right']} | {counts['wrong_flagged']} of {counts['wrong']} |"
             )
 

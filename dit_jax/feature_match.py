@@ -210,6 +210,9 @@ class _Cloud:
         if thin is not None:
             self.full = self.full.voxel_down_sample(thin)
         self.full.estimate_normals(search(radius=2 * voxel, max_nn=30))
+        # ICP runs on Open3D's tensor clouds (float64, as the legacy ones): the same point-to-plane ICP with the
+        # same motions, in about half the time, and the other direction's work can run beside it.
+        self.icp = o3d.t.geometry.PointCloud.from_legacy(self.full, o3d.core.float64)
         self.thinned = self.full.voxel_down_sample(voxel)
         self.thinned.estimate_normals(search(radius=2 * voxel, max_nn=30))
         self.features = o3d.pipelines.registration.compute_fpfh_feature(
@@ -418,12 +421,17 @@ def twin_fit(source: _Cloud, target: _Cloud, voxel: float, motion: tuple[np.ndar
 
 def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
     """Point-to-plane ICP over the clouds' ICP points, pairs within 0.4 voxels: the refined 4 x 4 motion."""
-    reg = _o3d().pipelines.registration
-    return np.asarray(
-        reg.registration_icp(
-            src.full, tgt.full, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane()
-        ).transformation
+    o3d = _o3d()
+    reg = o3d.t.pipelines.registration
+    found = reg.icp(
+        src.icp,
+        tgt.icp,
+        0.4 * voxel,
+        o3d.core.Tensor(np.asarray(start, np.float64)),
+        reg.TransformationEstimationPointToPlane(),
+        reg.ICPConvergenceCriteria(1e-6, 1e-6, 30),  # the legacy API's defaults
     )
+    return np.array(found.transformation.numpy(), np.float64)
 
 
 def _ransac_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int):

@@ -21,7 +21,7 @@ Tables:
   (docs/rooms_full_lists.jsonl): the benchmark's recall, the share within the lists' criterion, seconds, how
   often exit 0 was right and how many wrong results were flagged.
 * ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
-  RANSAC's rival and how many of those were right, as benchmarks/feature_agreement.py measured them
+  RANSAC's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
 * ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
@@ -366,15 +366,16 @@ def rooms_full_table() -> list[str]:
 
 
 def rival_table() -> list[str]:
-    """Per pair set of :data:`FEATURE_AGREEMENT`, each bound on the rival (at the settings' degrees and
-    spacings): results trusted, right by the data's own measure and by the lists' criterion, wrong flagged."""
+    """Per pair set of :data:`FEATURE_AGREEMENT`, each bound on the rival and then on the turned twin (at the
+    settings' degrees and spacings): results trusted, right by the data's own measure and by the lists'
+    criterion, wrong flagged."""
     if not FEATURE_AGREEMENT.exists():
         return ["(no measurement in docs/feature_agreement.jsonl yet)"]
     settings = pipeline.InferenceSettings()
     records = [json.loads(line) for line in FEATURE_AGREEMENT.read_text().splitlines() if line.strip()]
     lines = [
-        "| data | pairs | rival bound | trusted | right | right by 15 deg and 0.3 m | wrong flagged |",
-        "|---|---|---|---|---|---|---|",
+        "| data | pairs | rival bound | twin bound | trusted | right | right by 15 deg and 0.3 m | wrong flagged |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         for entry in r["bounds"]:
@@ -384,13 +385,13 @@ def rival_table() -> list[str]:
             ):
                 continue
             c = entry["all"]
-            bound = "none" if entry["rival"] is None else f"{entry['rival']:g}"
-            if entry["rival"] == settings.max_rival_features:
-                bound = f"**{bound}** (default)"
+            rival, twin = (("none" if entry.get(k) is None else f"{entry[k]:g}") for k in ("rival", "twin"))
+            if (entry["rival"], entry.get("twin")) == (settings.max_rival_features, settings.max_twin_features):
+                rival, twin = f"**{rival}**", f"**{twin}** (default)"
             right = f"{c['trusted_right']} ({100 * c['trusted_right'] / c['trusted']:.1f} %)" if c["trusted"] else "-"
             right_15 = "-" if r["data"] != "3dmatch" else f"{c['trusted_right_15']}"
             lines.append(
-                f"| {r['data']} {r['set']} | {r['pairs']} | {bound} | {c['trusted']} | {right} | {right_15} | "
+                f"| {r['data']} {r['set']} | {r['pairs']} | {rival} | {twin} | {c['trusted']} | {right} | {right_15} | "
                 f"{c['wrong_flagged']} of {c['wrong']} |"
             )
     return lines
