@@ -489,23 +489,17 @@ def register(
     return FeatureMatch(*_split(motion), inliers, voxel)
 
 
-def register_both_ways(
-    src: np.ndarray,
-    tgt: np.ndarray,
-    *,
-    spacing: float | None = None,
-    seed: int = 0,
-    voxel_spacings: float = VOXEL_SPACINGS,
-) -> FeatureEstimate | None:
+def register_both_ways(src: np.ndarray, tgt: np.ndarray, *, seed: int = 0) -> FeatureEstimate | None:
     """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by RANSAC then
-    point-to-plane ICP (module docs). Arguments as :func:`register`. Returns None where a cloud occupies fewer
-    than :data:`MIN_VOXELS` voxels (too few features); a direction RANSAC finds nothing for starts ICP from
-    the identity and counts 0 inliers."""
+    point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
+    (the larger of the two, :func:`dit_jax.icp.point_spacing`); ``seed``: RANSAC's draws and the spacing's
+    subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
+    direction RANSAC finds nothing for starts ICP from the identity and counts 0 inliers."""
     from dit_jax import geometry
     from dit_jax import icp as icp_lib
 
     started = time.perf_counter()
-    src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
+    src, tgt, spacing, voxel, enough = _prepare(src, tgt, None, seed, VOXEL_SPACINGS)
     if not enough:
         return None
     # The two clouds, then the two directions, are independent: each pair of them runs on two threads (Open3D's
