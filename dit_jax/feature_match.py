@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import time
 
 import numpy as np
@@ -219,6 +220,13 @@ class _Cloud:
             self.thinned, search(radius=5 * voxel, max_nn=100)
         )
 
+    @functools.cached_property
+    def tree(self):
+        """A k-d tree of the thinned points, built once for RANSAC's finalists and :func:`twin_fit`."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(np.asarray(self.thinned.points))
+
 
 #: Open3D falls back from mutual matches to every source point's nearest match when fewer than this share of
 #: the source's points match mutually (its ``mutual_consistency_ratio``); the same rule here.
@@ -331,7 +339,6 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
     that search was most of its time; scoring by the matches first affords every draw the bound asks for
     (docs/benchmarks.md, "RANSAC on rooms"). Seeded numpy draws also repeat exactly, under any load.
     """
-    from scipy.spatial import cKDTree
 
     from dit_jax import icp as icp_lib
 
@@ -361,7 +368,7 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
             needed = _draws_needed(counts[0] / len(matches))
     if not len(counts):
         return np.eye(4), 0, np.inf
-    tree = cKDTree(tgt_points)
+    tree = tgt.tree
     laid = [
         np.sum(np.isfinite(tree.query(src_points @ r.T + t, distance_upper_bound=distance, workers=-1)[0]))
         for r, t in zip(rotations[:RANSAC_FINALISTS].astype(np.float64), translations[:RANSAC_FINALISTS])
@@ -400,10 +407,9 @@ def twin_fit(source: _Cloud, target: _Cloud, voxel: float, motion: tuple[np.ndar
     there, as a share of the count the motion itself lays (inf where it lays none). Near 1 or above, a turned
     copy of the result fits the clouds about as well, as in a box-shaped room: the features cannot tell the two
     apart (docs/verdict.md)."""
-    from scipy.spatial import cKDTree
     from scipy.spatial.transform import Rotation
 
-    tree = cKDTree(np.asarray(target.thinned.points))
+    tree = target.tree
     distance = 1.5 * voxel
     rotation, translation = motion
     moved = np.asarray(source.thinned.points) @ np.asarray(rotation).T + translation
