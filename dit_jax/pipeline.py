@@ -4,7 +4,9 @@ A batch of pairs goes through four stages, each a function of its own, after an 
 
 0. :func:`dit_jax.feature_match.register_both_ways` (where :attr:`InferenceSettings.feature_candidate` says
    so; dense scans by default): local features register the source onto the target and the target onto the
-   source; where the two agree, the result is theirs (:func:`features_result`) and the network does not run;
+   source; where the two agree, with no rival motion in RANSAC's draws and no turned twin that fits as well
+   (:meth:`dit_jax.feature_match.FeatureEstimate.agrees`), the result is theirs (:func:`features_result`)
+   and the network does not run;
 
 1. :func:`sample_and_normalise`: checks both clouds (:func:`check_cloud`), resamples each to the settings'
    point count by farthest-point sampling (:func:`farthest_point_sample`) and moves both into the unit
@@ -20,8 +22,8 @@ A batch of pairs goes through four stages, each a function of its own, after an 
 
 Where the features did not settle the pair, the network runs one way only and stage 3 refines its motion
 (:func:`confirm_by_network`); :func:`combine` trusts the result where that motion lands on one of
-the features' two (two independent estimates agree), and otherwise keeps the features' better fitting motion,
-"probably wrong".
+the features' two (two independent estimates agree) and no turned twin of it fits as well, and otherwise keeps
+the features' better fitting motion, "probably wrong".
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
