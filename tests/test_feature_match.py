@@ -134,3 +134,27 @@ def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
     bumpy = feature_match.register_both_ways(src, other @ truth.T + t_truth)
     assert bumpy.twin_fit((truth, t_truth)) < 0.75 and max(bumpy.twin) < 0.75
     assert bumpy.agrees(1.0, 2.0, max_twin=0.8) and not room.agrees(1.0, 2.0, max_twin=0.8)
+
+
+def test_icp_on_tensor_clouds_gives_the_legacy_motion_and_large_clouds_are_thinned_for_it():
+    """ICP runs on Open3D's tensor clouds: the same point-to-plane ICP as the legacy call, started alike, lands
+    on the same motion. Clouds over ICP_POINTS are thinned for ICP, smaller ones not."""
+    from dit_jax.icp import point_spacing
+
+    o3d = feature_match._o3d()
+    src, other = _surface(8000, seed=1), _surface(8000, seed=2)
+    truth = euler_zyx_to_matrix([10.0, -5.0, 3.0])
+    voxel = 0.08
+    source, target = feature_match._Cloud(src, voxel), feature_match._Cloud(other @ truth.T + 0.05, voxel)
+    start = np.eye(4)
+    reg = o3d.pipelines.registration
+    legacy = reg.registration_icp(
+        source.full, target.full, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane()
+    ).transformation
+    np.testing.assert_allclose(feature_match._icp(source, target, start, voxel), legacy, atol=1e-6)
+    assert feature_match.icp_voxel(0.01, feature_match.ICP_POINTS) is None
+    assert feature_match.icp_voxel(0.01, 4 * feature_match.ICP_POINTS) == pytest.approx(0.02)
+    big = _surface(4 * feature_match.ICP_POINTS, seed=3)
+    thinned = feature_match._Cloud(big, voxel, feature_match.icp_voxel(point_spacing(big), len(big)))
+    # A scan's even sampling keeps about ICP_POINTS (the kitchen fragments: 58,000 of 260,000); a random one more.
+    assert len(thinned.full.points) < 0.75 * len(big) and len(source.full.points) == len(src)
