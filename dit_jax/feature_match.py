@@ -4,10 +4,10 @@ Both clouds are thinned on a voxel grid; each kept point gets FPFH features (Rus
 Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours; features are matched mutually (each
 point's nearest in feature space, kept where that point's nearest is the first); RANSAC draws three matches at
 a time and keeps the motion that lays the most thinned source points near the target; point-to-plane ICP on
-every point (on :data:`ICP_POINTS` of larger clouds) refines it. This is the global-registration recipe of Open3D's tutorial, which registered the most
-3DMatch pairs of the candidates measured in docs/benchmarks.md ("Candidates on rooms"). Open3D does each step
-but the matching, which is computed here once for both directions where Open3D would search the features
-again for each. It finds a motion at any turn, so it covers what the network never learned: rooms turned by
+every point (on about :data:`ICP_POINTS` of larger clouds) refines it. This is the global-registration recipe of
+Open3D's tutorial, which registered the most 3DMatch pairs of the candidates measured in docs/benchmarks.md
+("Candidates on rooms"). Open3D does each step but the matching, which is computed here once for both
+directions where Open3D would search the features again for each. It finds a motion at any turn, so it covers what the network never learned: rooms turned by
 anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
