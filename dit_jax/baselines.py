@@ -67,7 +67,6 @@ class Options:
       fgr_tuple_scale: FGR's tuple test (similarity of the triangles of three matches).
     """
 
-    voxel: float | None = None
     normal_radius: float = 0.1
     normal_neighbours: int = 30
     feature_radius: float = 0.25
@@ -76,6 +75,7 @@ class Options:
     ransac_iterations: int = 100_000
     ransac_confidence: float = 0.999
     icp_distances: tuple[float, ...] = (0.1, 0.05)
+    voxel: float | None = None
     icp_iterations: int = 100
     icp_method: str = "point_to_point"
     fgr_tuple_scale: float = 0.95

@@ -118,7 +118,6 @@ class DITConfig(Record):
     gmcce_threshold: float = 0.99
     gmcce_min_dist2: float = 0.1
     gmcce_min_keep: float = 0.0
-    guard_iterations: bool = False
     fitness_radius: float = 2.0
     temp_factor: float = 100.0
     pse_heads: int = 4
@@ -127,6 +126,7 @@ class DITConfig(Record):
     pe_expansion: int = 8
     dropout: float = 0.2
     attention_chunk: int = 512
+    guard_iterations: bool = False
     compute_dtype: str = "float32"
     precision: str = "highest"
     remat: bool = False

@@ -108,34 +108,33 @@ def _map_name(name: str) -> tuple[tuple[str, ...], str] | None:
     return None
 
 
+#: The widths :func:`infer_config` reads: config field (or hidden width) -> (tensor, how many widths its first
+#: axis stacks). The tokens' query, key and value share one tensor; the first norm's width is 3k.
+_WIDTHS = {
+    "emb_dims": ("emb_nn.norm.weight", 1),
+    "token_dim": ("emb_nn.attention1.attn.qkv.weight", 3),
+    "k": ("emb_nn.attention1.norm1.weight", 3),
+    "ff_dims": ("attention.model.encoder.layers.0.feed_forward.w_1.weight", 1),
+    "temp_hidden": ("temp_net.nn.0.weight", 1),
+    "pe_hidden": ("Position_encoding.PE.0.weight", 1),
+    "se_hidden": ("SE_Block.fc.0.weight", 1),
+}
+
+
 def infer_config(state_dict: Mapping[str, Any], **overrides: Any) -> DITConfig:
     """Reads the network's widths and depth off a state dict; heads cannot be read and come from
     ``overrides`` (default 4, as in the paper), as do the inference settings."""
     sd = {_strip_prefix(k): v for k, v in state_dict.items()}
     try:
-        emb_dims = np.shape(sd["emb_nn.norm.weight"])[0]
-        token_dim = np.shape(sd["emb_nn.attention1.attn.qkv.weight"])[0] // 3
-        k = np.shape(sd["emb_nn.attention1.norm1.weight"])[0] // 3
-        ff_dims = np.shape(sd["attention.model.encoder.layers.0.feed_forward.w_1.weight"])[0]
-        temp_hidden = np.shape(sd["temp_net.nn.0.weight"])[0]
-        pe_hidden = np.shape(sd["Position_encoding.PE.0.weight"])[0]
-        se_hidden = np.shape(sd["SE_Block.fc.0.weight"])[0]
+        widths = {field: np.shape(sd[tensor])[0] // per for field, (tensor, per) in _WIDTHS.items()}
     except KeyError as err:
         raise ConversionError(f"not a DIT state dict: no tensor {err.args[0]!r}") from None
     layer = re.compile(r"attention\.model\.encoder\.layers\.(\d+)\.")
-    n_blocks = 1 + max(int(m[1]) for m in map(layer.match, sd) if m)
-    values = dict(
-        emb_dims=emb_dims,
-        token_dim=token_dim,
-        k=k,
-        ff_dims=ff_dims,
-        n_blocks=n_blocks,
-        temp_hidden=temp_hidden,
-        pe_expansion=pe_hidden // emb_dims,
-        se_reduction=emb_dims // se_hidden,
-    )
-    values.update(overrides)
-    return DITConfig(**values)
+    widths["n_blocks"] = 1 + max(int(m[1]) for m in map(layer.match, sd) if m)
+    # The two hidden widths are stored as ratios to the embedding width: expansion E*e, reduction E/r.
+    widths["pe_expansion"] = widths.pop("pe_hidden") // widths["emb_dims"]
+    widths["se_reduction"] = widths["emb_dims"] // widths.pop("se_hidden")
+    return DITConfig(**{**widths, **overrides})
 
 
 def from_torch_state_dict(state_dict: Mapping[str, Any], config: DITConfig) -> dict:

@@ -297,8 +297,7 @@ START_DISTANCES = (0.1, 0.05)
 def start_scores(
     src: np.ndarray,
     tgt: np.ndarray,
-    rotations: np.ndarray,
-    translations: np.ndarray,
+    starts: tuple[np.ndarray, np.ndarray],
     *,
     scale: float = 1.0,
     max_points: int = 500,
@@ -306,15 +305,16 @@ def start_scores(
 ) -> np.ndarray:
     """How well each of several estimates of one motion lays src (N, 3) onto tgt (M, 3) after a short
     point-to-point ICP from it (:data:`START_DISTANCES` times ``scale``): (K,) :func:`trimmed_fit` scores of
-    where the ICP ends, lower is better, for rotations (K, 3, 3) and translations (K, 3). ``max_points``: the
-    ICP and the score use a seeded random subset of this many source points."""
+    where the ICP ends, lower is better, for ``starts``: rotations (K, 3, 3) and translations (K, 3).
+    ``max_points``: the ICP and the score use a seeded random subset of this many source points."""
     from scipy.spatial import cKDTree
 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     tree = cKDTree(tgt)
+    rotations, translations = (np.asarray(a, np.float64) for a in starts)
     scores = []
-    for rotation, translation in zip(np.asarray(rotations, np.float64), np.asarray(translations, np.float64)):
+    for rotation, translation in zip(rotations, translations):
         run = icp(
             src,
             tgt,

@@ -18,7 +18,7 @@ class PositionalEncoding(nn.Module):
     """P(X) = ReLU(Linear(Sigmoid(Linear(xyz)))), widths 3 -> expansion E -> E."""
 
     emb_dims: int
-    expansion: int = 8
+    expansion: int
     precision: str = "highest"  # of every product, see dit_jax.layers.dot_precision
 
     @nn.compact

@@ -217,7 +217,7 @@ def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray,
     rotations = runs.rotation @ SEARCH_TURNS
     translations = runs.translation + runs.rotation @ centre - rotations @ centre
     k = icp_lib.best_start(
-        icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), rotations, translations, seed=seed)
+        icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), (rotations, translations), seed=seed)
     )
     turn = round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6)  # 0, 90, 120 or 180
     return Estimates(

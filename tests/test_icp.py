@@ -301,7 +301,7 @@ def test_start_scores_rank_the_start_near_the_truth_first():
     t = np.array([0.2, 0.1, -0.3])
     tgt = tgt @ truth.T + t
     starts = [euler_zyx_to_matrix(a) @ truth for a in ([90.0, 0.0, 0.0], [5.0, -3.0, 0.0], [0.0, 180.0, 0.0])]
-    scores = icp.start_scores(src, tgt, np.stack(starts), np.stack([t] * 3))
+    scores = icp.start_scores(src, tgt, (np.stack(starts), np.stack([t] * 3)))
     assert scores.shape == (3,) and np.argmin(scores) == 1
     assert icp.best_start(scores) == 1
 

@@ -282,7 +282,7 @@ def test_a_checkpoint_with_the_optimiser_state_per_array_says_how_to_go_on(tmp_p
     )
     shutil.rmtree(tmp_path / "run" / "checkpoints" / "12")  # saved again in the older layout
     manager.reload()
-    training._save(manager, per_array, raw.meta)
+    training.checkpoints._save(manager, per_array, raw.meta)
     with pytest.raises(training.TrainCheckpointError, match="per parameter array") as error:
         training.train(
             dataclasses.replace(TINY, max_steps=16),
@@ -458,7 +458,7 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     params = model.init(jax.random.PRNGKey(7), config.model_config())
     checkpoint.save(source, params, config.model_config())
     optimizer = training.make_optimizer(config, 10)
-    state = training._initialise_from(training.init_state(config, optimizer), str(source), optimizer)
+    state = training.loop._initialise_from(training.init_state(config, optimizer), str(source), optimizer)
     assert jax.tree.all(
         jax.tree.map(lambda a, b: bool(np.array_equal(np.asarray(a), np.asarray(b))), state.params, params)
     )
@@ -467,7 +467,7 @@ def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
     wider_shapes = jax.eval_shape(lambda: model.init(jax.random.PRNGKey(0), wider))
     checkpoint.save(tmp_path / "wider", jax.tree.map(lambda a: np.zeros(a.shape, a.dtype), wider_shapes), wider)
     with pytest.raises(ValueError, match="does not have this run's shape"):
-        training._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
+        training.loop._initialise_from(training.init_state(config, optimizer), str(tmp_path / "wider"), optimizer)
     # A deeper run starts from the shallower checkpoint grown in depth. Whatever the deeper network's own
     # values (here random, in its shapes, without compiling its initialisation), its added layers' residual
     # outputs are zeroed, so it computes the shallow network's features: the same numbers, up to the float32
@@ -494,7 +494,7 @@ def _grown_from(source, config, optimizer):
     deeper_state = deeper_state.replace(
         params=jax.tree.map(lambda a: jnp.asarray(rng.normal(0.0, 0.3, a.shape), a.dtype), deeper_state.params)
     )
-    return training._initialise_from(deeper_state, str(source), optimizer).params
+    return training.loop._initialise_from(deeper_state, str(source), optimizer).params
 
 
 def test_a_network_grown_in_depth_registers_as_the_checkpoint_it_grew_from(shipped):

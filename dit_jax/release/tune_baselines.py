@@ -93,6 +93,42 @@ def choose(rows: list[dict]) -> dict:
     return chosen
 
 
+def _pair(batch: dict, i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pair ``i`` of a validation batch as float64 (src (N, 3), tgt (N, 3))."""
+    return batch["src"][i].astype(np.float64), batch["tgt"][i].astype(np.float64)
+
+
+def _feature_grid(batches: dict, log) -> tuple[dict, dict]:
+    """Stage 1: every feature setting times RANSAC's distance (and FGR's tuple scale) on every pair.
+
+    Returns ``(estimates, options)``: per method, per options key (their sorted JSON), the estimates per
+    setting and the :class:`~dit_jax.baselines.Options` themselves; later stages reuse the estimates.
+    """
+    estimates = {"fpfh_ransac": {}, "fgr": {}}
+    options = {"fpfh_ransac": {}, "fgr": {}}
+
+    def keep(method: str, opt: baselines.Options, setting: str, estimate) -> None:
+        key = json.dumps(opt.to_dict(), sort_keys=True)
+        options[method][key] = opt
+        estimates[method].setdefault(key, {}).setdefault(setting, []).append(estimate)
+
+    feature_combos = [dict(zip(FEATURE_GRID, v)) for v in itertools.product(*FEATURE_GRID.values())]
+    for setting, b in batches.items():
+        for i in range(len(b["src"])):
+            src, tgt = _pair(b, i)
+            for combo in feature_combos:
+                base = baselines.Options(**combo)
+                fs, ft = baselines.features(src, base), baselines.features(tgt, base)
+                for distance in DISTANCES:
+                    opt = base.replace(distance=distance)
+                    keep("fpfh_ransac", opt, setting, baselines.ransac_on_features(fs, ft, opt))
+                    for tuple_scale in TUPLE_SCALES:
+                        opt_fgr = opt.replace(fgr_tuple_scale=tuple_scale)
+                        keep("fgr", opt_fgr, setting, baselines.fgr_on_features(fs, ft, opt_fgr))
+        log(f"stage 1: {setting} done")
+    return estimates, options
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data-dir", default=None)
@@ -112,34 +148,9 @@ def main() -> None:
     batches = training.validation_batches(
         args.data_dir, args.settings, count=args.pairs, n_points=args.n_points, unseen=args.unseen
     )
-    pair = lambda b, i: (b["src"][i].astype(np.float64), b["tgt"][i].astype(np.float64))
     log = lambda msg: print(f"[{time.time() - started:6.0f} s] {msg}", flush=True)
 
-    # Stage 1: features x distance for RANSAC and FGR; estimates kept for the later stages.
-    feature_combos = [dict(zip(FEATURE_GRID, v)) for v in itertools.product(*FEATURE_GRID.values())]
-    est = {"fpfh_ransac": {}, "fgr": {}}
-    configs = {"fpfh_ransac": {}, "fgr": {}}
-    for setting, b in batches.items():
-        for i in range(len(b["src"])):
-            src, tgt = pair(b, i)
-            for combo in feature_combos:
-                base = baselines.Options(**combo)
-                fs, ft = baselines.features(src, base), baselines.features(tgt, base)
-                for distance in DISTANCES:
-                    opt = base.replace(distance=distance)
-                    key = json.dumps(opt.to_dict(), sort_keys=True)
-                    configs["fpfh_ransac"][key] = opt
-                    est["fpfh_ransac"].setdefault(key, {}).setdefault(setting, []).append(
-                        baselines.ransac_on_features(fs, ft, opt)
-                    )
-                    for tuple_scale in TUPLE_SCALES:
-                        opt_f = opt.replace(fgr_tuple_scale=tuple_scale)
-                        key_f = json.dumps(opt_f.to_dict(), sort_keys=True)
-                        configs["fgr"][key_f] = opt_f
-                        est["fgr"].setdefault(key_f, {}).setdefault(setting, []).append(
-                            baselines.fgr_on_features(fs, ft, opt_f)
-                        )
-        log(f"stage 1: {setting} done")
+    est, configs = _feature_grid(batches, log)
 
     def key_of(options: dict) -> str:
         return json.dumps(baselines.Options.from_dict(options).to_dict(), sort_keys=True)
@@ -179,7 +190,7 @@ def main() -> None:
             )
             key = key_of(opt.to_dict())
             est["fpfh_ransac"][key] = {
-                s: [baselines.fpfh_ransac(*pair(b, i), opt) for i in range(len(b["src"]))] for s, b in batches.items()
+                s: [baselines.fpfh_ransac(*_pair(b, i), opt) for i in range(len(b["src"]))] for s, b in batches.items()
             }
             report["rows"]["fpfh_ransac"].append(row("fpfh_ransac", opt.to_dict(), est["fpfh_ransac"][key]))
     chosen_rows["fpfh_ransac"] = choose(report["rows"]["fpfh_ransac"])
@@ -215,7 +226,7 @@ def main() -> None:
                 for setting, b in batches.items():
                     for i, (r0, t0) in enumerate(global_est[setting]):
                         result = icp_lib.icp(
-                            *pair(b, i),
+                            *_pair(b, i),
                             r0,
                             t0,
                             distances=schedule,
@@ -240,7 +251,7 @@ def main() -> None:
             "icp",
             baselines.Options(icp_distances=(d,)).to_dict(),
             {
-                s: [baselines.icp(*pair(b, i), baselines.Options(icp_distances=(d,))) for i in range(len(b["src"]))]
+                s: [baselines.icp(*_pair(b, i), baselines.Options(icp_distances=(d,))) for i in range(len(b["src"]))]
                 for s, b in batches.items()
             },
         )

@@ -13,9 +13,6 @@ non-finite updates) and :func:`validate`.
 
 from dit_jax.training.checkpoints import (  # noqa: F401
     TrainCheckpointError,
-    _managers,
-    _restore,
-    _save,
     export_params,
 )
 from dit_jax.training.config import (  # noqa: F401
@@ -27,15 +24,10 @@ from dit_jax.training.curves import (  # noqa: F401
     read_metrics,
 )
 from dit_jax.training.loop import (  # noqa: F401
-    _append_jsonl,
-    _initialise_from,
-    _truncate_log,
     train,
 )
 from dit_jax.training.step import (  # noqa: F401
     TrainState,
-    _flat,
-    _pair_loss,
     batch_loss_and_grads,
     init_state,
     initialize_distributed,
@@ -48,7 +40,6 @@ from dit_jax.training.step import (  # noqa: F401
     shard_batch,
 )
 from dit_jax.training.validation import (  # noqa: F401
-    _validation_errors,
     make_datasets,
     split_validation,
     validate,

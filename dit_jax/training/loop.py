@@ -15,20 +15,9 @@ import optax
 
 from dit_jax import pft
 from dit_jax.data import prefetch
+from dit_jax.training import step as step_lib
 from dit_jax.training.checkpoints import TrainCheckpointError, _managers, _restore, _save, export_params
 from dit_jax.training.config import TrainConfig
-from dit_jax.training.step import (
-    TrainState,
-    _flat,
-    init_state,
-    is_primary,
-    lr_schedule,
-    make_mesh,
-    make_optimizer,
-    make_train_step,
-    replicate,
-    shard_batch,
-)
 from dit_jax.training.validation import make_datasets, validate
 
 
@@ -49,7 +38,9 @@ def _truncate_log(path: str, after_step: int) -> None:
     os.replace(tmp, path)
 
 
-def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTransformation) -> TrainState:
+def _initialise_from(
+    state: step_lib.TrainState, path: str, optimizer: optax.GradientTransformation
+) -> step_lib.TrainState:
     """``state`` with the params of the model checkpoint at ``path`` and a fresh optimiser state."""
     from dit_jax import checkpoint
 
@@ -64,7 +55,7 @@ def _initialise_from(state: TrainState, path: str, optimizer: optax.GradientTran
     if shapes(params) != shapes(state.params):
         raise ValueError(f"init_from {path}: its network does not have this run's shape (model config)")
     params = jax.tree.map(jnp.asarray, params)
-    return state.replace(params=params, opt_state=optimizer.init(_flat(params)))
+    return state.replace(params=params, opt_state=optimizer.init(step_lib._flat(params)))
 
 
 def train(
@@ -87,22 +78,22 @@ def train(
     workdir = os.path.abspath(workdir)  # orbax needs absolute paths
     os.makedirs(workdir, exist_ok=True)
     model_config = config.model_config()
-    mesh = make_mesh()
+    mesh = step_lib.make_mesh()
     n_dev = mesh.devices.size
     if config.batch_size % n_dev:
         raise ValueError(f"batch_size {config.batch_size} is not divisible by the {n_dev} devices")
 
-    train_ds, val_ds = make_datasets(config, prepared_dir, progress and is_primary())
+    train_ds, val_ds = make_datasets(config, prepared_dir, progress and step_lib.is_primary())
     steps_per_epoch = len(train_ds) // config.batch_size
     if steps_per_epoch == 0:
         raise ValueError(f"{len(train_ds)} training pairs are fewer than one batch of {config.batch_size}")
     total_steps = steps_per_epoch * config.epochs
     if config.max_steps:
         total_steps = min(total_steps, config.max_steps)
-    optimizer = make_optimizer(config, total_steps)
+    optimizer = step_lib.make_optimizer(config, total_steps)
     last_mgr, best_mgr = _managers(workdir, config.keep)
     log_path = os.path.join(workdir, "metrics.jsonl")
-    primary = is_primary()
+    primary = step_lib.is_primary()
     log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
 
     best_val = math.inf
@@ -115,21 +106,21 @@ def train(
             )
         # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
         # overwritten, and a checkpoint of another model is refused before anything is compiled.
-        abstract = jax.eval_shape(lambda: init_state(config, optimizer))
+        abstract = jax.eval_shape(lambda: step_lib.init_state(config, optimizer))
         state, meta = _restore(last_mgr, latest, abstract, config)
         best_val = meta.get("best_val", math.inf)
         if primary:
             _truncate_log(log_path, latest)
     else:
-        state = init_state(config, optimizer)
+        state = step_lib.init_state(config, optimizer)
         if config.init_from:
             state = _initialise_from(state, config.init_from, optimizer)
         if primary:
             _truncate_log(log_path, -1)
             with open(os.path.join(workdir, "train_config.json"), "w") as f:
                 json.dump(config.to_json(), f, indent=2)
-    state = replicate(state, mesh)
-    step_fn = make_train_step(config, optimizer, mesh)
+    state = step_lib.replicate(state, mesh)
+    step_fn = step_lib.make_train_step(config, optimizer, mesh)
 
     def meta(step):
         return {
@@ -185,7 +176,7 @@ def train(
     t_last = time.time()
     step = start
     for epoch, batch in batches_from(start):
-        state, out = step_fn(state, shard_batch(batch, mesh))
+        state, out = step_fn(state, step_lib.shard_batch(batch, mesh))
         step += 1
         if step % config.log_every == 0 or step == total_steps:
             out = {k: float(v) for k, v in jax.device_get(out).items()}
@@ -195,7 +186,7 @@ def train(
                 "epoch": epoch,
                 "split": "train",
                 "skipped": int(state.skipped),
-                "lr": float(lr_schedule(config, total_steps)(step - 1)),
+                "lr": float(step_lib.lr_schedule(config, total_steps)(step - 1)),
                 **out,
                 "seconds_per_step": (now - t_last) / config.log_every,
             }
