@@ -200,72 +200,17 @@ def evaluate_scans(
         for name in baselines:
             if bar is not None:
                 bar.set_postfix_str(f"{set_name}: {name}")
-            found = []
-            for pair in set_pairs:
-                found.append(register_baseline(name, pair.source, pair.target))
-                if bar is not None:
-                    bar.update(1)
-            rotation, translation, seconds = (np.array(a) for a in zip(*found))
-            estimates[name] = Estimates(rotation, translation, seconds)
+            estimates[name] = _baseline_estimates(name, set_pairs, bar)
         results["pair_sets"][set_name] = {}
         for method, est in estimates.items():
-            rows = []
-            for k, pair in enumerate(set_pairs):
-                rotation, translation = est.rotation[k], est.translation[k]
-                extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
-                trans_err = float(np.linalg.norm(translation - pair.translation))
-                row = {
-                    "pair": pair.name,
-                    "rot_err": rotation_error_deg(rotation, pair.rotation),
-                    "trans_err": trans_err,
-                    "trans_err_rel": trans_err / extent,
-                    "seconds": float(est.seconds[k]),
-                    "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist(),
-                }
-                if method == METHOD_DIT_ICP:
-                    row["beats_truth"] = icp_lib.fits_better(
-                        pair.source, pair.target, (rotation, translation), (pair.rotation, pair.translation)
-                    )
-                if pair.info is not None:
-                    row.update(
-                        rmse=scans_lib.benchmark_rmse(rotation, translation, pair),
-                        scene=pair.scene,
-                        consecutive=pair.consecutive,
-                    )
-                if est.candidate is not None:
-                    row["candidate"] = str(est.candidate[k])
-                if est.level is not None:
-                    row["level"] = str(est.level[k])
-                if est.fitness is not None:
-                    row["fitness"] = float(est.fitness[k])
-                    verdict_settings = registrar.settings
-                    refine = "icp" if method == METHOD_DIT_ICP else "none"
-                    if est.verdict is not None:  # the pipeline's own, second candidate included
-                        row.update(verdict=bool(est.verdict[k]))
-                    elif est.agreement is not None:
-                        row.update(
-                            agreement=float(est.agreement[k]),
-                            verdict=bool(est.agreement[k] <= verdict_settings.max_disagreement(refine)),
-                        )
-                    else:
-                        row.update(verdict=bool(est.fitness[k] >= verdict_settings.min_fitness))
-                rows.append(row)
+            settings = registrar.settings if registrar is not None else None
+            rows = [_pair_row(method, est, k, pair, settings) for k, pair in enumerate(set_pairs)]
             summary = summarise_scans(rows, criterion)
             if rows and "verdict" in rows[0]:
-                refine = "icp" if method == METHOD_DIT_ICP else "none"
-                rule = (
-                    agreement_rule(registrar.settings.max_disagreement(refine))
-                    if registrar.settings.verdict_rule == "agreement"
-                    else fitness_rule(registrar.settings.min_fitness)
-                )
-                if method == METHOD_PIPELINE:
-                    rule = (
-                        "on scans, local features both ways agree, or the network lands on one of them, within "
-                        f"{registrar.settings.max_disagreement_features:g} deg and "
-                        f"{registrar.settings.max_offset_features:g} point spacings; elsewhere {rule}"
-                    )
                 summary["verdict"] = verdict_summary(
-                    np.array([r["rot_err"] for r in rows]), np.array([r["verdict"] for r in rows]), rule
+                    np.array([r["rot_err"] for r in rows]),
+                    np.array([r["verdict"] for r in rows]),
+                    _rule_text(method, registrar.settings),
                 )
             results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
         done = results["pair_sets"][set_name]
@@ -276,28 +221,8 @@ def evaluate_scans(
                 np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]),
             )
         if worst_pairs:
-            by_name = {p.name: p for p in set_pairs}
-            worst = []
-            for method, r in done.items():
-                row = max(r["rows"], key=lambda x: x["rot_err"])
-                pair, matrix = by_name[row["pair"]], np.asarray(row["matrix"])
-                worst.append(
-                    {
-                        "method": method,
-                        "pair": row["pair"],
-                        "src": pair.source,
-                        "tgt": pair.target,
-                        "R": matrix[:3, :3],
-                        "t": matrix[:3, 3],
-                        "truth": (pair.rotation, pair.translation),
-                    }
-                )
-            os.makedirs(out_dir, exist_ok=True)
-            report.plot_worst(
-                os.path.join(out_dir, f"worst_{set_name}.png"),
-                f"worst pair of each method: {set_name} ({os.path.basename(os.path.normpath(scans_dir))})",
-                worst,
-            )
+            title = f"worst pair of each method: {set_name} ({os.path.basename(os.path.normpath(scans_dir))})"
+            _plot_worst(done, set_pairs, os.path.join(out_dir, f"worst_{set_name}.png"), title)
     if bar is not None:
         bar.close()
     table = report.scan_tables(results)
@@ -305,3 +230,97 @@ def evaluate_scans(
     report.plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
     results["table"] = table
     return results
+
+
+def _baseline_estimates(name: str, pairs: Sequence, bar) -> Estimates:
+    """A baseline's :class:`Estimates` of scan pairs, each timed."""
+    found = []
+    for pair in pairs:
+        found.append(register_baseline(name, pair.source, pair.target))
+        if bar is not None:
+            bar.update(1)
+    rotation, translation, seconds = (np.array(a) for a in zip(*found))
+    return Estimates(rotation, translation, seconds)
+
+
+def _pair_row(method: str, est: Estimates, k: int, pair, settings) -> dict:
+    """Pair ``k``'s row of a method: its errors, time and matrix; the benchmark's RMSE where the pair has its
+    information matrix; DIT's rows add the verdict, judged by ``settings`` (the registrar's) where the
+    pipeline's own is not recorded."""
+    from dit_jax.data import scans as scans_lib
+
+    rotation, translation = est.rotation[k], est.translation[k]
+    extent = float(np.linalg.norm(np.ptp(pair.target, axis=0)))
+    trans_err = float(np.linalg.norm(translation - pair.translation))
+    row = {
+        "pair": pair.name,
+        "rot_err": rotation_error_deg(rotation, pair.rotation),
+        "trans_err": trans_err,
+        "trans_err_rel": trans_err / extent,
+        "seconds": float(est.seconds[k]),
+        "matrix": np.vstack([np.c_[rotation, translation], [0, 0, 0, 1]]).tolist(),
+    }
+    if method == METHOD_DIT_ICP:
+        row["beats_truth"] = icp_lib.fits_better(
+            pair.source, pair.target, (rotation, translation), (pair.rotation, pair.translation)
+        )
+    if pair.info is not None:
+        row.update(
+            rmse=scans_lib.benchmark_rmse(rotation, translation, pair), scene=pair.scene, consecutive=pair.consecutive
+        )
+    if est.candidate is not None:
+        row["candidate"] = str(est.candidate[k])
+    if est.level is not None:
+        row["level"] = str(est.level[k])
+    if est.fitness is not None:
+        row["fitness"] = float(est.fitness[k])
+        refine = "icp" if method == METHOD_DIT_ICP else "none"
+        if est.verdict is not None:  # the pipeline's own, second candidate included
+            row.update(verdict=bool(est.verdict[k]))
+        elif est.agreement is not None:
+            row.update(
+                agreement=float(est.agreement[k]),
+                verdict=bool(est.agreement[k] <= settings.max_disagreement(refine)),
+            )
+        else:
+            row.update(verdict=bool(est.fitness[k] >= settings.min_fitness))
+    return row
+
+
+def _rule_text(method: str, settings) -> str:
+    """The verdict rule a method's rows were judged by, in words, for the report."""
+    refine = "icp" if method == METHOD_DIT_ICP else "none"
+    rule = (
+        agreement_rule(settings.max_disagreement(refine))
+        if settings.verdict_rule == "agreement"
+        else fitness_rule(settings.min_fitness)
+    )
+    if method == METHOD_PIPELINE:
+        rule = (
+            "on scans, local features both ways agree, or the network lands on one of them, within "
+            f"{settings.max_disagreement_features:g} deg and "
+            f"{settings.max_offset_features:g} point spacings; elsewhere {rule}"
+        )
+    return rule
+
+
+def _plot_worst(done: dict, pairs: Sequence, path: str, title: str) -> None:
+    """Each method's worst pair of a pair set (the largest rotation error), drawn to ``path``."""
+    by_name = {p.name: p for p in pairs}
+    worst = []
+    for method, r in done.items():
+        row = max(r["rows"], key=lambda x: x["rot_err"])
+        pair, matrix = by_name[row["pair"]], np.asarray(row["matrix"])
+        worst.append(
+            {
+                "method": method,
+                "pair": row["pair"],
+                "src": pair.source,
+                "tgt": pair.target,
+                "R": matrix[:3, :3],
+                "t": matrix[:3, 3],
+                "truth": (pair.rotation, pair.translation),
+            }
+        )
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    report.plot_worst(path, title, worst)

@@ -207,14 +207,7 @@ def evaluate(
     """
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
-    registrar = None
-    if checkpoint_dir is not None:
-        from dit_jax import registration
-
-        loaded = registration.load(checkpoint_dir, **(inference or {}))
-        registrar = registration.Registrar(
-            loaded.params, loaded.config.replace(compute_dtype=compute_dtype), loaded.settings
-        )
+    registrar = _registrar(checkpoint_dir, inference, compute_dtype)
     n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
     test_shapes = shapes_lib.load_shapes(
         data_dir,
@@ -246,26 +239,14 @@ def evaluate(
     earlier = _reusable(reuse, data_dir, unseen, variant, n_points)
     first_dit = None
     for setting, (ds, indices) in datasets.items():
-        threshold = (
-            None
-            if gmcce_threshold is None
-            else GMCCE_THRESHOLDS[setting]
-            if gmcce_threshold == "authors"
-            else float(gmcce_threshold)
-        )
-        preds: dict[str, Estimates] = {}
-        if registrar is not None:
-            if bar is not None:
-                bar.set_postfix_str(f"{setting}: DIT")
-            run = registrar if threshold is None else _with_settings(registrar, gmcce_threshold=threshold)
-            preds.update(
-                run_dit(run, [(ds[int(n)]["src"], ds[int(n)]["tgt"]) for n in indices], batch_size=batch_size, bar=bar)
-            )
+        run = registrar
+        if registrar is not None and gmcce_threshold is not None:
+            run = _with_settings(registrar, gmcce_threshold=_setting_threshold(setting, gmcce_threshold))
+        preds = _dit_estimates(run, ds, indices, batch_size, bar, setting)
         reused = {}
         for name in baselines:
             old = earlier.get(setting, {}).get(name)
-            options = baselines_lib.tuned_options(name, setting).to_dict()
-            if old is not None and old["pairs"] == len(indices) and old.get("options") == options:
+            if old is not None and old["pairs"] == len(indices) and old.get("options") == _options(name, setting):
                 reused[name] = old
                 if bar is not None:
                     bar.update(len(indices))
@@ -273,47 +254,11 @@ def evaluate(
             if bar is not None:
                 bar.set_postfix_str(f"{setting}: {name}")
             preds[name] = predict_baseline(name, ds, indices, bar, setting)
-        truth = ds.batch(indices)
-        tolerance = (
-            metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
-            if preds
-            else None
-        )
-        inference_settings = registrar.settings if registrar else None
-        scored = {}
-        for name, pred in preds.items():
-            verdict_options = {}
-            if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE):
-                verdict_options = dict(
-                    min_fitness=inference_settings.min_fitness,
-                    max_disagreement=inference_settings.max_disagreement("icp" if name == METHOD_DIT_ICP else "none"),
-                )
-            scored[name] = score(
-                pred, ds, indices, test_shapes.shape_names, symmetry_tolerance=tolerance, **verdict_options
-            )
+        scored = _score_methods(preds, ds, indices, test_shapes.shape_names, registrar and registrar.settings)
         for name in baselines:
             if name in scored:
-                scored[name]["options"] = baselines_lib.tuned_options(name, setting).to_dict()
+                scored[name]["options"] = _options(name, setting)
         order = [m for m in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE) if m in scored] + list(baselines)
-        if METHOD_DIT_ICP in scored:
-            errors = {m: np.array(scored[m]["per_pair"]["rot_err"]) for m in (METHOD_DIT, METHOD_DIT_ICP)}
-            refined = preds[METHOD_DIT_ICP]
-            beats_truth = np.array(
-                [
-                    icp_lib.fits_better(
-                        ds[int(n)]["src"],
-                        ds[int(n)]["tgt"],
-                        (refined.rotation[k], refined.translation[k]),
-                        (truth["R"][k], truth["t"][k]),
-                    )
-                    for k, n in enumerate(indices)
-                ]
-            )
-            scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(
-                errors[METHOD_DIT], errors[METHOD_DIT_ICP], beats_truth
-            )
-            if refined.backward is not None:
-                scored[METHOD_DIT_ICP]["backward_kept"] = int(np.sum(refined.backward))
         results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
         model_config = registrar and run.settings.model_config(run.config)
         results["setting_info"][setting] = {
@@ -326,20 +271,102 @@ def evaluate(
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
         if worst_pairs and preds:
-            missing = report.plot_worst_pairs(
-                ds,
-                results["settings"][setting],
-                os.path.join(out_dir, f"worst_{setting}.png"),
-                f"worst pair of each method: {setting} ({results['data']}, {'unseen' if unseen else 'seen'} split)",
-            )
-            if missing:
-                print(
-                    f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
-                    f"keep their worst pair",
-                    file=sys.stderr,
-                )
+            _plot_worst(ds, results, setting, unseen, out_dir)
     if bar is not None:
         bar.close()
+    _write_outputs(results, first_dit, out_dir)
+    return results
+
+
+def _registrar(checkpoint_dir: str | None, inference: dict | None, compute_dtype: str):
+    """The :class:`~dit_jax.registration.Registrar` of a checkpoint with ``inference``'s changes to its
+    settings; None without a checkpoint."""
+    if checkpoint_dir is None:
+        return None
+    from dit_jax import registration
+
+    loaded = registration.load(checkpoint_dir, **(inference or {}))
+    return registration.Registrar(loaded.params, loaded.config.replace(compute_dtype=compute_dtype), loaded.settings)
+
+
+def _setting_threshold(setting: str, gmcce_threshold: float | str) -> float:
+    """GMCCE's threshold for ``setting``: the authors' for it ("authors") or the number given."""
+    return GMCCE_THRESHOLDS[setting] if gmcce_threshold == "authors" else float(gmcce_threshold)
+
+
+def _options(name: str, setting: str) -> dict:
+    """A baseline's tuned options for ``setting``, as stored beside its scores."""
+    return baselines_lib.tuned_options(name, setting).to_dict()
+
+
+def _dit_estimates(registrar, ds, indices: np.ndarray, batch_size: int, bar, setting: str) -> dict[str, Estimates]:
+    """DIT's rows on pairs ``indices`` of ``ds`` (:func:`~dit_jax.evaluators.common.run_dit`); none without a
+    registrar."""
+    if registrar is None:
+        return {}
+    if bar is not None:
+        bar.set_postfix_str(f"{setting}: DIT")
+    pairs = [(ds[int(n)]["src"], ds[int(n)]["tgt"]) for n in indices]
+    return run_dit(registrar, pairs, batch_size=batch_size, bar=bar)
+
+
+def _score_methods(preds: dict[str, Estimates], ds, indices: np.ndarray, shape_names, inference_settings) -> dict:
+    """Every method's :func:`score` on one setting's pairs; DIT's rows judged by the registrar's verdict
+    thresholds, and the refined row with its :func:`refinement_summary`."""
+    if not preds:
+        return {}
+    truth = ds.batch(indices)
+    tolerance = metrics.symmetry_tolerance(complete_shapes(truth), truth["R"], truth["t"], SYMMETRY_DEGREES)
+    scored = {}
+    for name, pred in preds.items():
+        verdict_options = {}
+        if inference_settings is not None and name in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE):
+            verdict_options = dict(
+                min_fitness=inference_settings.min_fitness,
+                max_disagreement=inference_settings.max_disagreement("icp" if name == METHOD_DIT_ICP else "none"),
+            )
+        scored[name] = score(pred, ds, indices, shape_names, symmetry_tolerance=tolerance, **verdict_options)
+    if METHOD_DIT_ICP in scored:
+        errors = {m: np.array(scored[m]["per_pair"]["rot_err"]) for m in (METHOD_DIT, METHOD_DIT_ICP)}
+        refined = preds[METHOD_DIT_ICP]
+        beats_truth = np.array(
+            [
+                icp_lib.fits_better(
+                    ds[int(n)]["src"],
+                    ds[int(n)]["tgt"],
+                    (refined.rotation[k], refined.translation[k]),
+                    (truth["R"][k], truth["t"][k]),
+                )
+                for k, n in enumerate(indices)
+            ]
+        )
+        scored[METHOD_DIT_ICP]["refinement"] = refinement_summary(
+            errors[METHOD_DIT], errors[METHOD_DIT_ICP], beats_truth
+        )
+        if refined.backward is not None:
+            scored[METHOD_DIT_ICP]["backward_kept"] = int(np.sum(refined.backward))
+    return scored
+
+
+def _plot_worst(ds, results: dict, setting: str, unseen: bool, out_dir: str) -> None:
+    """``worst_<setting>.png``: each method's worst pair of the setting."""
+    missing = report.plot_worst_pairs(
+        ds,
+        results["settings"][setting],
+        os.path.join(out_dir, f"worst_{setting}.png"),
+        f"worst pair of each method: {setting} ({results['data']}, {'unseen' if unseen else 'seen'} split)",
+    )
+    if missing:
+        print(
+            f"note: worst_{setting}.png leaves out {', '.join(missing)}: reused from results that did not "
+            f"keep their worst pair",
+            file=sys.stderr,
+        )
+
+
+def _write_outputs(results: dict, first_dit: tuple | None, out_dir: str) -> None:
+    """results.md and .json, success_ratio.png and (where DIT ran) registrations.png of its first setting's
+    first three pairs; the tables go into ``results["table"]`` too."""
     table = report.markdown_tables(results)
     report.write_results(out_dir, results, table)
     report.plot_success(results, os.path.join(out_dir, "success_ratio.png"))
@@ -350,7 +377,6 @@ def evaluate(
             ds, pred, shown, os.path.join(out_dir, "registrations.png"), f"DIT on {results['data']} ({setting})"
         )
     results["table"] = table
-    return results
 
 
 def _with_settings(registrar, **changes):
