@@ -7,7 +7,7 @@ and a few beyond 90. Validation draws its pairs the same way. It runs in the bac
 resumes across sessions:
 
     python train.py --config configs/stage8.py --workdir runs/stage8 --no-progress
-    python train.py --workdir runs/stage8 --resume --no-progress
+    python train.py --config configs/stage8.py --workdir runs/stage8 --resume --no-progress
 
 It ships only if it passes the shipping rule (``python -m dit_jax.release.shipping_rule``, docs/training.md).
 """
@@ -26,9 +26,9 @@ def get_config():
         seed=9,
         n_points=1000,
         max_angle=60.0,
-        max_steps=6000,
-        lr_drops=(0.85,),
-        eval_every=1000,
+        max_steps=1500,
+        lr_drops=(0.8,),
+        eval_every=500,
         ckpt_every=100,
         keep=2,
     ).to_config_dict()
