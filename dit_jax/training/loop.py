@@ -96,29 +96,7 @@ def train(
     primary = step_lib.is_primary()
     log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
 
-    best_val = math.inf
-    latest = last_mgr.latest_step()
-    if latest is not None:
-        if not resume:
-            raise TrainCheckpointError(
-                f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
-                "continue, or choose a new --workdir"
-            )
-        # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
-        # overwritten, and a checkpoint of another model is refused before anything is compiled.
-        abstract = jax.eval_shape(lambda: step_lib.init_state(config, optimizer))
-        state, meta = _restore(last_mgr, latest, abstract, config)
-        best_val = meta.get("best_val", math.inf)
-        if primary:
-            _truncate_log(log_path, latest)
-    else:
-        state = step_lib.init_state(config, optimizer)
-        if config.init_from:
-            state = _initialise_from(state, config.init_from, optimizer)
-        if primary:
-            _truncate_log(log_path, -1)
-            with open(os.path.join(workdir, "train_config.json"), "w") as f:
-                json.dump(config.to_json(), f, indent=2)
+    state, best_val = _starting_state(config, optimizer, workdir, last_mgr, resume=resume, primary=primary)
     state = step_lib.replicate(state, mesh)
     step_fn = step_lib.make_train_step(config, optimizer, mesh)
 
@@ -157,12 +135,7 @@ def train(
         params = jax.device_put(jax.device_get(state.params), jax.local_devices()[0])
         val_metrics = validate(params, val_ds, model_config, config.val_pairs)
         log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
-        line = (
-            f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
-            f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
-            f"{val_metrics['network_match_accuracy']:.3f}), translation error "
-            f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})"
-        )
+        line = _validation_line(step, val_metrics)
         if bar is not None:
             bar.write(line)
         elif primary:
@@ -225,3 +198,44 @@ def train(
         # Every process: orbax's managers synchronise the processes (process 0 writes).
         result["model"] = export_params(workdir, os.path.join(workdir, "model"))
     return result
+
+
+def _starting_state(
+    config: TrainConfig, optimizer: optax.GradientTransformation, workdir: str, last_mgr, *, resume: bool, primary: bool
+) -> tuple[step_lib.TrainState, float]:
+    """The state a run starts from, and its best validation so far: the latest checkpoint in ``workdir``
+    where ``resume`` (refused without it), else fresh parameters or ``config.init_from``'s. The log is cut
+    back to the checkpoint's step (or emptied), and a fresh run writes its ``train_config.json``."""
+    log_path = os.path.join(workdir, "metrics.jsonl")
+    latest = last_mgr.latest_step()
+    if latest is not None:
+        if not resume:
+            raise TrainCheckpointError(
+                f"{workdir} already holds checkpoints (step {latest}); pass --resume to "
+                "continue, or choose a new --workdir"
+            )
+        # The state's shapes suffice to restore it: no fresh parameters are computed (or compiled) to be
+        # overwritten, and a checkpoint of another model is refused before anything is compiled.
+        abstract = jax.eval_shape(lambda: step_lib.init_state(config, optimizer))
+        state, meta = _restore(last_mgr, latest, abstract, config)
+        if primary:
+            _truncate_log(log_path, latest)
+        return state, meta.get("best_val", math.inf)
+    state = step_lib.init_state(config, optimizer)
+    if config.init_from:
+        state = _initialise_from(state, config.init_from, optimizer)
+    if primary:
+        _truncate_log(log_path, -1)
+        with open(os.path.join(workdir, "train_config.json"), "w") as f:
+            json.dump(config.to_json(), f, indent=2)
+    return state, math.inf
+
+
+def _validation_line(step: int, val_metrics: dict) -> str:
+    """A validation's one line for the console."""
+    return (
+        f"step {step}: validation rotation error {val_metrics['rotation_error']:.5f} deg "
+        f"(network alone {val_metrics['network_rotation_error']:.3f}, match accuracy "
+        f"{val_metrics['network_match_accuracy']:.3f}), translation error "
+        f"{val_metrics['translation_error']:.5f} ({val_metrics['network_translation_error']:.4f})"
+    )
