@@ -48,7 +48,7 @@ import numpy as np
 from dit_jax import compile_cache, geometry
 from dit_jax import icp as icp_lib
 from dit_jax.configs import DITConfig
-from dit_jax.result import VERDICT_LEVELS, Result  # noqa: F401  (importable from here as before)
+from dit_jax.result import VERDICT_LEVELS, Result, Stage  # noqa: F401  (importable from here as before)
 from dit_jax.sampling import (  # noqa: F401
     SIZE_RATIO_WARNING,
     InputError,
@@ -432,12 +432,12 @@ def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config:
         direction="forward",
         start_turn=e.forward.start_turn,
         agreement_band=judged.band,
-        network=None,
         **common,
     )
+    network_stage = network_result.as_stage("network")
     method = settings.refinement_for(len(p.src), len(p.tgt))
     if method == "none":
-        return network_result
+        return dataclasses.replace(network_result, stages=(network_stage,))
     backward = (back.rotation, back.translation) if back is not None else None
     # GICP works at the clouds' point spacing: measured once for the pair.
     spacing = _spacing(p, settings.seed) if method == "gicp" else None
@@ -465,10 +465,9 @@ def _finish(p: Normalised, e: PairEstimate, settings: InferenceSettings, config:
         direction=refined.direction,
         start_turn=turn,
         agreement_band=judged.band,
-        network=network_result,
         **common,
     )
-    return result
+    return dataclasses.replace(result, stages=(network_stage, result.as_stage("refined")))
 
 
 def _network_fields(p: Normalised, e: PairEstimate, settings: InferenceSettings) -> dict:
@@ -592,7 +591,6 @@ def features_result(
         direction=found.kept_direction,
         start_turn=0.0,
         agreement_band=None,
-        network=None,
         candidate="features",
         candidate_seconds=found.seconds,
         rival=max(found.rival),
@@ -625,10 +623,10 @@ def confirm_by_network(p: Normalised, e: PairEstimate, found, settings: Inferenc
         fitness=float(e.extras["fitness"]),
         refinement=None,
         refine_seconds=0.0,
-        network=None,
         **unjudged,
         **common,
     )
+    raw = dataclasses.replace(raw, stages=(raw.as_stage("network"),))
     reach = min(geometry.rotation_angle_deg(e.forward.rotation.T @ r) for r, _ in (found.forward, found.backward))
     if reach > CONFIRM_REACH:
         return raw
@@ -645,16 +643,16 @@ def confirm_by_network(p: Normalised, e: PairEstimate, found, settings: Inferenc
     # Polished by the features' own ICP, so that the network's motion and theirs are optima of one criterion.
     started = time.perf_counter()
     rotation, translation = found.polish((refined.rotation, refined.translation))
-    return _result(
+    polished = _result(
         rotation,
         translation,
         fitness=_fitness(p, rotation, translation, config),
         refinement=method,
         refine_seconds=refined.seconds + time.perf_counter() - started,
-        network=raw,
         **unjudged,
         **common,
     )
+    return dataclasses.replace(polished, stages=(*raw.stages, polished.as_stage("refined")))
 
 
 def combine(p: Normalised, result: Result, found, settings: InferenceSettings, config: DITConfig) -> Result:
@@ -716,7 +714,6 @@ def combine(p: Normalised, result: Result, found, settings: InferenceSettings, c
         max_rival=settings.max_rival_features,
         twin=twin,
         max_twin=settings.max_twin_features,
-        first=result,
     )
 
 

@@ -1,5 +1,6 @@
 """The result of a registration (:class:`Result`): the motion, the evidence behind it and the verdict's level, with
-its JSON form, its explanation in words and its plot."""
+its JSON form, its explanation in words and its plot; and the network's motion at each step before it
+(:class:`Stage`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,33 @@ import numpy as np
 
 #: The verdict's levels (:func:`dit_jax.pipeline.verdict_level`), most confident first.
 VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    """The network's motion at one step of the pipeline, in the caller's units, with what it was judged by.
+
+    Attributes:
+      name: "network" (as the network found it) or "refined" (after the refinement).
+      rotation: (3, 3) float64; translation: (3,) float64.
+      seconds: wall time up to this step: the network's, and the refinement's for "refined".
+      fitness: share of the sampled source points the motion lays on the target.
+      agreement: degrees between the two directions where they were compared; NaN otherwise.
+      direction: "forward" or "backward" (which direction's motion this is).
+      refinement: "icp" or "gicp" for "refined", else None.
+      verdict: whether this step's own evidence confirmed it (False where it was left for
+        :func:`dit_jax.pipeline.combine` to judge).
+    """
+
+    name: str
+    rotation: np.ndarray
+    translation: np.ndarray
+    seconds: float
+    fitness: float
+    agreement: float
+    direction: str
+    refinement: str | None
+    verdict: bool
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,10 +97,10 @@ class Result:
       agreement_band: ``(low, high, pairs, right)``: the band of agreement (low, high] degrees this result
         falls in, how many validation results fell in it and how many of those were within 5 degrees of the
         truth; None where the settings record no bands, no agreement was measured or the band is small.
-      network: where ICP refined the result, the network's own result before it (its verdict judged by the
-        network's threshold); None otherwise.
-      first: where the network ran after the features did not settle the pair, its result (refined where it
-        lay within reach of theirs), before :func:`dit_jax.pipeline.combine` judged it; None otherwise.
+      stages: the network's motion at each step it ran, in order: "network" and, where it was refined,
+        "refined" (:class:`Stage`; :meth:`stage` finds one by name). Empty where the features settled the pair
+        and the network did not run. Where it ran after the features, these are its motions before
+        :func:`dit_jax.pipeline.combine` judged them.
     """
 
     rotation: np.ndarray
@@ -94,11 +122,10 @@ class Result:
     direction: str
     start_turn: float
     agreement_band: tuple | None
-    network: Result | None
+    stages: tuple[Stage, ...] = ()
     candidate: str = "network"
     candidate_agreement: float = float("nan")
     candidate_seconds: float = 0.0
-    first: Result | None = None
     offset: float = float("nan")
     max_offset: float = float("nan")
     features_disagreement: float = float("nan")
@@ -106,6 +133,24 @@ class Result:
     max_rival: float = float("nan")
     twin: float = float("nan")
     max_twin: float = float("nan")
+
+    def stage(self, name: str) -> Stage | None:
+        """The network's motion at step ``name`` ("network" or "refined"), or None where it did not run."""
+        return next((stage for stage in self.stages if stage.name == name), None)
+
+    def as_stage(self, name: str) -> Stage:
+        """This result's motion and evidence as step ``name`` of a later result."""
+        return Stage(
+            name,
+            self.rotation,
+            self.translation,
+            self.total_seconds,
+            self.fitness,
+            self.agreement,
+            self.direction,
+            self.refinement,
+            self.verdict,
+        )
 
     @property
     def total_seconds(self) -> float:
@@ -148,7 +193,7 @@ class Result:
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
-        if self.first is not None:
+        if not np.isnan(self.candidate_agreement):  # the network ran after the features
             line = (
                 f"registering by local features both ways gave two motions {self.features_disagreement:.2f} deg "
                 f"apart; the network's motion lands {self.candidate_agreement:.2f} deg "

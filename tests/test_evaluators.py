@@ -400,7 +400,7 @@ def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_pa
     pair = pairs_lib.PairDataset(shapes, pairs_lib.PairConfig(setting="independent_clean", n_points=n_points))[0]
     result = registrar.register(pair["src"], pair["tgt"])
     rows = results["settings"]["independent_clean"]
-    for method, motion in (("DIT+ICP", result), ("DIT", result.network)):
+    for method, motion in (("DIT+ICP", result), ("DIT", result.stage("network"))):
         # the metric evaluate.py scores with, on the motion register returned
         expected = float(
             metrics.rotation_error_deg(jnp.asarray(motion.rotation[None]), jnp.asarray(pair["R"][None]))[0]

@@ -381,7 +381,7 @@ def test_gicp_refinement_registers_a_real_scan_pair_through_the_pipeline(dragon_
 
     pair = scans.scan_pairs(scans.load_scans(dragon_dir), skip=1)[0]
     result = registration.load(refine="gicp", feature_candidate="off").register(pair.source, pair.target)
-    assert result.refinement == "gicp" and result.network is not None and result.refine_seconds > 0
+    assert result.refinement == "gicp" and result.stage("network") is not None and result.refine_seconds > 0
     assert _rotation_error_deg(result.rotation, pair.rotation) < 0.5
     assert result.verdict and result.agreement <= result.threshold == registration.load().settings.max_disagreement(
         "icp"
@@ -403,7 +403,7 @@ def test_local_features_register_dense_scans_48_degrees_apart_and_settle_them_al
     assert result.candidate == "features" and result.label == "features + ICP"
     assert _rotation_error_deg(result.rotation, pair.rotation) < 2.0
     assert result.candidate_seconds > 0 and result.to_json()["candidate"] == "features"
-    assert result.first is None and result.level == "trusted" and result.network is None and result.seconds == 0.0
+    assert result.stages == () and result.level == "trusted" and result.seconds == 0.0
     assert result.agreement <= result.threshold and result.offset <= result.max_offset
     assert result.total_seconds == result.candidate_seconds
     assert "local features both ways" in result.evidence()
@@ -423,13 +423,14 @@ def test_where_the_features_see_a_rival_the_network_must_confirm_them(dragon_dir
     )
     model = registration.load()
     result = model.register(pair.source, pair.target)
-    assert result.first is not None and result.first.direction == "forward"
+    network = result.stage("refined") or result.stage("network")
+    assert network is not None and network.direction == "forward"
     assert result.features_disagreement <= model.settings.max_disagreement_features
     assert result.candidate == "features" and result.level == "probably wrong"
     assert _rotation_error_deg(result.rotation, pair.rotation) < 2.0
-    assert _rotation_error_deg(result.first.rotation, pair.rotation) > 10.0
+    assert _rotation_error_deg(network.rotation, pair.rotation) > 10.0
     alone = registration.load(feature_candidate="off").register(pair.source, pair.target)
-    assert alone.candidate == "network" and alone.first is None and not alone.verdict
+    assert alone.candidate == "network" and np.isnan(alone.candidate_agreement) and not alone.verdict
     assert _rotation_error_deg(alone.rotation, pair.rotation) > 10.0
 
 
@@ -477,7 +478,7 @@ def test_where_the_features_disagree_the_network_decides_and_only_agreement_is_t
         return pipeline.combine(p, network_result, found, settings, model.config)
 
     right = combined(network, wrong, truth)
-    assert right.level == "trusted" and right.first is network and right.candidate_agreement < 1.0
+    assert right.level == "trusted" and right.stages is network.stages and right.candidate_agreement < 1.0
     assert _rotation_error_deg(right.rotation, pair.rotation) < 1.0 and right.candidate_seconds == 0.5
     off = dataclasses.replace(network, rotation=wrong[0], translation=wrong[1])
     apart = combined(off, truth, (truth[0] @ euler_zyx_to_matrix([0.0, 45.0, 0.0]), truth[1]))

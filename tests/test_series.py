@@ -108,7 +108,6 @@ class _ExactRegistrar:
             direction="forward",
             start_turn=0.0,
             agreement_band=None,
-            network=None,
         )
 
 

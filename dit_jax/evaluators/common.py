@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dit_jax import geometry
+
+if TYPE_CHECKING:
+    from dit_jax.result import Result, Stage
 
 #: The network alone.
 METHOD_DIT = "DIT"
@@ -54,20 +58,28 @@ class Estimates:
     level: np.ndarray | None = None
 
     @classmethod
-    def from_results(cls, results: Sequence, *, own_verdict: bool = False) -> Estimates:
-        """From :class:`dit_jax.pipeline.Result` s, each timed with its refinement."""
-        agreement = np.array([r.agreement for r in results])
-        refined = bool(results) and results[0].refinement is not None
+    def from_stages(cls, stages: Sequence[Stage]) -> Estimates:
+        """From one step of the network's motion per pair (:class:`dit_jax.result.Stage`), each timed up to
+        that step."""
+        agreement = np.array([s.agreement for s in stages])
+        refined = bool(stages) and stages[0].refinement is not None
         return cls(
-            rotation=np.stack([r.rotation for r in results]),
-            translation=np.stack([r.translation for r in results]),
-            seconds=np.array([r.total_seconds for r in results]),
-            fitness=np.array([r.fitness for r in results]),
+            rotation=np.stack([s.rotation for s in stages]),
+            translation=np.stack([s.translation for s in stages]),
+            seconds=np.array([s.seconds for s in stages]),
+            fitness=np.array([s.fitness for s in stages]),
             agreement=None if np.isnan(agreement).all() else agreement,
-            backward=np.array([r.direction == "backward" for r in results]) if refined else None,
-            verdict=np.array([r.verdict for r in results]) if own_verdict else None,
-            candidate=np.array([r.candidate for r in results]) if own_verdict else None,
-            level=np.array([r.level for r in results]) if own_verdict else None,
+            backward=np.array([s.direction == "backward" for s in stages]) if refined else None,
+        )
+
+    @classmethod
+    def from_results(cls, results: Sequence[Result]) -> Estimates:
+        """From the pipeline's :class:`dit_jax.result.Result` s, each timed whole, with their own verdicts."""
+        return dataclasses.replace(
+            cls.from_stages([r.as_stage("result") for r in results]),
+            verdict=np.array([r.verdict for r in results]),
+            candidate=np.array([r.candidate for r in results]),
+            level=np.array([r.level for r in results]),
         )
 
 
@@ -81,15 +93,16 @@ def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None)
     settings = registrar.settings
     results = registrar.register_pairs(pairs, batch_size=batch_size, on_pair=bar.update if bar else None)
     network_results = results
-    if any(r.candidate == "features" and r.first is None for r in results):
+    if any(not r.stages for r in results):
         without = type(registrar)(registrar.params, registrar.config, settings, feature_candidate="off")
         network_results = without.register_pairs(pairs, batch_size=batch_size)
-    refined = [r.first or r for r in network_results]
-    out = {METHOD_DIT: Estimates.from_results([r.network or r for r in refined])}
+    out = {METHOD_DIT: Estimates.from_stages([r.stage("network") for r in network_results])}
     if settings.refine != "none":
-        out[METHOD_DIT_ICP] = Estimates.from_results(refined)
+        # Where the network ran after the features and landed out of their reach, it was not refined.
+        refined = [r.stage("refined") or r.stage("network") for r in network_results]
+        out[METHOD_DIT_ICP] = Estimates.from_stages(refined)
         if settings.feature_candidate != "off":
-            out[METHOD_PIPELINE] = Estimates.from_results(results, own_verdict=True)
+            out[METHOD_PIPELINE] = Estimates.from_results(results)
     return out
 
 
