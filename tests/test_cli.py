@@ -398,7 +398,7 @@ def test_a_probably_wrong_result_warns_and_exits_3_but_is_still_written(
         rule,
     )
     report = json.loads(out)
-    assert code == expected and report["verdict"] == ("probably wrong" if expected else "trusted")
+    assert code == expected and report["level"] == ("probably wrong" if expected else "trusted")
     assert report["verdict_rule"] == rule and 0.0 <= report["fitness"] <= 1.0
     if rule == "agreement":
         assert report["threshold"] == threshold and 0.0 <= report["agreement_deg"] <= 180.0
@@ -483,7 +483,7 @@ def test_max_disagreement_overrides_the_checkpoints_threshold(capsys, tmp_path, 
             180,
         )
         report = json.loads(out)
-        assert code == 0 and err == "" and report["verdict"] == "trusted" and report["threshold"] == 180
+        assert code == 0 and err == "" and report["level"] == "trusted" and report["threshold"] == 180
     for argv, fragment in (
         (("--max-disagreement", -0.5), "between 0 and 180"),
         (("--max-disagreement", 181), "between 0 and 180"),
@@ -519,7 +519,7 @@ def test_real_scans_network_alone_is_trusted_only_where_both_directions_agree_cl
         error = np.degrees(np.arccos(np.clip((np.trace(rotation.T @ truth) - 1) / 2, -1, 1)))
         assert (error < 5) == right, (source, error)
         trusted = report["agreement_deg"] <= report["threshold"]
-        level = report["verdict"]
+        level = report["level"]
         assert (level == "trusted") == trusted, report
         assert code == (3 if level == "probably wrong" else 0), (source, code, err)
         assert ("probably wrong" in err) == (level == "probably wrong"), err
@@ -555,7 +555,7 @@ def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
         errors[refine] = rotation_angle_deg(np.asarray(report["matrix"])[:3, :3].T @ truth[:3, :3])
         assert report["refinement"] == (None if refine == "none" else "icp")
         if refine == "icp":
-            assert report["verdict"] == "trusted" and report["candidate_agreement_deg"] is None
+            assert report["level"] == "trusted" and report["candidate_agreement_deg"] is None
         assert (tmp_path / f"{refine}.png").read_bytes()[:4] == b"\x89PNG"
     assert errors["icp"] < errors["none"] - 1.0 and errors["icp"] < 1.5, errors
 
@@ -594,7 +594,7 @@ def test_real_scans_refined_by_default_land_within_a_few_degrees(capsys, dragon_
         error = rotation_angle_deg(np.asarray(json.loads(out)["matrix"])[:3, :3].T @ truth)
         assert error < bound and json.loads(out)["refinement"] in ("icp", "gicp"), (source, error)
         if first:
-            assert code == 0 and err == "" and json.loads(out)["verdict"] == "trusted", err
+            assert code == 0 and err == "" and json.loads(out)["level"] == "trusted", err
 
 
 def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_path, tiny_checkpoint, pair):

@@ -180,7 +180,7 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     assert (tmp_path / "series.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     np.testing.assert_allclose(report["poses"][0], np.eye(4), atol=1e-12)
     assert io.read(tmp_path / "merged.ply").shape == (1200, 3)
-    suspect = [link for link in report["links"] if link["verdict"] == "probably wrong"]
+    suspect = [link for link in report["links"] if link["level"] == "probably wrong"]
     assert code == (3 if suspect or report["loop_gap_deg"] > cli.LOOP_GAP_WARNING_DEG else 0), err
     code = cli.series_main(paths[:2] + ["--loop"])
     assert code == 2 and "--loop needs at least 3 scans" in capsys.readouterr().err
