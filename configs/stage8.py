@@ -26,7 +26,7 @@ def get_config():
         seed=9,
         n_points=1000,
         max_angle=60.0,
-        max_steps=1500,
+        max_steps=1000,
         lr_drops=(0.8,),
         eval_every=500,
         ckpt_every=100,
