@@ -18,7 +18,8 @@ class Stage:
     """The network's motion at one step of the pipeline, in the caller's units, with what it was judged by.
 
     Attributes:
-      name: "network" (as the network found it) or "refined" (after the refinement).
+      name: "network" (as the network found it) or "refined" (after the refinement) in
+        :attr:`Result.stages`; :meth:`Result.as_stage` names a whole result's record as its caller asks.
       rotation: (3, 3) float64; translation: (3,) float64.
       seconds: wall time up to this step: the network's, and the refinement's for "refined".
       fitness: share of the sampled source points the motion lays on the target.
