@@ -20,10 +20,15 @@ and, on an accelerator, the device's peak bytes in use. Prints one JSON record p
 
 ``--precision P`` times the step with the network's products at P (``TrainConfig.train_precision``); given
 more than once, each precision is timed in turn in the same run, and each record after the first gives
-``pairs_per_s_ratio``, its pairs per second over the first's. ``--by-part`` adds ``by_part_ms``: a profile of
+``pairs_per_s_ratio``, its pairs per second over the first's; ``auto`` (the ``cpu`` and ``paper`` recipes'
+own) times both as ``train.py`` does when a run starts (or reads its cached choice) and adds
+``auto_precision``, the choice and the two steps' seconds. ``--by-part`` adds ``by_part_ms``: a profile of
 two steps (``jax.profiler``), each compiled operation's time added to the part of the network it comes from
 (its ``op_name``: PSE, PFT's attention and feed-forward layers, the positional encoding, the head, ...), forward
-and backward apart, in milliseconds per step summed over the threads.
+and backward apart, in milliseconds per step summed over the threads; and ``by_kind_ms``, the same time by kind of
+operation: products (XLA's dots and the fusions that hold one), elementwise work and
+reductions (the softmax, the norms), fusions holding a conversion between float32 and bfloat16, copies and
+transposes, and the rest.
 
 ``--mix`` trains on real pairs of a mix instead (the recipe's ``settings``, else every setting of
 :data:`dit_jax.data.pairs.SETTINGS`, from the embedded shapes), one batch of each setting in turn: it reports
@@ -37,6 +42,7 @@ import datetime
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import tempfile
@@ -139,20 +145,22 @@ def measure(
         config = dataclasses.replace(config, model=config.model.replace(remat=remat == "on"))
     optimizer = training.make_optimizer(config, 1000)
     mesh = training.make_mesh()
-    state = training.replicate(training.init_state(config, optimizer), mesh)
-    step = training.make_train_step(config, optimizer, mesh)
     rng = np.random.default_rng(0)
     b, n = config.batch_size, config.n_points
     src = rng.uniform(-1, 1, (b, n, 3)).astype(np.float32)
-    batch = training.shard_batch(
-        {
-            "src": src,
-            "tgt": src[:, ::-1] + 0.1,
-            "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
-            "t": np.full((b, 3), 0.1, np.float32),
-        },
-        mesh,
-    )
+    host_batch = {
+        "src": src,
+        "tgt": src[:, ::-1] + 0.1,
+        "R": np.tile(np.eye(3, dtype=np.float32), (b, 1, 1)),
+        "t": np.full((b, 3), 0.1, np.float32),
+    }
+    auto = None
+    if config.train_precision == "auto":  # as train.py chooses it on this machine
+        auto = training.precision.choose(config, optimizer, mesh, host_batch)
+        config = dataclasses.replace(config, train_precision=auto.precision)
+    state = training.replicate(training.init_state(config, optimizer), mesh)
+    step = training.make_train_step(config, optimizer, mesh)
+    batch = training.shard_batch(host_batch, mesh)
     record = {
         "config": config_path,
         "n_points": n,
@@ -161,6 +169,7 @@ def measure(
         "remat": config.model_config().remat,
         "precision": config.train_model_config().precision,
     }
+    record["auto_precision"] = None if auto is None else dataclasses.asdict(auto) | {"speedup": auto.speedup}
     if count:
         flops, nbytes = count_work(jax.make_jaxpr(step)(state, batch).jaxpr)
         record.update(gflop_per_step=flops / 1e9, unfused_gbytes_per_step=nbytes / 1e9, flop_per_byte=flops / nbytes)
@@ -177,7 +186,7 @@ def measure(
     record["step_s"] = float(np.median(times))
     record["pairs_per_s"] = b / record["step_s"]
     if by_part:
-        record["by_part_ms"] = profile_by_part(step, state, batch)
+        record["by_part_ms"], record["by_kind_ms"] = profile_by_part(step, state, batch)
     return record
 
 
@@ -195,16 +204,45 @@ _PARTS = (
 )
 
 
-def profile_by_part(step, state, batch, repeats: int = 2) -> dict:
-    """Milliseconds per step of the compiled operations of ``step``, by part and pass (see ``--by-part``)."""
+def _computations_with_products(hlo_text: str) -> set[str]:
+    """The names of the computations of compiled HLO text that hold a matrix product."""
+    holding, current = set(), None
+    for line in hlo_text.splitlines():
+        header = re.match(r"%?([\w.\-]+) \(", line)
+        if header:
+            current = header.group(1)
+        elif current and re.search(r" (dot|convolution)\(", line):
+            holding.add(current)
+    return holding
+
+
+def _operation_kind(name: str, line: str, with_products: set[str]) -> str:
+    """The kind of a compiled operation, from its name and its line of HLO text."""
+    called = re.search(r"calls=%?([\w.\-]+)", line)
+    if re.search(r" (dot|convolution)\(", line) or (called and called.group(1) in with_products):
+        return "products (fusions included)"
+    if " fusion(" in line:  # XLA names a fusion after what it holds: a conversion of precision, or arithmetic
+        return "conversions (fusions holding one)" if "convert" in name else "elementwise and reductions"
+    if re.search(r" (copy|transpose)\(", line):
+        return "copies and transposes"
+    return "other (sorting, top-k, SVD, loops' control)"
+
+
+def profile_by_part(step, state, batch, repeats: int = 2) -> tuple[dict, dict]:
+    """Milliseconds per step of the compiled operations of ``step``, by part and pass, and by kind of
+    operation (see ``--by-part``)."""
     import collections
     import gzip
-    import re
 
     import jax
 
-    operation_names = {}
-    for line in step.lower(state, batch).compile().as_text().splitlines():
+    operation_names, kinds = {}, {}
+    hlo_text = step.lower(state, batch).compile().as_text()
+    with_products = _computations_with_products(hlo_text)
+    for line in hlo_text.splitlines():
+        instruction = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = ", line)
+        if instruction:  # XLA's own copies have no op_name: they count by kind only
+            kinds[instruction.group(1)] = _operation_kind(instruction.group(1), line, with_products)
         found = re.match(r'\s*(?:ROOT )?%?([\w.\-]+) = .*?op_name="([^"]+)"', line)
         if found:
             operation_names[found.group(1)] = found.group(2)
@@ -215,15 +253,19 @@ def profile_by_part(step, state, batch, repeats: int = 2) -> dict:
                 out["loss"].block_until_ready()
         trace = next(pathlib.Path(directory).rglob("*.trace.json.gz"))
         events = json.load(gzip.open(trace))["traceEvents"]
-    totals = collections.Counter()
+    by_part, by_kind = collections.Counter(), collections.Counter()
     for event in events:
-        op_name = operation_names.get(event.get("name"))
-        if event.get("ph") != "X" or op_name is None:
+        if event.get("ph") != "X" or event.get("name") not in kinds:
+            continue
+        by_kind[kinds[event["name"]]] += event["dur"] / 1e3 / repeats
+        op_name = operation_names.get(event["name"])
+        if op_name is None:
             continue
         part = next((name for name, keys in _PARTS if any(key in op_name for key in keys)), "head, losses, other")
         direction = "backward" if "transpose(" in op_name else "forward"
-        totals[f"{part} {direction}"] += event["dur"] / 1e3 / repeats
-    return {name: round(ms, 1) for name, ms in totals.most_common()}
+        by_part[f"{part} {direction}"] += event["dur"] / 1e3 / repeats
+    rounded = lambda counter: {name: round(ms, 1) for name, ms in counter.most_common()}
+    return rounded(by_part), rounded(by_kind)
 
 
 def measure_mix(config_path: str, steps: int, n_points: int | None) -> dict:
@@ -317,8 +359,9 @@ def main():
     parser.add_argument(
         "--precision",
         action="append",
-        choices=("preset", "highest", "tf32", "bfloat16"),
-        help="the train step's products (TrainConfig.train_precision; repeatable: each in turn; default: the recipe's)",
+        choices=("preset", "auto", "highest", "tf32", "bfloat16"),
+        help="the train step's products (TrainConfig.train_precision; repeatable: each in turn; default: the "
+        "recipe's; auto: as train.py chooses it on this machine)",
     )
     parser.add_argument("--by-part", action="store_true", help="profile the step by part of the network (see above)")
     parser.add_argument("--compare", metavar="REV", help="also time the step of this git revision")

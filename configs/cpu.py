@@ -5,4 +5,6 @@ from dit_jax.training import TrainConfig
 
 
 def get_config():
-    return TrainConfig(model=configs.cpu("clean"), n_points=512, batch_size=8, epochs=100, lr=1e-3).to_config_dict()
+    return TrainConfig(
+        model=configs.cpu("clean"), n_points=512, batch_size=8, epochs=100, lr=1e-3, train_precision="auto"
+    ).to_config_dict()

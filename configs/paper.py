@@ -15,4 +15,5 @@ def get_config():
         weight_decay=1e-4,
         eval_every=2000,
         ckpt_every=1000,
+        train_precision="auto",
     ).to_config_dict()

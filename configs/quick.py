@@ -16,4 +16,5 @@ def get_config():
         eval_every=50,
         ckpt_every=50,
         log_every=5,
+        train_precision="auto",
     ).to_config_dict()

@@ -1,7 +1,8 @@
 """Training DIT: optax, orbax checkpoints, data parallelism over a device mesh, resumable.
 
 The package's modules, one job each: :mod:`~dit_jax.training.config` (the recipe), :mod:`~dit_jax.training.step`
-(optimiser, loss and gradients, the device mesh), :mod:`~dit_jax.training.validation` (the run's pairs and
+(optimiser, loss and gradients, the device mesh), :mod:`~dit_jax.training.precision` (the step's precision
+on this machine, for ``train_precision="auto"``), :mod:`~dit_jax.training.validation` (the run's pairs and
 their validation), :mod:`~dit_jax.training.checkpoints` (orbax checkpoints and the exported model),
 :mod:`~dit_jax.training.curves` (logged metrics and plots) and :mod:`~dit_jax.training.loop` (:func:`train`).
 Everything is importable from ``dit_jax.training`` itself.

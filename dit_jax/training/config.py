@@ -62,9 +62,11 @@ class TrainConfig:
       train_precision: how the network's matrix products are computed in the train step only (see
         :attr:`dit_jax.configs.DITConfig.precision`): None (the default) as the model says; "bfloat16" takes
         bfloat16 operands with float32 accumulation, while the parameters, the optimiser, the geometry and the
-        losses stay float32. Validation and the saved model keep the model's own precision. On a CPU it makes
-        the cpu recipe's step no faster, since XLA's CPU backend runs the batched attention products and the
-        softmax in float32 either way (docs/benchmarks.md).
+        losses stay float32. Validation and the saved model keep the model's own precision. "auto" times the
+        step at both when the run starts and takes bfloat16 only where it is clearly faster on this machine
+        (:mod:`dit_jax.training.precision`); the run's ``train_config.json`` records the choice. On a CPU
+        bfloat16 makes the cpu recipe's step no faster: its cost is the softmax and narrow attention heads,
+        which bfloat16 operands do not shorten (docs/benchmarks.md).
       correspondence_weight: weight of the correspondence term (:func:`dit_jax.losses.correspondence_loss`,
         not the authors'); 0 trains the authors' objective.
       init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
@@ -109,9 +111,9 @@ class TrainConfig:
     train_precision: str | None = None
 
     def __post_init__(self):
-        if self.train_precision is not None and self.train_precision not in configs.PRECISIONS:
+        if self.train_precision not in (None, "auto", *configs.PRECISIONS):
             raise ValueError(
-                f"train_precision must be one of {', '.join(configs.PRECISIONS)} (or unset), "
+                f"train_precision must be one of {', '.join(configs.PRECISIONS)}, auto (or unset), "
                 f"got {self.train_precision!r}"
             )
 
@@ -120,6 +122,11 @@ class TrainConfig:
 
     def train_model_config(self) -> DITConfig:
         """The network as the train step computes it: :meth:`model_config` at ``train_precision``."""
+        if self.train_precision == "auto":
+            raise ValueError(
+                'train_precision "auto" is chosen when a run starts (dit_jax.training.precision.resolve); '
+                "resolve it before building a train step"
+            )
         if self.train_precision is None:
             return self.model
         return self.model.replace(precision=self.train_precision)

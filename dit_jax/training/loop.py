@@ -11,10 +11,12 @@ from collections.abc import Iterator
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from dit_jax import pft
 from dit_jax.data import prefetch
+from dit_jax.training import precision as precision_lib
 from dit_jax.training import step as step_lib
 from dit_jax.training.checkpoints import TrainCheckpointError, _managers, _restore, _save, export_params
 from dit_jax.training.config import TrainConfig
@@ -91,6 +93,9 @@ def train(
     if config.max_steps:
         total_steps = min(total_steps, config.max_steps)
     optimizer = step_lib.make_optimizer(config, total_steps)
+    config, chosen = precision_lib.resolve(config, optimizer, mesh, train_ds.batch(np.arange(config.batch_size)))
+    if chosen and step_lib.is_primary():
+        print(chosen, flush=True)
     last_mgr, best_mgr = _managers(workdir, config.keep)
     log_path = os.path.join(workdir, "metrics.jsonl")
     primary = step_lib.is_primary()
