@@ -23,7 +23,9 @@ skips the validation before the first step, whose compiling ate most of a 15-min
 ``dit_jax.training.export_params`` read) and a log, and ``xla_cache.tar``: the persistent compilation cache,
 which the next lease carries back in (``--cache-from``) so that programs of the same shapes load instead of
 compiling. Each run is ``python train.py``'s ``training.train``
-with the given arguments; the data are the packed shapes (``tools/packed.py``), recorded under the
+with the given arguments; a recipe whose ``train_precision`` is "auto" is timed in both precisions by the
+calibration alone, and the runs read its choice from the shared cache (with ``--steps``, which skips the
+calibration, name the precision instead: runs side by side would time each other); the data are the packed shapes (``tools/packed.py``), recorded under the
 directory they were packed from.
 """
 
