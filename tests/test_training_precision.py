@@ -68,6 +68,22 @@ def test_the_choice_is_measured_once_per_machine_and_shape(tmp_path, monkeypatch
     assert len(calls) == 6
 
 
+def test_a_bfloat16_step_that_fails_leaves_float32(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(compile_cache._enabled, "directory", str(tmp_path))
+    config = dataclasses.replace(TINY, train_precision="auto")
+
+    def timer(config, optimizer, mesh, batch, steps):
+        if config.train_precision == "bfloat16":
+            raise RuntimeError("no bfloat16 products here")
+        return 1.0
+
+    optimizer, mesh = training.make_optimizer(config, 10), training.make_mesh()
+    for cached in (False, True):  # the failure is remembered like a timing
+        choice = precision.choose(config, optimizer, mesh, _batch(config), timer=timer)
+        assert (choice.precision, choice.cached, choice.speedup) == (None, cached, 0.0)
+    assert "bfloat16 failed here (RuntimeError: no bfloat16 products here)" in capsys.readouterr().err
+
+
 def test_a_named_precision_is_kept_and_auto_cannot_build_a_step():
     config = dataclasses.replace(TINY, train_precision="bfloat16")
     assert precision.resolve(config, None, None, {}) == (config, "")
