@@ -2,15 +2,14 @@
 
 import dataclasses
 import json
-import pathlib
 
 import numpy as np
 import pytest
+from conftest import ROOT
 
 from dit_jax import compile_cache, training
 from dit_jax.training import precision
 
-ROOT = pathlib.Path(__file__).resolve().parent.parent
 TINY = dataclasses.replace(
     training.load_config(ROOT / "configs" / "tiny.py"), max_steps=2, ckpt_every=2, eval_every=2, val_pairs=4
 )
@@ -84,9 +83,7 @@ def test_a_bfloat16_step_that_fails_leaves_float32(tmp_path, monkeypatch, capsys
     assert "bfloat16 failed here (RuntimeError: no bfloat16 products here)" in capsys.readouterr().err
 
 
-def test_a_named_precision_is_kept_and_auto_cannot_build_a_step():
-    config = dataclasses.replace(TINY, train_precision="bfloat16")
-    assert precision.resolve(config, None, None, {}) == (config, "")
+def test_auto_cannot_build_a_step_before_it_is_chosen():
     auto = dataclasses.replace(TINY, train_precision="auto")
     with pytest.raises(ValueError, match="chosen when a run starts"):
         auto.train_model_config()

@@ -124,7 +124,7 @@ class TrainConfig:
         """The network as the train step computes it: :meth:`model_config` at ``train_precision``."""
         if self.train_precision == "auto":
             raise ValueError(
-                'train_precision "auto" is chosen when a run starts (dit_jax.training.precision.resolve); '
+                'train_precision "auto" is chosen when a run starts (dit_jax.training.precision.choose); '
                 "resolve it before building a train step"
             )
         if self.train_precision is None:

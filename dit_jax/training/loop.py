@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -93,9 +94,11 @@ def train(
     if config.max_steps:
         total_steps = min(total_steps, config.max_steps)
     optimizer = step_lib.make_optimizer(config, total_steps)
-    config, chosen = precision_lib.resolve(config, optimizer, mesh, train_ds.batch(np.arange(config.batch_size)))
-    if chosen and step_lib.is_primary():
-        print(chosen, flush=True)
+    if config.train_precision == "auto":
+        choice = precision_lib.choose(config, optimizer, mesh, train_ds.batch(np.arange(config.batch_size)))
+        config = dataclasses.replace(config, train_precision=choice.precision)  # what train_config.json records
+        if step_lib.is_primary():
+            print(choice.describe(), flush=True)
     last_mgr, best_mgr = _managers(workdir, config.keep)
     log_path = os.path.join(workdir, "metrics.jsonl")
     primary = step_lib.is_primary()

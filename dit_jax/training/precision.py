@@ -1,7 +1,7 @@
-"""The train step's precision on this machine: ``train_precision="auto"`` times both and keeps the faster.
+"""The train step's precision on this machine: ``train_precision="auto"`` times both, bfloat16 where it pays.
 
 bfloat16 products (:attr:`TrainConfig.train_precision`) pay where the hardware multiplies bfloat16 faster and
-the step is made of large products: a GPU, or a CPU with AMX units on the paper's wide network. Where the
+the step is made of large products, such as the paper's wide network on a CPU with AMX units. Where the
 step is bound by the softmax and by narrow attention heads (the ``cpu`` recipe on a CPU), they add
 conversions and gain nothing. Rather than guess from the hardware's name, "auto" compiles the step at both
 precisions, times a few steps of each on the run's first training batch, and takes bfloat16 only where it is
@@ -34,9 +34,6 @@ from dit_jax.training.config import TrainConfig
 #: bfloat16 must give at least this many times float32's pairs per second to be chosen: a step's time moves
 #: by several per cent between runs, and float32 keeps the model's own numbers.
 MARGIN = 1.15
-
-#: The candidate precisions: None (the model's own, float32 products) and "bfloat16".
-CANDIDATES = (None, "bfloat16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,25 +142,13 @@ def choose(
         measured.append(True)
         return seconds
 
-    if jax.process_count() > 1:
-        float32_s, bfloat16_s = measure()
-    else:
+    if jax.process_count() == 1:
         float32_s, bfloat16_s = compile_cache.memo("train-precision", parts, measure)
-    chosen = decide(float32_s, bfloat16_s)
-    if jax.process_count() > 1:
+        chosen = decide(float32_s, bfloat16_s)
+    else:
         from jax.experimental import multihost_utils
 
-        flag = multihost_utils.broadcast_one_to_all(np.int32(chosen == "bfloat16"))
+        float32_s, bfloat16_s = measure()
+        flag = multihost_utils.broadcast_one_to_all(np.int32(decide(float32_s, bfloat16_s) == "bfloat16"))
         chosen = "bfloat16" if int(flag) else None
     return PrecisionChoice(chosen, float(float32_s), float(bfloat16_s), cached=not measured)
-
-
-def resolve(
-    config: TrainConfig, optimizer: optax.GradientTransformation, mesh: Mesh, batch: dict
-) -> tuple[TrainConfig, str]:
-    """``config`` with an "auto" train precision replaced by the choice of :func:`choose` on ``batch``, and a
-    line saying what was chosen (empty where ``config`` names its precision)."""
-    if config.train_precision != "auto":
-        return config, ""
-    choice = choose(config, optimizer, mesh, batch)
-    return dataclasses.replace(config, train_precision=choice.precision), choice.describe()
