@@ -17,8 +17,9 @@ Methods, from the registration pipeline: the network alone (DIT), the network re
 sparse clouds, GICP on scans; --refine sets it, none drops the row) and the default pipeline (pipeline: on
 scans, local features both ways first, the network where they disagree; elsewhere DIT+ICP; --features off
 drops it); beside them the --baselines, each at the options tuned for the setting on validation pairs
-(docs/baselines_tuning.md). With --scans two more rows may be asked for: open3d_room_5cm, Open3D's tutorial
-recipe for rooms in metres as it stands, and features, the pipeline's registration by local features alone. A folder of
+(docs/baselines_tuning.md). With --scans three more rows may be asked for: open3d_room_5cm, Open3D's tutorial
+recipe for rooms in metres as it stands; open3d_room_full, the same at full strength (normals facing the sensor,
+RANSAC to confidence 0.9999, ICP within 4 cm); and features, the pipeline's registration by local features alone. A folder of
 3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans).
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
@@ -94,7 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
-    inference_settings.add_flags(parser, ("points", "iters", "refine", "features", "verdict", "best_direction"))
+    inference_settings.add_flags(
+        parser, ("points", "iters", "refine", "features", "viewpoint", "verdict", "best_direction")
+    )
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
     parser.add_argument(
         "--gmcce-threshold",

@@ -17,6 +17,10 @@ out still leaves what was measured):
    two that ``train_precision="auto"`` chooses between), and the device's peak bytes in use after them.
 4. ``training``: ``python train.py``'s loop on the quick recipe for 200 steps (no validation before the
    first step), its final validation.
+5. ``estimator``: the rooms' global estimator (``dit_jax.compatibility.estimate``) on synthetic matches, 5 %
+   of them right, at each padded size: seconds per call after its compilation, and whether the best motion is
+   the true one; with ``--rooms DIR`` (the 3DMatch scenes) also one room pair registered by local features
+   both ways (``dit_jax.feature_match.register_both_ways``), its seconds and rotation error.
 
 Compiled programs go to the persistent cache (``--compile-cache``, default ``OUT/xla_cache``): carry it into
 the next lease and the same shapes load instead of compiling. ``--smoke`` runs every part at sizes a CPU
@@ -42,7 +46,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))  # train_throughput.py, inference.py beside this script
 
-PARTS = ("reference", "inference", "train_step", "training")
+PARTS = ("reference", "inference", "train_step", "training", "estimator")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -60,6 +64,7 @@ class Sizes:
     training_recipe: str
     training_steps: int
     training_overrides: dict
+    estimator_buckets: tuple[int, ...]
 
 
 FULL = Sizes(
@@ -74,6 +79,7 @@ FULL = Sizes(
     training_recipe="configs/quick.py",
     training_steps=200,
     training_overrides={},
+    estimator_buckets=(512, 1024, 2048, 4096),
 )
 SMOKE = Sizes(
     network="tiny",
@@ -87,6 +93,7 @@ SMOKE = Sizes(
     training_recipe="configs/quick.py",
     training_steps=2,
     training_overrides={"n_points": 64, "val_pairs": 4, "batch_size": 2, "model": "tiny"},
+    estimator_buckets=(512,),
 )
 
 
@@ -187,6 +194,52 @@ def train_briefly(sizes: Sizes, workdir: str) -> dict:
     return {"recipe": sizes.training_recipe, "steps": sizes.training_steps, "seconds": seconds, **final}
 
 
+def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
+    """The compatibility estimator per padded size on synthetic matches (5 % right), and one room pair."""
+    import jax
+
+    from dit_jax import compatibility, geometry
+    from dit_jax.data.pairs import euler_zyx_to_matrix
+
+    rng = np.random.default_rng(0)
+    rotation, translation = euler_zyx_to_matrix([120.0, 40.0, -70.0]), np.array([3.0, -7.0, 1.5])
+    buckets = []
+    for size in sizes.estimator_buckets:
+        src = rng.uniform(-5, 5, (size, 3))
+        tgt = src @ rotation.T + translation
+        wrong = rng.random(size) >= 0.05
+        tgt[wrong] = rng.uniform(-5, 5, (wrong.sum(), 3)) @ rotation.T + translation
+        args = (src.astype(np.float32), tgt.astype(np.float32), np.ones(size, bool), np.float32(0.05))
+        t0 = time.perf_counter()
+        jax.block_until_ready(compatibility.estimate(*args))
+        compile_s = time.perf_counter() - t0
+        times = []
+        for _ in range(sizes.repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(compatibility.estimate(*args))
+            times.append(time.perf_counter() - t0)
+        found = compatibility.register(src, tgt, 0.05)
+        error = geometry.rotation_angle_deg(found.rotation[0].T @ rotation)
+        buckets.append(
+            {"matches": size, "compile_s": compile_s, "seconds": statistics.median(times), "error_deg": error}
+        )
+    record = {"buckets": buckets}
+    if rooms:
+        from dit_jax import feature_match
+        from dit_jax.data import scans
+
+        pair = scans.load_pair_sets(rooms)["3DMatch"].pairs[0]
+        feature_match.register_both_ways(pair.source, pair.target)  # compiles
+        t0 = time.perf_counter()
+        estimate = feature_match.register_both_ways(pair.source, pair.target)
+        record["room_pair"] = {
+            "pair": pair.name,
+            "seconds": time.perf_counter() - t0,
+            "error_deg": geometry.rotation_angle_deg(estimate.kept[0].T @ pair.rotation),
+        }
+    return record
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", required=True, help="folder for gpu_check.json, the training run and the cache")
@@ -194,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="every part at CPU-sized stand-ins (see above)")
     parser.add_argument("--only", action="append", choices=PARTS, help="run this part (repeatable; default: all)")
     parser.add_argument("--compile-cache", help="persistent compilation cache (default: OUT/xla_cache)")
+    parser.add_argument("--rooms", help="the 3DMatch scenes' folder: the estimator part also times a room pair")
     args = parser.parse_args(argv)
 
     out = pathlib.Path(args.out)
@@ -228,7 +282,9 @@ def main(argv: list[str] | None = None) -> int:
             record[part] = time_inference(sizes)
         elif part == "train_step":
             record[part] = time_train_steps(sizes)
-        else:
+        elif part == "estimator":
+            record[part] = time_estimator(sizes, args.rooms)
+        elif part == "training":
             record[part] = train_briefly(sizes, str(out / "training"))
         record["seconds"][part] = time.perf_counter() - t0
         path.write_text(json.dumps(record, indent=2, default=float))

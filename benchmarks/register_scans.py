@@ -119,6 +119,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the sample's seed")
     parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
     parser.add_argument("--record", default=None, help="also write the per-set records to this file (JSON lines)")
+    parser.add_argument("--viewpoint", choices=("origin", "none"), default=None, help="the pipeline's viewpoint")
     args = parser.parse_args()
     baseline = args.baseline
 
@@ -126,7 +127,7 @@ def main() -> None:
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import register_baseline, sample_pairs
 
-    model = registration.load()
+    model = registration.load(**({"viewpoint": args.viewpoint} if args.viewpoint else {}))
     done = {}
     if args.pairs_out and os.path.exists(args.pairs_out):
         with open(args.pairs_out) as f:
@@ -150,6 +151,8 @@ def main() -> None:
                     line = {"data": data, "set": set_name, "pair": pair.name, "level": result.level}
                     line |= {"candidate": result.candidate, "confirmed": _settled_first(result)}
                     line |= {"rival": _finite(result.rival), "twin": _finite(result.twin)}
+                    line |= {"agreement": _finite(result.agreement), "offset": _finite(result.offset)}
+                    line["candidate_agreement"] = _finite(result.candidate_agreement)
                     line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
                     if not args.no_baseline:
                         line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))

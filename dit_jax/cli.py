@@ -476,7 +476,7 @@ def _series_parser() -> argparse.ArgumentParser:
         help="draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
     )
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    settings.add_flags(parser, ("refine",))
+    settings.add_flags(parser, ("refine", "viewpoint"))
     _add_reading_flags(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -532,7 +532,7 @@ def series_main(argv: list[str] | None = None) -> int:
 
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
-        model = registration.load(args.checkpoint, seed=args.seed)
+        model = registration.load(args.checkpoint, seed=args.seed, **settings.changes(args))
         pairs = series.link_pairs(len(clouds), args.loop)
         with (
             tqdm(
@@ -554,7 +554,7 @@ def series_main(argv: list[str] | None = None) -> int:
                 caught.clear()
 
             try:
-                result = series.register_series(model, clouds, loop=args.loop, refine=args.refine, progress=link_done)
+                result = series.register_series(model, clouds, loop=args.loop, progress=link_done)
             except registration.InputError as err:
                 return fail(str(err))
         if args.out is not None:

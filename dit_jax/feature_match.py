@@ -1,26 +1,27 @@
 """Registration by local features: the pipeline's candidate that needs no start and no training data.
 
-Both clouds are thinned on a voxel grid; each kept point gets FPFH features (Rusu et al., "Fast Point Feature
-Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours; features are matched mutually (each
-point's nearest in feature space, kept where that point's nearest is the first); RANSAC draws three matches at
-a time and keeps the motion that lays the most thinned source points near the target; point-to-plane ICP on
-every point (on about :data:`ICP_POINTS` of larger clouds) refines it. This is the global-registration recipe of
-Open3D's tutorial, which registered the most 3DMatch pairs of the candidates measured in docs/benchmarks.md
-("Candidates on rooms"). Open3D does each step but the matching, which is computed here once for both
-directions where Open3D would search the features again for each. It finds a motion at any turn, so it covers what the network never learned: rooms turned by
-anything, LiDAR, scans of any object.
+Both clouds are thinned on a voxel grid; each kept point gets a normal, turned to face the cloud's viewpoint
+(its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
+Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours. Each source point is matched
+to its nearest target point in feature space (:func:`_matches`), and the compatibility-graph estimator
+(:mod:`dit_jax.compatibility`: second-order spatial compatibility, seeds, a consistent set and a weighted
+Procrustes per seed) turns the matches into ranked motions; the one that lays the most thinned source points
+on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on about :data:`ICP_POINTS` of
+larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
+turned by anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
 :data:`VOXEL_SPACINGS` point spacings (:func:`dit_jax.icp.point_spacing`), coarser on very large scans so that
 the features see about :data:`FEATURE_POINTS` points of each cloud (:func:`feature_voxel`); normals come from
-neighbours within 2 voxels, features from those within 5, RANSAC counts matches within 1.5 voxels and ICP pairs
-points within 0.4 voxels (the tutorial's ratios).
+neighbours within 2 voxels, features from those within 5, lengths agree within :data:`MATCH_VOXELS` voxels,
+a point lies on the target within 1.5, and ICP pairs points within 0.4 voxels.
 
-:func:`register_both_ways` registers the source onto the target and the target onto the source from the same
-features. Two RANSAC runs that land on one motion are the evidence the pipeline's verdict reads
-(:class:`FeatureEstimate`): a wrong motion found by chance in one direction is rarely found again in the other.
+:func:`register_both_ways` registers the source onto the target and the target onto the source, each from
+its own matches. Two directions that land on one motion are the evidence the pipeline's verdict reads
+(:class:`FeatureEstimate`), with the estimator's runner-up far from the winner (a rival) and the turned twins
+of the result (:func:`twin_fit`).
 
-RANSAC is seeded: a pair gives the same motion on every run.
+Nothing is drawn at random: a pair gives the same motion on every run.
 """
 
 from __future__ import annotations
@@ -32,24 +33,21 @@ import time
 
 import numpy as np
 
+from dit_jax import compatibility
+
 #: The voxel of the features, in point spacings: Open3D's room recipe uses 5 cm on 3DMatch fragments, whose
 #: point spacing is about 1.3 cm.
 VOXEL_SPACINGS = 3.75
 #: On larger scans the voxel grows so that a surface sampled by the larger cloud's points keeps about this
 #: many voxels (a surface's count falls with the square of the voxel), and then until neither cloud occupies
-#: more than this many (a LiDAR sweep, dense near the sensor, needs the second): RANSAC's time stays bounded.
+#: more than this many (a LiDAR sweep, dense near the sensor, needs the second): the estimator's time stays
+#: bounded.
 FEATURE_POINTS = 10_000
-#: RANSAC's largest number of draws and its confidence (it stops sooner once this sure of its best motion), the
-#: number of its best motions it checks against every point, and how alike a drawn triangle's edges must be.
-RANSAC_DRAWS = 1_000_000
-RANSAC_CONFIDENCE = 0.999
-RANSAC_FINALISTS = 16
-EDGE_SIMILARITY = 0.9
-#: The motions with the most matches that :func:`_ransac` keeps to find the winner's best rival, and how far
-#: from the winner a rival must lie: turned by more degrees, or moving the matched source points' centre by
-#: more voxels. Closer motions are the winner's neighbours, which bring other matches of the same surfaces
-#: within reach; a room's rival is a quarter or half turn, or a slide along a corridor (docs/verdict.md).
-RANSAC_RIVALS = 512
+#: Of the estimator's hypotheses with the most matches, how many are checked against every thinned point; and how
+#: far from the winner a rival must lie: turned by more degrees, or moving the matched source points' centre by
+#: more voxels. Closer motions are the winner's neighbours; a room's rival is a quarter or half turn, or a
+#: slide along a corridor (docs/verdict.md).
+FINALISTS = 16
 RIVAL_DEGREES = 30.0
 RIVAL_VOXELS = 20.0
 #: ICP refines on every point of clouds up to this size; larger ones (full-resolution fragments, LiDAR sweeps)
@@ -60,6 +58,10 @@ ICP_POINTS = 50_000
 #: three main normal directions: a room after a quarter or half turn about its floor's or a wall's normal
 #: can look like itself.
 TWIN_TURNS = (90.0, 180.0, 270.0)
+#: Where each cloud's normals are turned to face before its features: a scan in its own frame has its sensor at
+#: the origin, and FPFH is not sign-invariant, so normals that face the sensor describe one wall alike in two
+#: scans, where unoriented ones flip at random between them (docs/refinement.md). None leaves them as estimated.
+VIEWPOINT = (0.0, 0.0, 0.0)
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
 
@@ -70,7 +72,7 @@ class FeatureMatch:
 
     Attributes:
       rotation: (3, 3) float64; translation: (3,) float64.
-      inliers: thinned source points the motion lays within RANSAC's distance of the target (0: no estimate,
+      inliers: thinned source points the motion lays within 1.5 voxels of the target (0: no estimate,
         the identity).
       voxel: the voxel the features were computed on, in the caller's units.
     """
@@ -92,9 +94,9 @@ class FeatureEstimate:
       offset: distance between the two translations, in point spacings.
       overlap: (2,) the share of source points each lays within 2 point spacings of the target
         (:func:`dit_jax.icp.overlap`).
-      inliers: (2,) each direction's RANSAC inliers, as :class:`FeatureMatch` counts them (0: that direction
+      inliers: (2,) each direction's inliers, as :class:`FeatureMatch` counts them (0: that direction
         found nothing).
-      rival: (2,) each direction's rival share (:func:`_ransac`): the matches that back another motion and not
+      rival: (2,) each direction's rival share (:func:`_choose`): the matches that back another motion and not
         the winner, as a share of the winner's own (inf where that direction found nothing). Near 1, two
         motions explain the matches about as well (a room's walls after a quarter turn); the two directions,
         drawn from the same matches, then tend to agree on one of them.
@@ -204,174 +206,116 @@ class _Cloud:
     """One cloud as Open3D holds it: its points with normals for ICP (thinned on ``thin``, where given), and the
     points of the features' voxel grid with FPFH."""
 
-    def __init__(self, points: np.ndarray, voxel: float, thin: float | None = None):
+    def __init__(self, points: np.ndarray, voxel: float, thin: float | None = None, viewpoint=VIEWPOINT):
         o3d = _o3d()
         search = o3d.geometry.KDTreeSearchParamHybrid
         self.full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         if thin is not None:
             self.full = self.full.voxel_down_sample(thin)
-        self.full.estimate_normals(search(radius=2 * voxel, max_nn=30))
+        self.full.estimate_normals(search(radius=2 * voxel, max_nn=30))  # ICP's: their signs do not matter
         # ICP runs on Open3D's tensor clouds (float64, as the legacy ones): the same point-to-plane ICP with the
         # same motions, in about half the time, and the other direction's work can run beside it.
         self.icp = o3d.t.geometry.PointCloud.from_legacy(self.full, o3d.core.float64)
         self.thinned = self.full.voxel_down_sample(voxel)
         self.thinned.estimate_normals(search(radius=2 * voxel, max_nn=30))
+        if viewpoint is not None:
+            self.thinned.orient_normals_towards_camera_location(np.asarray(viewpoint, np.float64))
         self.features = o3d.pipelines.registration.compute_fpfh_feature(
             self.thinned, search(radius=5 * voxel, max_nn=100)
         )
 
     @functools.cached_property
     def tree(self):
-        """A k-d tree of the thinned points, built once for RANSAC's finalists and :func:`twin_fit`."""
+        """A k-d tree of the thinned points, built once for the estimator's finalists and :func:`twin_fit`."""
         from scipy.spatial import cKDTree
 
         return cKDTree(np.asarray(self.thinned.points))
 
 
-#: Open3D falls back from mutual matches to every source point's nearest match when fewer than this share of
-#: the source's points match mutually (its ``mutual_consistency_ratio``); the same rule here.
-MUTUAL_SHARE = 0.1
+#: Matches per direction are capped at the estimator's largest bucket; past it, the closest in feature space are
+#: kept.
+MAX_MATCHES = compatibility.BUCKETS[-1]
+#: Two matches are compatible where their lengths in the two clouds differ by less than this many voxels, and
+#: a motion brings a match within this many voxels (twice the 5 cm voxel on 3DMatch's fragments, as SC2-PCR
+#: tests lengths there).
+MATCH_VOXELS = 2.0
 
 
-def _nearest(queries: np.ndarray, pool: np.ndarray) -> np.ndarray:
-    """For each row of ``queries`` (Q, D), the index of the nearest row of ``pool`` (P, D) in Euclidean distance:
-    (Q,) int. Distances come from products in blocks: in FPFH's 33 dimensions a k-d tree gains nothing."""
+def _nearest(queries: np.ndarray, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of ``queries`` (Q, D), the index of the nearest row of ``pool`` (P, D) and the squared
+    Euclidean distance to it: (Q,) int, (Q,) float32. Distances come from products in blocks, in place on
+    contiguous float32 arrays: in FPFH's 33 dimensions a k-d tree gains nothing."""
+    queries = np.ascontiguousarray(queries, np.float32)
+    pool = np.ascontiguousarray(pool, np.float32)
     squared = np.einsum("pd,pd->p", pool, pool)
-    nearest = np.empty(len(queries), np.int64)
+    nearest, gaps = np.empty(len(queries), np.int64), np.empty(len(queries), np.float32)
     for start in range(0, len(queries), 2048):
-        block = queries[start : start + 2048]
-        nearest[start : start + 2048] = np.argmin(squared[None, :] - 2.0 * block @ pool.T, axis=1)
-    return nearest
+        rows = slice(start, start + 2048)
+        scores = queries[rows] @ pool.T
+        scores *= -2.0
+        scores += squared[None, :]
+        nearest[rows] = np.argmin(scores, axis=1)
+        gaps[rows] = np.take_along_axis(scores, nearest[rows, None], axis=1)[:, 0]
+        gaps[rows] += np.einsum("qd,qd->q", queries[rows], queries[rows])
+    return nearest, gaps
 
 
 def _matches(src: _Cloud, tgt: _Cloud) -> tuple[np.ndarray, np.ndarray]:
-    """Feature matches of each direction, as Open3D's RANSAC on features takes them with its mutual filter:
-    (K, 2) index pairs (source, target) and (K', 2) pairs (target, source). Mutual matches serve both; where
-    too few match mutually (:data:`MUTUAL_SHARE`), each direction takes its points' nearest matches.
+    """Feature matches of each direction: (K, 2) index pairs (source, target), each thinned source point with
+    its nearest target point in feature space, and (K', 2) pairs (target, source) the other way; each capped
+    at :data:`MAX_MATCHES`, the closest in feature space kept.
 
-    Computed once for both directions (Open3D would search the features again for each)."""
+    No mutual filter: at low overlap it discards most of the right matches, and the compatibility estimator
+    needs no help telling them from the wrong ones. The two directions' sets differ, so each is some
+    evidence for the other."""
     src_features = np.asarray(src.features.data, np.float32).T
     tgt_features = np.asarray(tgt.features.data, np.float32).T
-    there = _nearest(src_features, tgt_features)
-    back = _nearest(tgt_features, src_features)
-    source_index = np.arange(len(there))
-    mutual = back[there] == source_index
-    pairs = np.stack([source_index[mutual], there[mutual]], axis=1)
-    forward = pairs if mutual.sum() >= MUTUAL_SHARE * len(there) else np.stack([source_index, there], axis=1)
-    reverse = pairs[:, ::-1] if mutual.sum() >= MUTUAL_SHARE * len(back) else np.stack([np.arange(len(back)), back], 1)
-    return np.ascontiguousarray(forward, np.int32), np.ascontiguousarray(reverse, np.int32)
+    (there, there_gap), (back, back_gap) = _nearest(src_features, tgt_features), _nearest(tgt_features, src_features)
 
+    def capped(nearest, gaps):
+        rows = np.sort(np.argsort(gaps, kind="stable")[:MAX_MATCHES])
+        return np.ascontiguousarray(np.stack([rows, nearest[rows]], axis=1), np.int32)
 
-def _similar_edges(src_matched: np.ndarray, tgt_matched: np.ndarray, triples: np.ndarray) -> np.ndarray:
-    """The (T, 3) ``triples`` of matches that span like triangles in both clouds: every edge's two lengths within
-    :data:`EDGE_SIMILARITY` of each other (Open3D's edge-length check). Matched points: (K, 3) each. Each edge
-    is measured only on the triples the edges before it kept."""
-    for a, b in ((0, 1), (1, 2), (0, 2)):
-        src_edge = np.sum((src_matched[triples[:, a]] - src_matched[triples[:, b]]) ** 2, axis=1)
-        tgt_edge = np.sum((tgt_matched[triples[:, a]] - tgt_matched[triples[:, b]]) ** 2, axis=1)
-        shorter, longer = np.minimum(src_edge, tgt_edge), np.maximum(src_edge, tgt_edge)
-        triples = triples[(shorter >= EDGE_SIMILARITY**2 * longer) & (shorter > 0)]
-    return triples
+    return capped(there, there_gap), capped(back, back_gap)
 
 
 def _brought_within(
     rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
 ) -> np.ndarray:
-    """Which of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H, K) bool.
-
-    |R s + t - q|^2 expands into |s|^2 + |q|^2 + |t|^2 - 2 t.q + 2 (R^T t).s - 2 R:(q s^T), three matrix
-    products over the hypotheses and the matches instead of (H, K, 3) moved points: in float64, so that the
-    expansion loses nothing at any scale of coordinates."""
-    src = np.asarray(src_matched, np.float64)
-    tgt = np.asarray(tgt_matched, np.float64)
-    rotations = np.asarray(rotations, np.float64).reshape(-1, 3, 3)
-    translations = np.asarray(translations, np.float64).reshape(-1, 3)
-    lengths = np.sum(src * src, axis=1) + np.sum(tgt * tgt, axis=1)  # (K,)
-    outer = (tgt[:, :, None] * src[:, None, :]).reshape(len(src), 9)  # (K, 9): q_i s_j
-    within = np.empty((len(rotations), len(src)), bool)
-    for start in range(0, len(rotations), 1024):  # (1024, K) at a time
-        r, t = rotations[start : start + 1024], translations[start : start + 1024]
-        squared = np.sum(t * t, axis=1)[:, None] + lengths[None]
-        squared -= 2.0 * (t @ tgt.T)
-        squared += 2.0 * (np.einsum("hij,hi->hj", r, t) @ src.T)
-        squared -= 2.0 * (r.reshape(len(r), 9) @ outer.T)
-        within[start : start + 1024] = squared < distance**2
-    return within
+    """Which of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H, K) bool."""
+    moved = np.einsum("hij,kj->hki", rotations, src_matched) + translations[:, None]
+    return np.sum((moved - tgt_matched[None]) ** 2, axis=2) < distance**2
 
 
-def _matches_within(
-    rotations: np.ndarray, translations: np.ndarray, src_matched: np.ndarray, tgt_matched: np.ndarray, distance: float
-) -> np.ndarray:
-    """How many of the K matches each of the (H, 3, 3), (H, 3) motions brings within ``distance``: (H,) int."""
-    counts = np.empty(len(rotations), np.int64)
-    for start in range(0, len(rotations), 1024):
-        chunk = slice(start, start + 1024)
-        counts[chunk] = _brought_within(rotations[chunk], translations[chunk], src_matched, tgt_matched, distance).sum(
-            1
-        )
-    return counts
-
-
-def _draws_needed(inlier_share: float) -> float:
-    """RANSAC's bound: the draws after which a triple of inliers has been drawn with :data:`RANSAC_CONFIDENCE`,
-    where ``inlier_share`` of the matches are inliers."""
-    if inlier_share <= 0:
-        return np.inf
-    if inlier_share >= 1:
-        return 0
-    return np.log(1 - RANSAC_CONFIDENCE) / np.log1p(-(inlier_share**3))
-
-
-def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int) -> tuple[np.ndarray, int, float]:
-    """RANSAC on (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival share).
-
-    Draws three matches at a time, in rounds of doubling size; keeps triples whose triangles agree
-    (:func:`_similar_edges`) and whose motion (:func:`dit_jax.icp.procrustes`) brings each of its three matches
-    within the distance (1.5 voxels); counts the matches each motion brings within it. It stops after
-    :data:`RANSAC_DRAWS` draws or once the best count makes an all-inlier triple sure (:func:`_draws_needed`).
-    Of the :data:`RANSAC_FINALISTS` motions with the most matches, the one that lays the most thinned source
-    points within the distance of the thinned target wins; that count is its inliers. Its rival share is the
-    largest number of matches that one of the :data:`RANSAC_RIVALS` motions with the most matches, far from
-    the winner (:data:`RIVAL_DEGREES`, :data:`RIVAL_VOXELS`), brings within the distance and the winner does
-    not, divided by the winner's matches: a second explanation of the matches that the winner leaves out.
-
-    Open3D's RANSAC scores every motion by that last count, a k-d tree search of every thinned point, and
-    that search was most of its time; scoring by the matches first affords every draw the bound asks for
-    (docs/benchmarks.md, "RANSAC on rooms"). Seeded numpy draws also repeat exactly, under any load.
-    """
-
-    from dit_jax import icp as icp_lib
-
-    distance = 1.5 * voxel
+def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tuple[np.ndarray, int, float]:
+    """The global motion from (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival
+    share). :func:`dit_jax.compatibility.register` gives one motion per seed, ranked by the matches each brings
+    within :data:`MATCH_VOXELS` voxels; :func:`_choose` picks one."""
     if len(matches) < 3:
         return np.eye(4), 0, np.inf
-    src_points, tgt_points = np.asarray(src.thinned.points), np.asarray(tgt.thinned.points)
-    src_matched = src_points[matches[:, 0]].astype(np.float32)
-    tgt_matched = tgt_points[matches[:, 1]].astype(np.float32)
-    rng = np.random.default_rng(seed)
-    rotations, translations, counts = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
-    drawn, needed, round_size = 0, float(RANSAC_DRAWS), 2_000
-    while drawn < min(needed, RANSAC_DRAWS):
-        triples = rng.integers(0, len(matches), (min(round_size, RANSAC_DRAWS - drawn), 3))
-        drawn, round_size = drawn + len(triples), min(2 * round_size, 100_000)
-        triples = _similar_edges(src_matched, tgt_matched, triples)
-        rotation, translation = icp_lib.procrustes(src_matched[triples], tgt_matched[triples])
-        moved = np.einsum("hij,hkj->hki", rotation, src_matched[triples]) + translation[:, None]
-        close = np.all(np.sum((moved - tgt_matched[triples]) ** 2, axis=2) < distance**2, axis=1)
-        rotation, translation = rotation[close].astype(np.float32), translation[close].astype(np.float32)
-        found = _matches_within(rotation, translation, src_matched, tgt_matched, distance)
-        best = np.argsort(-np.concatenate([counts, found]), kind="stable")[:RANSAC_RIVALS]
-        rotations = np.concatenate([rotations, rotation])[best]
-        translations = np.concatenate([translations, translation])[best]
-        counts = np.concatenate([counts, found])[best]
-        if len(counts):
-            needed = _draws_needed(counts[0] / len(matches))
-    if not len(counts):
+    src_matched = np.asarray(src.thinned.points)[matches[:, 0]]
+    tgt_matched = np.asarray(tgt.thinned.points)[matches[:, 1]]
+    found = compatibility.register(src_matched, tgt_matched, MATCH_VOXELS * voxel)
+    if found.matches[0] < 3:
         return np.eye(4), 0, np.inf
-    tree = tgt.tree
+    return _choose(src, tgt, src_matched, tgt_matched, found, voxel)
+
+
+def _choose(src: _Cloud, tgt: _Cloud, src_matched, tgt_matched, found, voxel: float) -> tuple[np.ndarray, int, float]:
+    """The winner among the hypotheses ``found`` (:class:`dit_jax.compatibility.Hypotheses`) of matches
+    src_matched <-> tgt_matched (K, 3) each: (4 x 4 motion, inliers, rival share).
+
+    Of the :data:`FINALISTS` with the most matches, the one that lays the most thinned source points within 1.5
+    voxels of the thinned target wins; that count is its inliers. Its rival share is the largest number of
+    matches one of the hypotheses far from the winner (:data:`RIVAL_DEGREES`, :data:`RIVAL_VOXELS`) brings
+    within the distance and the winner does not, divided by the winner's matches: a second explanation of the
+    matches that the winner leaves out (a quarter-turned room, a slide along a corridor)."""
+    rotations, translations = found.rotation, found.translation
+    src_points = np.asarray(src.thinned.points)
+    laid_within = 1.5 * voxel
     laid = [
-        np.sum(np.isfinite(tree.query(src_points @ r.T + t, distance_upper_bound=distance, workers=-1)[0]))
-        for r, t in zip(rotations[:RANSAC_FINALISTS].astype(np.float64), translations[:RANSAC_FINALISTS])
+        np.sum(np.isfinite(tgt.tree.query(src_points @ r.T + t, distance_upper_bound=laid_within, workers=-1)[0]))
+        for r, t in zip(rotations[:FINALISTS], translations[:FINALISTS])
     ]
     winner = int(np.argmax(laid))  # ties: the motion with more matches
     centre = src_matched.mean(axis=0)
@@ -382,17 +326,10 @@ def _ransac(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: i
     )
     rival = 0.0
     if far.any():
-        within = _brought_within(
-            rotations[far].astype(np.float32), translations[far], src_matched, tgt_matched, distance
-        )
-        winners = _brought_within(
-            rotations[winner : winner + 1].astype(np.float32),
-            translations[winner : winner + 1],
-            src_matched,
-            tgt_matched,
-            distance,
-        )[0]
-        rival = np.max(np.sum(within & ~winners, axis=1)) / max(int(counts[winner]), 1)
+        distance = MATCH_VOXELS * voxel
+        within = _brought_within(rotations[far], translations[far], src_matched, tgt_matched, distance)
+        winners = _brought_within(rotations[[winner]], translations[[winner]], src_matched, tgt_matched, distance)
+        rival = np.max(np.sum(within & ~winners[0], axis=1)) / max(int(found.matches[winner]), 1)
     motion = np.eye(4)
     motion[:3, :3], motion[:3, 3] = rotations[winner], translations[winner]
     return motion, int(laid[winner]), float(rival)
@@ -403,7 +340,7 @@ def twin_fit(source: _Cloud, target: _Cloud, voxel: float, motion: tuple[np.ndar
 
     The motion is turned by each of :data:`TWIN_TURNS` about each of the thinned target's three main normal
     directions (eigenvectors of its normals' scatter), through the centre of the thinned source points it lays
-    within RANSAC's distance (1.5 ``voxel``) of the thinned target. Returns the most such points one twin lays
+    within 1.5 ``voxel`` of the thinned target. Returns the most such points one twin lays
     there, as a share of the count the motion itself lays (inf where it lays none). Near 1 or above, a turned
     copy of the result fits the clouds about as well, as in a box-shaped room: the features cannot tell the two
     apart (docs/verdict.md)."""
@@ -440,10 +377,10 @@ def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarra
     return np.array(found.transformation.numpy(), np.float64)
 
 
-def _ransac_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float, seed: int):
-    """One direction of :func:`register_both_ways`: RANSAC (:func:`_ransac`), then ICP from its motion (from the
-    identity where it found none): (4 x 4 motion, inliers, rival share)."""
-    motion, inliers, rival = _ransac(src, tgt, matches, voxel, seed)
+def _estimate_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float):
+    """One direction of :func:`register_both_ways`: the global estimate (:func:`_estimate`), then ICP from its
+    motion (from the identity where it found none): (4 x 4 motion, inliers, rival share)."""
+    motion, inliers, rival = _estimate(src, tgt, matches, voxel)
     return _icp(src, tgt, motion if np.all(np.isfinite(motion)) else np.eye(4), voxel), inliers, rival
 
 
@@ -473,34 +410,40 @@ def register(
     spacing: float | None = None,
     seed: int = 0,
     voxel_spacings: float = VOXEL_SPACINGS,
+    viewpoint: tuple | None = VIEWPOINT,
 ) -> FeatureMatch:
-    """Registers src (N, 3) onto tgt (M, 3) by FPFH + RANSAC at the voxel of :func:`feature_voxel`, without ICP.
+    """Registers src (N, 3) onto tgt (M, 3) by FPFH matches and the compatibility estimator at the voxel of
+    :func:`feature_voxel`, without ICP.
 
     Args:
       src, tgt: clouds in any units.
       spacing: their point spacing (default: the larger of the two clouds', :func:`dit_jax.icp.point_spacing`).
-      seed: RANSAC's draws and the spacing's subset.
+      seed: the spacing's subset.
       voxel_spacings: the voxel's point spacings (see :func:`feature_voxel`).
+      viewpoint: where the normals are turned to face (:data:`VIEWPOINT`); None leaves them as estimated.
 
-    Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where RANSAC finds no motion or a cloud
+    Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the estimator finds no motion or a cloud
     occupies fewer than :data:`MIN_VOXELS` voxels.
     """
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
-    source, target = _Cloud(src, voxel), _Cloud(tgt, voxel)
-    motion, inliers, _ = _ransac(source, target, _matches(source, target)[0], voxel, seed)
+    source, target = _Cloud(src, voxel, viewpoint=viewpoint), _Cloud(tgt, voxel, viewpoint=viewpoint)
+    motion, inliers, _ = _estimate(source, target, _matches(source, target)[0], voxel)
     if inliers == 0 or not np.all(np.isfinite(motion)):
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
     return FeatureMatch(*_split(motion), inliers, voxel)
 
 
-def register_both_ways(src: np.ndarray, tgt: np.ndarray, *, seed: int = 0) -> FeatureEstimate | None:
-    """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by RANSAC then
+def register_both_ways(
+    src: np.ndarray, tgt: np.ndarray, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT
+) -> FeatureEstimate | None:
+    """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by the estimator then
     point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
-    (the larger of the two, :func:`dit_jax.icp.point_spacing`); ``seed``: RANSAC's draws and the spacing's
+    (the larger of the two, :func:`dit_jax.icp.point_spacing`); ``seed``: the spacing's
     subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
-    direction RANSAC finds nothing for starts ICP from the identity and counts 0 inliers."""
+    direction the estimator finds nothing for starts ICP from the identity and counts 0 inliers; ``viewpoint``:
+    where the normals face (:data:`VIEWPOINT`, None: as estimated)."""
     from dit_jax import geometry
     from dit_jax import icp as icp_lib
 
@@ -508,14 +451,14 @@ def register_both_ways(src: np.ndarray, tgt: np.ndarray, *, seed: int = 0) -> Fe
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, None, seed, VOXEL_SPACINGS)
     if not enough:
         return None
-    # The two clouds, then the two directions, are independent: each pair of them runs on two threads (Open3D's
-    # normals and features and numpy's products release the interpreter while they work).
+    # Open3D computes each cloud's normals and features on every core already: the clouds are built in turn.
+    thin = icp_voxel(spacing, max(len(src), len(tgt)))
+    source, target = _Cloud(src, voxel, thin, viewpoint), _Cloud(tgt, voxel, thin, viewpoint)
+    forward_matches, backward_matches = _matches(source, target)
+    # The two directions run on two threads: the estimator's compiled program and ICP release the interpreter.
     with concurrent.futures.ThreadPoolExecutor(2) as threads:
-        thin = icp_voxel(spacing, max(len(src), len(tgt)))
-        source, target = threads.map(_Cloud, (src, tgt), (voxel, voxel), (thin, thin))
-        forward_matches, backward_matches = _matches(source, target)
-        there = threads.submit(_ransac_then_icp, source, target, forward_matches, voxel, seed)
-        back = threads.submit(_ransac_then_icp, target, source, backward_matches, voxel, seed)
+        there = threads.submit(_estimate_then_icp, source, target, forward_matches, voxel)
+        back = threads.submit(_estimate_then_icp, target, source, backward_matches, voxel)
         (there, inliers_there, rival_there), (back, inliers_back, rival_back) = there.result(), back.result()
     forward, backward = _split(there), _split(np.linalg.inv(back))
     shares = icp_lib.overlap(src, tgt, [forward, backward], 2.0 * spacing, seed=seed)

@@ -520,7 +520,8 @@ def features_first(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings
         return None
     from dit_jax import feature_match
 
-    return feature_match.register_both_ways(src, tgt, seed=settings.seed)
+    viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
+    return feature_match.register_both_ways(src, tgt, seed=settings.seed, viewpoint=viewpoint)
 
 
 def _network_can_confirm(found) -> bool:

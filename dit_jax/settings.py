@@ -29,6 +29,8 @@ SCAN_POINTS = 2_000
 FEATURE_CANDIDATES = ("auto", "on", "off")
 #: Where stage 1 centres the two clouds (:attr:`InferenceSettings.centring`).
 CENTRINGS = ("auto", "shared", "separate")
+#: Where local features turn the clouds' normals to face (:attr:`InferenceSettings.viewpoint`).
+VIEWPOINTS = ("origin", "none")
 #: How stage 4 judges a result (:attr:`InferenceSettings.verdict_rule`).
 VERDICTS = ("agreement", "fitness")
 
@@ -69,6 +71,10 @@ class InferenceSettings(Record):
         of the features' two (:func:`dit_jax.pipeline.combine`). "on", "off", or "auto": where both clouds have
         at least :data:`SCAN_POINTS` points (scans; on sparse shapes it measured worse than the refined network
         alone, docs/refinement.md).
+      viewpoint: "origin": before local features, each cloud's normals are turned to face its origin, where a
+        scan in its own frame has its sensor (range scans, RGB-D fragments, LiDAR sweeps), so that one wall gets
+        one description in two scans; "none": as estimated, each normal's sign arbitrary (for clouds moved out
+        of their sensor's frame). Measured on rooms, the dragon, the kitchen and LiDAR (docs/refinement.md).
       rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
@@ -109,6 +115,7 @@ class InferenceSettings(Record):
     precision: str | None = None
     refine: str = "auto"
     feature_candidate: str = "auto"
+    viewpoint: str = "origin"
     rotation_search: bool = False
     verdict_rule: str = "agreement"
     best_direction: bool = True
@@ -131,6 +138,7 @@ class InferenceSettings(Record):
             ("refine", REFINEMENTS),
             ("verdict_rule", VERDICTS),
             ("feature_candidate", FEATURE_CANDIDATES),
+            ("viewpoint", VIEWPOINTS),
         ):
             value = getattr(self, name)
             if value not in allowed:
@@ -233,11 +241,19 @@ FLAGS = {
         Flag(
             "--features",
             ("feature_candidate",),
-            "register by local features (FPFH + RANSAC, both ways) first: where the two directions agree on "
+            "register by local features (FPFH matches and a compatibility-graph estimator, both ways) first: "
+            "where the two directions agree on "
             "a motion without a close rival the result is theirs, else the network runs too and the result is "
             "trusted only where its motion lands on one of theirs; auto: where both clouds have "
             f"{SCAN_POINTS:,} points or more",
             choices=FEATURE_CANDIDATES,
+        ),
+        Flag(
+            "--viewpoint",
+            ("viewpoint",),
+            "local features: origin turns each cloud's normals to face its origin, where a scan in its own "
+            "frame has its sensor; none leaves their signs as estimated (clouds moved out of the sensor's frame)",
+            choices=VIEWPOINTS,
         ),
         Flag(
             "--any-rotation",

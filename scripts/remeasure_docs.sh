@@ -33,7 +33,7 @@ step() {  # step NAME ARGS...: one evaluate.py run, timed, logged to runs/remeas
 step unseen --data-dir "$data" --unseen --settings all --max-pairs 100 --baselines "${all[@]}" \
   --reuse docs/eval_modelnet40_unseen --out docs/eval_modelnet40_unseen
 step dragon --scans "$scans" --baselines "${all[@]}" --out docs/eval_stanford_dragon
-step rooms --scans "$shared/3dmatch" --max-pairs 40 --baselines open3d_room_5cm features \
+step rooms --scans "$shared/3dmatch" --max-pairs 40 --baselines open3d_room_5cm open3d_room_full features \
   --out docs/eval_3dmatch
 step kitchen --scans "$shared/3dmatch_redkitchen" --baselines fpfh_ransac_icp --out docs/eval_3dmatch_redkitchen
 step lidar --scans "$shared/lidar_pair" --baselines fpfh_ransac_icp --out docs/eval_lidar_pair

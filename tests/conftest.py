@@ -299,3 +299,16 @@ def pytest_collection_modifyitems(session, config, items):
         return 1 + _LONG_TESTS.index(name) if name in _LONG_TESTS else 1 + len(_LONG_TESTS)
 
     items.sort(key=order)  # stable: order kept otherwise
+
+
+def box_room(n: int, seed: int) -> np.ndarray:
+    """Floor and four walls of a 4 x 4 x 2.5 room, sampled at random: a quarter turn about the floor's normal
+    maps it onto itself."""
+    rng = np.random.default_rng(seed)
+    corner, up = np.array([-2.0, -2.0, 0.0]), np.array([0.0, 0.0, 2.5])
+    sides = [(corner, [4.0, 0, 0], [0, 4.0, 0])]
+    sides += [(corner, [4.0, 0, 0], up), (corner + [0, 4, 0], [4.0, 0, 0], up)]
+    sides += [(corner, [0, 4.0, 0], up), (corner + [4, 0, 0], [0, 4.0, 0], up)]
+    shares = rng.uniform(0, 1, (len(sides), n // len(sides), 2))
+    points = [o + s[:, :1] * np.array(u) + s[:, 1:] * np.array(v) for (o, u, v), s in zip(sides, shares)]
+    return np.concatenate(points)

@@ -31,6 +31,8 @@ def test_the_gpu_check_runs_every_part_in_smoke_mode(tmp_path, reference_file):
     assert training["val"]["network_rotation_error"] >= 0
     assert (out / "training" / "model").is_dir()
     assert (out / "xla_cache").is_dir()
+    estimator = record["estimator"]["buckets"]
+    assert [b["matches"] for b in estimator] == [512] and estimator[0]["error_deg"] < 0.5
 
 
 def test_the_gpu_check_refuses_an_unknown_part(tmp_path):

@@ -23,6 +23,7 @@ FIELD_CHOICES = {
     "feature_candidate": pipeline.FEATURE_CANDIDATES,
     "verdict_rule": pipeline.VERDICTS,
     "best_direction": settings.ON_OFF,
+    "viewpoint": settings.VIEWPOINTS,
 }
 
 

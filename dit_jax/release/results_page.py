@@ -66,6 +66,7 @@ PAGES = {
     "rooms_full": (DOCS / "results.md", ROOT / "README.md"),
     "levels": DOCS / "verdict.md",
     "rival": DOCS / "verdict.md",
+    "left_out": DOCS / "verdict.md",
     "bands": DOCS / "verdict.md",
 }
 #: The README's table: the real sets and one synthetic directory.
@@ -334,21 +335,27 @@ def rooms_table() -> list[str]:
     return lines[:-1]
 
 
+#: How the full-list table names the baseline each record was measured beside.
+BASELINE_LABELS = {"open3d_room_5cm": "Open3D's tutorial recipe", "open3d_room_full": "Open3D at full strength"}
+
+
 def rooms_full_table() -> list[str]:
     """Per list of the 3DMatch scenes, every pair: the default pipeline beside the baseline it was measured
     with, from :data:`ROOMS_FULL`."""
     if not ROOMS_FULL.exists():
         return ["(no full-list measurement in docs/rooms_full_lists.jsonl yet)"]
     records = [json.loads(line) for line in ROOMS_FULL.read_text().splitlines() if line.strip()]
+    baseline = [m for m in records[0]["figures"] if m != "pipeline"][0]
     lines = [
-        "| list | pairs | recall: default, recipe | within 15 deg and 0.3 m: default, recipe | s / pair: default, "
-        "recipe (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
-        "one only: default, recipe |",
+        f"Beside: {BASELINE_LABELS.get(baseline, baseline)} (`{baseline}`), pair by pair on the same machine.",
+        "",
+        "| list | pairs | recall: default, baseline | within 15 deg and 0.3 m: default, baseline | s / pair: default, "
+        "baseline (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
+        "one only: default, baseline |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
-        methods = list(r["figures"])
-        ours, theirs = (r["figures"][m] for m in methods)
+        ours, theirs = r["figures"]["pipeline"], r["figures"][baseline]
         verdict = r["verdict"]
 
         def share(pair: list) -> str:
@@ -360,7 +367,7 @@ def rooms_full_table() -> list[str]:
             f"{ours['seconds_median']:.2f}, {theirs['seconds_median']:.2f} | "
             f"{share(verdict['rmse']['exit_0'])}; {share(verdict['criterion']['exit_0'])} | "
             f"{share(verdict['rmse']['flagged'])} | "
-            f"{len(r['only'][methods[0]])}, {len(r['only'][methods[1]])} |"
+            f"{len(r['only']['pipeline'])}, {len(r['only'][baseline])} |"
         )
     return lines
 
@@ -378,7 +385,7 @@ def rival_table() -> list[str]:
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
-        for entry in r["bounds"]:
+        for entry in r.get("bounds", []):
             if (entry["degrees"], entry["spacings"]) != (
                 settings.max_disagreement_features,
                 settings.max_offset_features,
@@ -394,6 +401,30 @@ def rival_table() -> list[str]:
                 f"| {r['data']} {r['set']} | {r['pairs']} | {rival} | {twin} | {c['trusted']} | {right} | {right_15} | "
                 f"{c['wrong_flagged']} of {c['wrong']} |"
             )
+    return lines
+
+
+def left_out_table() -> list[str]:
+    """The verdict's rival and twin bounds chosen with each 3DMatch scene left out (:data:`FEATURE_AGREEMENT`'s
+    ``left_out`` record), and what they do on that scene."""
+    records = []
+    if FEATURE_AGREEMENT.exists():
+        records = [json.loads(line) for line in FEATURE_AGREEMENT.read_text().splitlines() if line.strip()]
+    found = [r["left_out"] for r in records if "left_out" in r]
+    if not found:
+        return ["(no calibration with a scene left out in docs/feature_agreement.jsonl yet)"]
+    lines = [
+        "| scene left out | bounds chosen on the others (rival, twin) | the others: trusted, right | left out: "
+        "trusted, right | left out: wrong flagged |",
+        "|---|---|---|---|---|",
+    ]
+    for e in found[0]:
+        c, h = e["calibration"], e["held_out"]
+        share = f" ({100 * h['trusted_right'] / h['trusted']:.0f} %)" if h["trusted"] else ""
+        lines.append(
+            f"| {e['left_out']} | {e['rival'] or 'none'}, {e['twin'] or 'none'} | {c['trusted']}, {c['trusted_right']} "
+            f"| {h['trusted']}, {h['trusted_right']}{share} | {h['wrong_flagged']} of {h['wrong']} |"
+        )
     return lines
 
 
@@ -431,6 +462,7 @@ TABLES = {
     "rooms": rooms_table,
     "rooms_full": rooms_full_table,
     "rival": rival_table,
+    "left_out": left_out_table,
     "levels": levels_table,
     "bands": bands_table,
 }
