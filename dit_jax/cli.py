@@ -83,7 +83,11 @@ def _parser() -> argparse.ArgumentParser:
         ".npy, text (.xyz .txt .csv .asc .pts),\n"
         ".las and .laz (read; written only as SRC moved); "
         "meshes (.obj .off .stl, .ply with faces) "
-        f"as {io.MESH_POINTS:,} points sampled over their surface\n\n" + __doc__.split("\n\n")[-1].strip(),
+        f"as {io.MESH_POINTS:,} points sampled over their surface\n\n"
+        "exit status: 0 a result (trusted or unconfirmed); 2 bad input, nothing written; 3 a result that is\n"
+        "probably wrong (printed and written all the same). A list (--pairs) ends with 2 where a pair of it has no\n"
+        "result, else 3 where one is probably wrong, the pairs a resumed run skipped included.\n\n"
+        + __doc__.split("\n\n")[-1].strip(),
     )
     parser.add_argument("src", nargs="?", help="the cloud (or mesh) to move")
     parser.add_argument("tgt", nargs="?", help="the cloud (or mesh) to align it to")
@@ -98,8 +102,16 @@ def _parser() -> argparse.ArgumentParser:
         "--results",
         default=None,
         metavar="FILE.jsonl",
-        help="with --pairs: append each pair's JSON line here instead of printing it; pairs "
-        "already in it are skipped, so a stopped run resumes",
+        help="with --pairs: append each pair's JSON line here instead of printing it. The file is a log: "
+        "nothing in it is ever cut or rewritten. Pairs it already holds a result for (same files, same "
+        "settings) are skipped and errors are tried again, so a stopped run resumes; processes sharing the "
+        "file (shards, or the same list twice) never register one pair twice",
+    )
+    parser.add_argument(
+        "--reuse-results",
+        action="store_true",
+        help="with --results: the file may hold records of another list or other settings; keep them and "
+        "add this run's beside them (else such a file is refused)",
     )
     parser.add_argument(
         "--shard",
@@ -169,9 +181,10 @@ def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     return points
 
 
-def _output_problem(path: str | None, source: str | None = None) -> str | None:
-    """What is wrong with an --out path (a format not written, a missing folder), or None. A mesh or LAS
-    file is written only as ``source`` moved, which must have that format."""
+def _output_problem(path: str | None, source: str | None = None, inputs: tuple = ()) -> str | None:
+    """What is wrong with an --out path (a format not written, a folder, a missing or read-only folder, one of
+    the ``inputs``), or None. A mesh or LAS file is written only as ``source`` moved, which must have that
+    format."""
     if path is None:
         return None
     ext = os.path.splitext(path)[1].lower()
@@ -186,20 +199,32 @@ def _output_problem(path: str | None, source: str | None = None) -> str | None:
             io.file_format(path, kind="output format", formats=io.WRITE_FORMATS)
         except io.CloudFileError as err:
             return str(err)
-    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+    return _writable_problem(path, inputs)
+
+
+def _writable_problem(path: str, inputs: tuple = ()) -> str | None:
+    """What keeps ``path`` from being written safely: a folder of that name, a missing or read-only folder, or
+    the file being one of ``inputs`` (links included): an output never replaces an input."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        return f"{path}: is a folder; give a file name"
+    if not os.path.isdir(folder):
         return f"{path}: its folder does not exist"
+    if not os.access(folder, os.W_OK):
+        return f"{path}: its folder is not writable"
+    for given in inputs:
+        if given is not None and os.path.exists(path) and os.path.exists(given) and os.path.samefile(path, given):
+            return f"{path}: is the input {given}; an output never replaces an input, choose another name"
     return None
 
 
-def _plot_problem(path: str | None) -> str | None:
-    """What is wrong with a --plot path (not a .png, a missing folder), or None."""
+def _plot_problem(path: str | None, inputs: tuple = ()) -> str | None:
+    """What is wrong with a --plot path (not a .png, see :func:`_writable_problem`), or None."""
     if path is None:
         return None
     if not path.lower().endswith(".png"):
         return f"--plot {path}: expected a .png file name"
-    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
-        return f"{path}: its folder does not exist"
-    return None
+    return _writable_problem(path, inputs)
 
 
 def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) -> list[str]:
@@ -237,6 +262,8 @@ def read_pair_list(path: str) -> list[tuple[str, str]]:
     relative paths taken from the list's folder. Raises ValueError naming the line that is not a pair."""
     folder = os.path.dirname(os.path.abspath(path))
     pairs = []
+    if not os.path.isfile(path):
+        raise ValueError(f"--pairs {path}: " + ("is a folder" if os.path.isdir(path) else "no such file"))
     with open(path) as f:
         for number, line in enumerate(f, 1):
             fields = line.split("#", 1)[0].split()
@@ -259,76 +286,153 @@ def _shard(text: str | None) -> tuple[int, int]:
     return int(match.group(1)), int(match.group(2))
 
 
-def _done_indices(path: str | None) -> set[int]:
-    """The pair indices already recorded in a --results file. A last line cut short (a run killed while
-    writing it) is removed, so the pair is registered again."""
-    if path is None or not os.path.exists(path):
-        return set()
-    done, good_bytes = set(), 0
-    with open(path, "rb") as f:
-        for line in f:
-            try:
-                done.add(int(json.loads(line)["index"]))
-            except (ValueError, KeyError, TypeError):
-                break
-            good_bytes += len(line)
-    if good_bytes < os.path.getsize(path):
-        with open(path, "r+b") as f:
-            f.truncate(good_bytes)
-    return done
+def _reading(args) -> dict:
+    """How the files were read: part of what makes two runs' results comparable."""
+    return {"max_points": args.max_points, "drop_nonfinite": args.drop_nonfinite, "no_downsample": args.no_downsample}
+
+
+def _open_results(args, pairs: list[tuple[str, str]], key: dict):
+    """The --results log, read and checked (:mod:`dit_jax.results_log`), or None without --results. Raises
+    ValueError where it holds records of another list or other settings and --reuse-results was not given."""
+    from dit_jax import results_log
+
+    if args.results is None:
+        return None
+    if os.path.isdir(args.results):
+        raise ValueError(f"--results {args.results}: is a folder; give a file name")
+    log = results_log.ResultsFile(args.results)
+    log.read_new()
+    if log.bad_lines:
+        shown = ", ".join(map(str, log.bad_lines[:10])) + (", ..." if len(log.bad_lines) > 10 else "")
+        print(
+            f"{PROG}: note: {args.results}: {len(log.bad_lines)} line(s) do not parse and are skipped (left as "
+            f"they are): line {shown}",
+            file=sys.stderr,
+        )
+    if log.cut_short:
+        print(f"{PROG}: note: {args.results}: its last line is cut short; left as it is", file=sys.stderr)
+    listed = {(os.path.abspath(src), os.path.abspath(tgt)) for src, tgt in pairs}
+    foreign = [
+        r
+        for r in log.records
+        if r.get("settings") != key or (r.get("pair", {}).get("src"), r.get("pair", {}).get("tgt")) not in listed
+    ]
+    if foreign and not args.reuse_results:
+        log.close()
+        raise ValueError(
+            f"--results {args.results}: holds {len(foreign)} record(s) of another list or other settings; "
+            "give another file, or --reuse-results to add this run's records beside them"
+        )
+    return log
+
+
+def _register_pair(model, args, src_path: str, tgt_path: str) -> dict:
+    """One pair of the list registered: the result's JSON fields (and its warnings), or ``{"error": ...}``."""
+    from dit_jax import registration
+
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", registration.SizeMismatchWarning)
+            result = model.register(_read(src_path, args), _read(tgt_path, args))
+    except registration.InputError as err:  # name the files, not "source"/"target"
+        message = str(err).replace("source:", f"{src_path}:", 1).replace("target:", f"{tgt_path}:", 1)
+        return {"error": " ".join(message.split())}
+    except (io.CloudFileError, ValueError, OSError) as err:
+        return {"error": " ".join(str(err).split())}
+    record = result.to_json()
+    if problems := _warning_lines(caught, src_path, tgt_path):  # kept with the pair, not on stderr
+        record["warnings"] = problems
+    return record
 
 
 def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], model_kwargs: dict) -> int:
-    """``--pairs``: the ``pairs`` of shard (index, count) through one loaded model; returns the exit status."""
+    """``--pairs``: the ``pairs`` of shard (index, count) through one loaded model; returns the exit status.
+
+    With --results, a pair whose identity and settings already have a finished record is skipped; each pair
+    is worked on under its lock, so processes sharing the file never register one pair twice."""
     from tqdm.auto import tqdm
 
-    from dit_jax import registration
+    from dit_jax import registration, results_log
 
     index, count = shard
     chosen = [(k, pair) for k, pair in enumerate(pairs) if k % count == index]
-    done = _done_indices(args.results)
-    todo = [(k, pair) for k, pair in chosen if k not in done]
+    key = results_log.settings_key(args.checkpoint, model_kwargs, _reading(args))
+    identities = {k: results_log.identity(*pair) for k, pair in chosen}
+    log = _open_results(args, pairs, key)
+    latest: dict[int, dict] = {}
+
+    def take(records: list[dict]) -> None:  # the newest record of each chosen pair, finished ones first
+        for record in records:
+            for k in [k for k, pair in identities.items() if results_log.same_pair(record, pair, key)]:
+                if results_log.finished(record) or not results_log.finished(latest.get(k, {})):
+                    latest[k] = record
+
+    def done(k: int) -> bool:
+        return results_log.finished(latest.get(k, {}))
+
+    if log is not None:
+        take(log.records)
     model = registration.load(args.checkpoint, **model_kwargs)
-    out = open(args.results, "a") if args.results else sys.stdout
-    errors = wrong = 0
     bar = tqdm(
         total=len(chosen),
-        initial=len(chosen) - len(todo),
+        initial=sum(map(done, identities)),
         desc="pairs",
         unit="pair",
         file=sys.stderr,
         disable=args.no_progress,
         dynamic_ncols=True,
     )
+
+    def run(k: int, src_path: str, tgt_path: str) -> None:
+        record = {"index": k, "src": src_path, "tgt": tgt_path, "pair": identities[k], "settings": key}
+        record |= _register_pair(model, args, src_path, tgt_path)
+        if log is None:
+            print(json.dumps(record), flush=True)
+        else:
+            log.append(record)
+        take([record])
+        bar.update(1)
+
     try:
-        for k, (src_path, tgt_path) in todo:
-            record = {"index": k, "src": src_path, "tgt": tgt_path}
-            try:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always", registration.SizeMismatchWarning)
-                    result = model.register(_read(src_path, args), _read(tgt_path, args), refine=args.refine)
-                record |= result.to_json()
-                if problems := _warning_lines(caught, src_path, tgt_path):  # kept with the pair, not on stderr
-                    record["warnings"] = problems
-                wrong += result.level == "probably wrong"
-            except (io.CloudFileError, registration.InputError, ValueError, OSError) as err:
-                record["error"] = " ".join(str(err).split())
-                errors += 1
-            out.write(json.dumps(record) + "\n")
-            out.flush()
-            bar.update(1)
+        waiting = []
+        for k, (src_path, tgt_path) in chosen:
+            if done(k):
+                continue
+            if log is None:
+                run(k, src_path, tgt_path)
+                continue
+            with log.pair_lock(k, wait=False) as mine:
+                if not mine:  # another process is on it: come back once the rest is done
+                    waiting.append((k, src_path, tgt_path))
+                    continue
+                take(log.read_new())
+                if not done(k):
+                    run(k, src_path, tgt_path)
+        for k, src_path, tgt_path in waiting:
+            with log.pair_lock(k, wait=True):
+                take(log.read_new())
+                if not done(k):
+                    run(k, src_path, tgt_path)
     finally:
         bar.close()
-        if out is not sys.stdout:
-            out.close()
+        if log is not None:
+            log.close()
+    return _list_status(args, [latest.get(k, {}) for k in identities])
+
+
+def _list_status(args, records: list[dict]) -> int:
+    """The exit status of a list from each chosen pair's newest record: 2 where one has no result, else 3
+    where one is probably wrong (0 with --no-verdict-status), else 0."""
+    errors = sum(not r or "error" in r for r in records)
+    wrong = sum(r.get("level") == "probably wrong" for r in records)
     if errors:
         print(
-            f"{PROG}: error: {errors} of {len(todo)} pairs could not be registered (their lines say why)",
+            f"{PROG}: error: {errors} of {len(records)} pairs could not be registered (their lines say why)",
             file=sys.stderr,
         )
         return 2
     if wrong:
-        print(f"{PROG}: warning: {wrong} of {len(todo)} results are probably wrong", file=sys.stderr)
+        print(f"{PROG}: warning: {wrong} of {len(records)} results are probably wrong", file=sys.stderr)
         return 0 if args.no_verdict_status else EXIT_SUSPECT
     return 0
 
@@ -355,13 +459,13 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(str(err))
     elif args.src is None or args.tgt is None:
         return _fail("give SRC and TGT, or --pairs LIST")
-    elif args.results is not None or args.shard is not None:
-        return _fail("--results and --shard go with --pairs")
+    elif args.results is not None or args.shard is not None or args.reuse_results:
+        return _fail("--results, --reuse-results and --shard go with --pairs")
 
-    problem = _output_problem(args.out, args.src)  # checked before any work, so a bad --out costs nothing
-    if problem:
-        return _fail(problem)
-    problem = _plot_problem(args.plot)
+    # Checked before any work, so a bad --out or --plot costs nothing and never replaces an input.
+    problem = _output_problem(args.out, args.src, (args.src, args.tgt)) or _plot_problem(
+        args.plot, (args.src, args.tgt)
+    )
     if problem:
         return _fail(problem)
     if args.max_points < 1:
@@ -519,7 +623,12 @@ def series_main(argv: list[str] | None = None) -> int:
             f"{'--loop needs at least 3 scans' if args.loop else 'a series needs at least 2 scans'}, "
             f"got {len(args.scans)}"
         )
-    problem = _output_problem(args.out) or _out_dir_problem(args.out_dir, args.scans) or _plot_problem(args.plot)
+    scans = tuple(args.scans)
+    problem = (
+        _output_problem(args.out, inputs=scans)
+        or _out_dir_problem(args.out_dir, args.scans)
+        or _plot_problem(args.plot, scans)
+    )
     if problem:
         return fail(problem)
     if args.max_points < 1:

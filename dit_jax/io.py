@@ -39,8 +39,10 @@ import io as io_lib
 import itertools
 import os
 import re
+import stat
 import struct
 import tempfile
+import tokenize
 import warnings
 
 import numpy as np
@@ -126,6 +128,8 @@ def read(
         raise CloudFileError(path, "no such file")
     if os.path.isdir(path):
         raise CloudFileError(path, "is a directory, not a point-cloud file")
+    if not stat.S_ISREG(os.stat(path).st_mode):  # a pipe would block for ever, a device never end
+        raise CloudFileError(path, "is not a regular file (a pipe, socket or device)")
     if not os.access(path, os.R_OK):
         raise CloudFileError(path, "permission denied")
     if mesh_points < 1:
@@ -160,7 +164,8 @@ def read(
         points, total = reader(path, (lambda count: None) if drop_nonfinite else select)
     except CloudFileError:
         raise
-    except (OSError, ValueError, UnicodeDecodeError, EOFError) as err:
+    except (OSError, ValueError, UnicodeDecodeError, EOFError, SyntaxError, tokenize.TokenError) as err:
+        # SyntaxError and TokenError: an NPY header that does not parse as the dict numpy expects
         raise CloudFileError(path, f"unreadable {ext[1:].upper()} file ({_first_line(err)})") from None
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -565,9 +570,29 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
     cloud = _pcd(path)
     _columns(path, list(cloud.fields))
     data = cloud.pc_data
+    header = cloud.metadata
+    if len(data) != header.points or header.width * header.height != header.points:
+        raise CloudFileError(
+            path,
+            f"its header says POINTS {header.points:,} (WIDTH {header.width:,} x HEIGHT {header.height:,}) "
+            f"but it holds {len(data):,}",
+        )
     rows_kept = select(len(data))
     kept = data if rows_kept is None else data[rows_kept]
     return np.stack([np.asarray(kept[axis], np.float64) for axis in _XYZ], axis=1), len(data)
+
+
+#: The most a LAZ file's points may be compressed, as uncompressed bytes per file byte.
+LAZ_RATIO = 50
+
+
+def _lazrs_errors() -> tuple[type[BaseException], ...]:
+    """The LAZ decompressor's error type (a corrupt stream), where lazrs is installed."""
+    try:
+        from lazrs import LazrsError
+    except ImportError:
+        return ()
+    return (LazrsError,)
 
 
 def _las(path: str):
@@ -580,8 +605,12 @@ def _las(path: str):
         size = header.offset_to_point_data + header.point_count * header.point_format.size
         if not header.are_points_compressed and os.path.getsize(path) < size:
             raise CloudFileError(path, f"LAS file ends before its {header.point_count} points")
+        # LAZ packs points about ten times at best: a header claiming far more than that is lying, and reading
+        # it would allocate for every claimed point first.
+        if header.are_points_compressed and size > LAZ_RATIO * os.path.getsize(path):
+            raise CloudFileError(path, f"LAZ header claims {header.point_count:,} points, more than the file holds")
         return laspy.read(path)
-    except (laspy.LaspyException, ValueError, EOFError) as err:
+    except (laspy.LaspyException, ValueError, EOFError, OSError, struct.error, *_lazrs_errors()) as err:
         raise CloudFileError(
             path, f"malformed {os.path.splitext(path)[1][1:].upper()} file ({_first_line(err)})"
         ) from None

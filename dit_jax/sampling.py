@@ -27,6 +27,16 @@ class SizeMismatchWarning(UserWarning):
     """The two clouds differ in size far more than views of one object do: most likely different units."""
 
 
+#: Coordinates the pipeline takes: squared lengths of larger ones overflow float64 (near 1e154), of clouds
+#: smaller across than this they underflow.
+LARGEST = 1e100
+SMALLEST = 1e-100
+
+
+def _points(count: int) -> str:
+    return f"{count:,} point" + ("" if count == 1 else "s")
+
+
 def check_cloud(name: str, points, min_points: int) -> np.ndarray:
     """Returns ``points`` as (N, 3) float64 or raises :class:`InputError` saying what is wrong with it."""
     try:
@@ -42,17 +52,24 @@ def check_cloud(name: str, points, min_points: int) -> np.ndarray:
     if bad.any():
         raise InputError(f"{name}: {int(bad.sum())} of {len(array)} points have NaN or Inf coordinates")
     if len(array) < min_points:
-        raise InputError(f"{name}: {len(array)} points; the model needs at least {min_points}")
+        raise InputError(f"{name}: {_points(len(array))}; the model needs at least {min_points}")
     extent = float(np.ptp(array, axis=0).max())
-    if extent <= 1e-9 * max(1.0, float(np.abs(array).max())):
-        raise InputError(f"{name}: all {len(array)} points are the same point")
+    largest = float(np.abs(array).max())
+    # Same point up to rounding: relative to the coordinates' own size, so a cloud in any unit passes.
+    if extent <= 1e-9 * largest:
+        raise InputError(f"{name}: all {_points(len(array))} are the same point")
+    if largest > LARGEST or extent < SMALLEST:
+        raise InputError(
+            f"{name}: coordinates up to {largest:.3g} across {extent:.3g}; squared lengths of such a cloud leave "
+            f"float64's range: rescale it (any unit between {SMALLEST:g} and {LARGEST:g} works)"
+        )
     # A line leaves the rotation about itself undetermined, whatever the other cloud. Its spread across the
     # line is zero up to rounding; a millionth of the spread along it is a line in float32, the network's type.
-    centred = array - array.mean(axis=0)
+    centred = (array - array.mean(axis=0)) / extent  # scale-free: the check reads the same in any unit
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred), 0.0))  # ascending
     if spread[1] <= 1e-6 * spread[2]:
         raise InputError(
-            f"{name}: its {len(array)} points lie on one line, so no rotation about that line can be told from another"
+            f"{name}: its {_points(len(array))} lie on one line, so no rotation about that line can be told from another"
         )
     return array
 

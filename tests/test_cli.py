@@ -601,7 +601,7 @@ def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_pa
     """--pairs LIST registers each 'SRC TGT' line through one loaded model, one JSON line per pair (an unreadable
     file gets a line with its error and status 2, the others still run); --shard I/N takes every N-th pair, so
     the shards together cover the list once; --results appends and a second run skips what is recorded, and
-    a last line cut short by a kill is registered again."""
+    errors are tried again on every run, and a last line cut short by a kill stays where it is."""
     folder, _, _ = pair
     listing = tmp_path / "pairs.txt"
     listing.write_text(
@@ -631,14 +631,16 @@ def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_pa
     assert code == 2 and "1 of 2 pairs could not be registered" in err
     assert sorted(r["index"] for r in records) == [0, 1, 2]
     assert "missing.ply" in next(r for r in records if r["index"] == 2)["error"]
-    # Resume: nothing left to do; then a torn last line is dropped and its pair registered again.
-    code, _, _ = run(capsys, *common)
-    assert code == 0 and len(results.read_text().splitlines()) == 3
+    # Resume: the two results are kept, the error is tried again (a line of its own, status 2 again).
+    code, _, err = run(capsys, *common)
+    assert code == 2 and len(results.read_text().splitlines()) == 4, err
+    # A last line cut short by a kill is kept as it is, reported, and its pair registered again.
     text = results.read_text()
-    results.write_text(text[: text.rindex("{") + 10])
-    code, _, _ = run(capsys, *common)
+    results.write_text(text + text.splitlines()[0][:30])
+    code, _, err = run(capsys, *common)
     lines = results.read_text().splitlines()
-    assert len(lines) == 3 and all(json.loads(line) for line in lines)
+    assert code == 2 and "last line is cut short" in err and len(lines) == 6
+    assert lines[4] == text.splitlines()[0][:30] and lines[:4] == text.splitlines()
     # Without --results the lines go to stdout; bad combinations are refused before any work.
     code, out, _ = run(
         capsys,
@@ -661,3 +663,123 @@ def test_a_list_of_pairs_in_shards_resumes_and_records_every_pair(capsys, tmp_pa
     ):
         code, out, err = run(capsys, *argv)
         assert code == 2 and fragment in err and out == "", err
+
+
+def _pair_list(tmp_path, pair, count: int, name: str = "pairs.txt"):
+    """A list of ``count`` distinct pairs (copies of the pair's source file, one target), and its path."""
+    folder, _, _ = pair
+    lines = []
+    for k in range(count):
+        copy = tmp_path / f"src_{k}.ply"
+        if not copy.exists():
+            copy.write_bytes((folder / "src.ply").read_bytes())
+        lines.append(f"{copy} {folder / 'tgt.pcd'}")
+    listing = tmp_path / name
+    listing.write_text("\n".join(lines) + "\n")
+    return listing
+
+
+def _list_args(listing, results, checkpoint):
+    return ["--pairs", listing, "--results", results, "--checkpoint", checkpoint, "--refine", "none", "--no-progress"]
+
+
+def test_resume_keeps_every_record_around_a_blank_line_and_matches_pairs_not_positions(
+    capsys, tmp_path, tiny_checkpoint, pair
+):
+    """A finished 10-pair file with a blank line after record 3: resuming deletes nothing, registers nothing
+    and says nothing of it. A different 5-pair list on that file is refused with one line (its records are of
+    another list), and runs beside them with --reuse-results, registering its own pairs."""
+    listing = _pair_list(tmp_path, pair, 10)
+    results = tmp_path / "results.jsonl"
+    code, _, err = run(capsys, *_list_args(listing, results, tiny_checkpoint), "--no-verdict-status")
+    assert code == 0, err
+    lines = results.read_text().splitlines()
+    assert len(lines) == 10
+    results.write_text("\n".join(lines[:3] + [""] + lines[3:]) + "\n")
+    before = results.read_text()
+    code, _, err = run(capsys, *_list_args(listing, results, tiny_checkpoint), "--no-verdict-status")
+    assert code == 0 and results.read_text() == before, err
+    other = tmp_path / "other"
+    other.mkdir()
+    five = _pair_list(other, pair, 5)
+    code, out, err = run(capsys, *_list_args(five, results, tiny_checkpoint))
+    assert code == 2 and err.count("\n") == 1 and "another list or other settings" in err and out == ""
+    assert results.read_text() == before
+    code, _, err = run(capsys, *_list_args(five, results, tiny_checkpoint), "--reuse-results", "--no-verdict-status")
+    assert code == 0, err
+    assert results.read_text().startswith(before) and len(results.read_text().splitlines()) == 11 + 5
+
+
+def test_failed_pairs_are_retried_and_a_probably_wrong_list_still_exits_3(capsys, tmp_path, tiny_checkpoint, pair):
+    """Pairs that failed (an unreadable file) are tried again on the next run, and succeed once the file is
+    there; a list whose results are probably wrong exits 3 on a resumed run too, registering nothing again."""
+    listing = _pair_list(tmp_path, pair, 3)
+    missing = tmp_path / "src_1.ply"
+    kept = missing.read_bytes()
+    missing.unlink()
+    results = tmp_path / "results.jsonl"
+    code, _, err = run(capsys, *_list_args(listing, results, tiny_checkpoint), "--max-disagreement", "0")
+    assert code == 2 and "1 of 3 pairs could not be registered" in err
+    missing.write_bytes(kept)
+    code, _, err = run(capsys, *_list_args(listing, results, tiny_checkpoint), "--max-disagreement", "0")
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    assert len(records) == 4 and "error" in records[1] and records[3]["index"] == 1 and "level" in records[3]
+    wrong = sum(r.get("level") == "probably wrong" for r in records)
+    assert (code == 3) == (wrong > 0) and (code == 0) == (wrong == 0), err
+    if wrong:
+        code, _, err = run(capsys, *_list_args(listing, results, tiny_checkpoint), "--max-disagreement", "0")
+        assert code == 3 and "probably wrong" in err and len(results.read_text().splitlines()) == 4
+
+
+def test_two_processes_on_one_results_file_register_each_pair_once(tmp_path, tiny_checkpoint, pair):
+    """Two shards and a duplicate of one of them, at once, on one file: every pair has exactly one record."""
+    listing = _pair_list(tmp_path, pair, 8)
+    results = tmp_path / "results.jsonl"
+    base = [sys.executable, "-m", "dit_jax.cli", *map(str, _list_args(listing, results, tiny_checkpoint))]
+    runs = [
+        subprocess.Popen([*base, "--shard", shard, "--no-verdict-status"], stderr=subprocess.PIPE, text=True)
+        for shard in ("0/2", "1/2", "0/2")
+    ]
+    for process in runs:
+        assert process.wait(timeout=300) == 0, process.stderr.read()
+    records = [json.loads(line) for line in results.read_text().splitlines()]
+    assert sorted(r["index"] for r in records) == list(range(8))
+
+
+def test_out_never_replaces_an_input_and_is_checked_before_any_work(capsys, tmp_path, tiny_checkpoint, pair):
+    """--out naming the source or the target (or a link to one), or a folder: one line, status 2, the inputs
+    untouched, before the model loads."""
+    folder, _, _ = pair
+    src, tgt = tmp_path / "x.ply", tmp_path / "t.pcd"
+    src.write_bytes((folder / "src.ply").read_bytes())
+    tgt.write_bytes((folder / "tgt.pcd").read_bytes())
+    link = tmp_path / "link.ply"
+    link.symlink_to(src)
+    before = src.read_bytes(), tgt.read_bytes()
+    for out, fragment in (
+        (src, "never replaces an input"),
+        (tgt, "never replaces an input"),
+        (link, "never replaces an input"),
+    ):
+        code, stdout, err = run(capsys, src, tgt, "--checkpoint", "no_such_checkpoint", "--out", out)
+        assert code == 2 and fragment in err and err.count("\n") == 1 and stdout == "", err
+    folder_out = tmp_path / "adir.ply"
+    folder_out.mkdir()
+    code, _, err = run(capsys, src, tgt, "--checkpoint", "no_such_checkpoint", "--out", folder_out)
+    assert code == 2 and "is a folder" in err
+    assert (src.read_bytes(), tgt.read_bytes()) == before
+
+
+def test_list_errors_name_the_files_and_a_missing_list_reads_as_one_line(capsys, tmp_path, tiny_checkpoint, pair):
+    """In a list, a cloud the model cannot take is named by its path (not "source"/"target"); a list that does
+    not exist ends in one line naming it."""
+    folder, _, _ = pair
+    one = tmp_path / "one.xyz"
+    one.write_text("1 2 3\n")
+    listing = tmp_path / "pairs.txt"
+    listing.write_text(f"{folder / 'src.ply'} {one}\n")
+    code, out, _ = run(capsys, "--pairs", listing, "--checkpoint", tiny_checkpoint, "--refine", "none", "--no-progress")
+    record = json.loads(out)
+    assert code == 2 and record["error"].startswith(f"{one}: 1 point;")
+    code, out, err = run(capsys, "--pairs", tmp_path / "none.txt")
+    assert code == 2 and "none.txt" in err and err.count("\n") == 1 and "Errno" not in err

@@ -722,3 +722,16 @@ def test_failed_write_leaves_nothing(tmp_path, cloud):
     with pytest.raises(io.CloudFileError, match="unknown format"):
         io.write(tmp_path / "a.stl", cloud)
     assert os.listdir(tmp_path) == []
+
+
+def test_a_pcd_whose_header_lies_about_its_count_and_a_pipe_are_refused(tmp_path, cloud):
+    """A PCD's POINTS (and WIDTH x HEIGHT) must match the records it holds, as a PLY's count must; a named pipe
+    (or any file that is not a regular file) is refused before reading, where reading would block."""
+    io.write(tmp_path / "a.pcd", cloud, binary=False)
+    text = (tmp_path / "a.pcd").read_text()
+    (tmp_path / "more.pcd").write_text(text.replace("POINTS 257", "POINTS 1000").replace("WIDTH 257", "WIDTH 1000"))
+    _bad(tmp_path / "more.pcd", "its header says POINTS 1,000")
+    (tmp_path / "shape.pcd").write_text(text.replace("HEIGHT 1", "HEIGHT 2"))
+    _bad(tmp_path / "shape.pcd", "HEIGHT 2")
+    os.mkfifo(tmp_path / "pipe.ply")
+    _bad(tmp_path / "pipe.ply", "not a regular file")
