@@ -582,6 +582,45 @@ def _read_pcd(path: str, select) -> tuple[np.ndarray, int]:
     return np.stack([np.asarray(kept[axis], np.float64) for axis in _XYZ], axis=1), len(data)
 
 
+def _las_layout_problem(path: str) -> str | None:
+    """What the fixed LAS header says that cannot be (checked before laspy reads it, which would loop over
+    every claimed record): points that start past the file's end, more variable-length records than fit
+    before them."""
+    with open(path, "rb") as f:
+        head = f.read(105)
+    if len(head) < 105 or head[:4] != b"LASF":
+        return None  # laspy says what is wrong
+    header_size, points_at, records = struct.unpack_from("<HII", head, 94)
+    if points_at > os.path.getsize(path):
+        return f"its points start at byte {points_at:,}, past its end"
+    if records * 54 > max(points_at - header_size, 0):  # a VLR's own header is 54 bytes
+        return f"{records:,} variable-length records claimed before byte {points_at:,}"
+    return None
+
+
+def _laz_chunks_problem(path: str, header) -> str | None:
+    """What a LAZ file's chunk table says that cannot be: a table past the file's end, or more chunks than
+    points (the decompressor would allocate for every claimed chunk first)."""
+    if not header.are_points_compressed:
+        return None
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        f.seek(header.offset_to_point_data)
+        raw = f.read(8)
+        if len(raw) < 8:
+            return "no chunk table"
+        table = struct.unpack("<q", raw)[0]
+        if table == -1:  # not written: the decompressor finds the chunks itself
+            return None
+        if not header.offset_to_point_data < table <= size - 8:
+            return f"its chunk table lies at byte {table:,} of {size:,}"
+        f.seek(table)
+        _, chunks = struct.unpack("<II", f.read(8))
+    if chunks > max(header.point_count, 1):
+        return f"{chunks:,} chunks for {header.point_count:,} points"
+    return None
+
+
 #: The most a LAZ file's points may be compressed, as uncompressed bytes per file byte.
 LAZ_RATIO = 50
 
@@ -599,9 +638,15 @@ def _las(path: str):
     """The ``laspy.LasData`` of a LAS or LAZ file."""
     import laspy
 
+    problem = _las_layout_problem(path)
+    if problem:
+        raise CloudFileError(path, f"malformed {os.path.splitext(path)[1][1:].upper()} file ({problem})")
     try:
         with laspy.open(path) as reader:
             header = reader.header
+        problem = _laz_chunks_problem(path, header)
+        if problem:
+            raise CloudFileError(path, f"malformed LAZ file ({problem})")
         size = header.offset_to_point_data + header.point_count * header.point_format.size
         if not header.are_points_compressed and os.path.getsize(path) < size:
             raise CloudFileError(path, f"LAS file ends before its {header.point_count} points")
@@ -610,6 +655,8 @@ def _las(path: str):
         if header.are_points_compressed and size > LAZ_RATIO * os.path.getsize(path):
             raise CloudFileError(path, f"LAZ header claims {header.point_count:,} points, more than the file holds")
         return laspy.read(path)
+    except CloudFileError:
+        raise
     except (laspy.LaspyException, ValueError, EOFError, OSError, struct.error, *_lazrs_errors()) as err:
         raise CloudFileError(
             path, f"malformed {os.path.splitext(path)[1][1:].upper()} file ({_first_line(err)})"
