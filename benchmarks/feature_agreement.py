@@ -37,13 +37,18 @@ BOUNDS = (
 #: The (rival, twin) bounds the calibration with a scene left out chooses from, and the share of trusted results
 #: that must be right on the scenes it calibrates on.
 GRID = tuple((r, t) for r in (0.2, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, np.inf) for t in (0.6, 0.7, 0.8, 0.9, 1.0, np.inf))
-PRECISION = 0.98
+PRECISION = 0.99
 
 
 def _trusted(row: dict, degrees: float, spacings: float, rival: float, twin: float) -> bool:
     return (
         row["disagreement"] <= degrees and row["offset"] <= spacings and row["rival"] <= rival and row["twin"] <= twin
     )
+
+
+def _finite(row: dict) -> dict:
+    """A pair row for JSON: inf as None."""
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
 
 
 def leave_one_scene_out(rows: list[dict], degrees: float, spacings: float) -> list[dict]:
@@ -93,6 +98,7 @@ def main() -> None:
     parser.add_argument("--max-pairs", type=int, default=40, help="per benchmark list; 0: every pair")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--record", default=None, help="also write the records to this file (JSON lines)")
+    parser.add_argument("--pairs-out", default=None, help="also write one JSON line per pair (its evidence)")
     args = parser.parse_args()
 
     from dit_jax import feature_match, geometry
@@ -134,6 +140,9 @@ def main() -> None:
                 )
             if found.kind == "gt.log":
                 benchmark_rows += rows
+            if args.pairs_out:
+                with open(args.pairs_out, "a") as f:
+                    f.writelines(json.dumps({"data": folder, "set": set_name, **_finite(row)}) + "\n" for row in rows)
             scenes = sorted({r["scene"] for r in rows})
             record = {
                 "data": folder.rstrip("/").split("/")[-1],

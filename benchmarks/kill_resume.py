@@ -3,9 +3,9 @@
     python benchmarks/kill_resume.py --pairs 30 --kills 20
 
 A list of --pairs distinct pairs (copies of the README's chair pair, the network alone) goes through
-``dit-register --pairs LIST --results R.jsonl``, killed with SIGKILL after a random delay --kills times and
-started again each time, then run to the end. After each start the file must begin with every byte it held
-before (the log is never cut or rewritten). At the end each pair must have exactly one finished record. Then
+``dit-register --pairs LIST --results R.jsonl``, killed with SIGKILL after a random delay (1 s to --longest)
+--kills times and started again each time, then run to the end. After each start the file must begin with
+every byte it held before (the log is never cut or rewritten). At the end each pair must have exactly one finished record. Then
 the same list on a fresh file by two shard processes and a third that duplicates the first shard, at once,
 killed once each midway and resumed: again one finished record per pair. Prints one JSON record; exit status 1
 where an invariant fails.
@@ -59,13 +59,13 @@ def finished_per_pair(results: pathlib.Path) -> collections.Counter:
     return counts
 
 
-def kill_and_resume(listing, results, checkpoint, kills: int, rng) -> dict:
+def kill_and_resume(listing, results, checkpoint, kills: int, rng, longest: float) -> dict:
     """--kills runs killed after a random delay, each checked to keep what the file held; then one to the end."""
     lost, killed = 0, 0
     for _ in range(kills):
         before = results.read_bytes() if results.exists() else b""
         process = subprocess.Popen(command(listing, results, checkpoint), stderr=subprocess.DEVNULL)
-        time.sleep(rng.uniform(1.0, 8.0))
+        time.sleep(rng.uniform(1.0, longest))
         if process.poll() is None:
             process.send_signal(signal.SIGKILL)
             killed += 1
@@ -77,11 +77,11 @@ def kill_and_resume(listing, results, checkpoint, kills: int, rng) -> dict:
     return {"killed": killed, "lost": lost, "final_status": done.returncode, "counts": finished_per_pair(results)}
 
 
-def shards_at_once(listing, results, checkpoint, rng) -> collections.Counter:
+def shards_at_once(listing, results, checkpoint, rng, longest: float) -> collections.Counter:
     """Two shards and a duplicate of the first at once, each killed once midway and started again."""
     shards = ("0/2", "1/2", "0/2")
     processes = [subprocess.Popen(command(listing, results, checkpoint, "--shard", s)) for s in shards]
-    time.sleep(rng.uniform(4.0, 8.0))
+    time.sleep(rng.uniform(longest / 2, longest))
     for process in processes:
         process.send_signal(signal.SIGKILL)
         process.wait()
@@ -97,14 +97,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--kills", type=int, default=20)
     parser.add_argument("--checkpoint", default=None, help="default: the shipped weights")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--longest", type=float, default=8.0, help="the longest wait before a kill (seconds)")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as folder:
         folder = pathlib.Path(folder)
         listing = make_list(folder, args.pairs)
         started = time.perf_counter()
-        killed = kill_and_resume(listing, folder / "killed.jsonl", args.checkpoint, args.kills, rng)
-        together = shards_at_once(listing, folder / "shared.jsonl", args.checkpoint, rng)
+        killed = kill_and_resume(listing, folder / "killed.jsonl", args.checkpoint, args.kills, rng, args.longest)
+        together = shards_at_once(listing, folder / "shared.jsonl", args.checkpoint, rng, args.longest)
     expected = {k: 1 for k in range(args.pairs)}
     record = {
         "benchmark": "kill_resume",

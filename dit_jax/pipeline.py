@@ -4,9 +4,9 @@ A batch of pairs goes through four stages, each a function of its own, after an 
 
 0. :func:`dit_jax.feature_match.register_both_ways` (where :attr:`InferenceSettings.feature_candidate` says
    so; dense scans by default): local features register the source onto the target and the target onto the
-   source; where the two agree, with no rival motion in RANSAC's draws and no turned twin that fits as well
-   (:meth:`dit_jax.feature_match.FeatureEstimate.agrees`), the result is theirs (:func:`features_result`)
-   and the network does not run;
+   source; where the two agree, with no rival motion among the estimator's hypotheses and no turned twin that
+   fits as well (:meth:`dit_jax.feature_match.FeatureEstimate.agrees`), the result is theirs
+   (:func:`features_result`) and the network does not run;
 
 1. :func:`sample_and_normalise`: checks both clouds (:func:`check_cloud`), resamples each to the settings'
    point count by farthest-point sampling (:func:`farthest_point_sample`) and moves both into the unit

@@ -85,8 +85,8 @@ class Result:
       max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
       features_disagreement: where the network ran after the features did not settle the pair, the degrees
         between those two; NaN otherwise.
-      rival, max_rival: where local features ran, the strongest rival motion their RANSAC saw, as a share of the
-        winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
+      rival, max_rival: where local features ran, the strongest rival motion among their hypotheses, as a
+        share of the winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
         features do not settle the pair alone; NaN otherwise.
       twin, max_twin: where local features ran, how many points the best quarter- or half-turned twin of the
         features' motion (the one the result lies on) lays on the target, as a share of the motion's own

@@ -52,7 +52,7 @@ class InferenceSettings(Record):
       n_points: points per cloud the network sees (stage 1).
       fps_pool: clouds above this many points are thinned uniformly at random to it before farthest-point
         sampling, which keeps sampling linear in the cloud's size.
-      seed: farthest-point sampling's start, ICP's subsets and RANSAC's draws: results are deterministic for a
+      seed: farthest-point sampling's start, ICP's subsets and the point spacing's sample: results are deterministic for a
         seed.
       centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
         its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
@@ -91,7 +91,7 @@ class InferenceSettings(Record):
         independently (the features' two directions, or the network's and a feature direction) must lie for
         the result to be trusted on clouds the features register (calibrated on real scans,
         docs/verdict.md).
-      max_rival_features: the features' two directions settle the pair only where neither's RANSAC saw a
+      max_rival_features: the features' two directions settle the pair only where neither's estimator kept a
         rival motion backed by more than this share of its own matches
         (:attr:`dit_jax.feature_match.FeatureEstimate.rival`): on rooms, the two directions share their
         matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,

@@ -9,7 +9,7 @@ from conftest import ROOT
 
 def test_killed_runs_resume_with_one_record_per_pair_and_nothing_lost():
     done = subprocess.run(
-        [sys.executable, "benchmarks/kill_resume.py", "--pairs", "4", "--kills", "2"],
+        [sys.executable, "benchmarks/kill_resume.py", "--pairs", "3", "--kills", "1", "--longest", "4"],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -21,7 +21,7 @@ Tables:
   (docs/rooms_full_lists.jsonl): the benchmark's recall, the share within the lists' criterion, seconds, how
   often exit 0 was right and how many wrong results were flagged.
 * ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
-  RANSAC's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
+  the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
 * ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
@@ -346,12 +346,11 @@ def rooms_full_table() -> list[str]:
         return ["(no full-list measurement in docs/rooms_full_lists.jsonl yet)"]
     records = [json.loads(line) for line in ROOMS_FULL.read_text().splitlines() if line.strip()]
     baseline = [m for m in records[0]["figures"] if m != "pipeline"][0]
+    label = BASELINE_LABELS.get(baseline, baseline)
     lines = [
-        f"Beside: {BASELINE_LABELS.get(baseline, baseline)} (`{baseline}`), pair by pair on the same machine.",
-        "",
-        "| list | pairs | recall: default, baseline | within 15 deg and 0.3 m: default, baseline | s / pair: default, "
-        "baseline (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
-        "one only: default, baseline |",
+        f"| list | pairs | recall: default, {label} | within 15 deg and 0.3 m: default, {label} | s / pair: default, "
+        f"{label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
+        f"one only: default, {label} |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
