@@ -312,11 +312,12 @@ def _open_results(args, pairs: list[tuple[str, str]], key: dict):
     if log.cut_short:
         print(f"{PROG}: note: {args.results}: its last line is cut short; left as it is", file=sys.stderr)
     listed = {(os.path.abspath(src), os.path.abspath(tgt)) for src, tgt in pairs}
-    foreign = [
-        r
-        for r in log.records
-        if r.get("settings") != key or (r.get("pair", {}).get("src"), r.get("pair", {}).get("tgt")) not in listed
-    ]
+
+    def paths(record: dict) -> tuple:
+        pair = record.get("pair")
+        return (pair.get("src"), pair.get("tgt")) if isinstance(pair, dict) else ()
+
+    foreign = [r for r in log.records if r.get("settings") != key or paths(r) not in listed]
     if foreign and not args.reuse_results:
         log.close()
         raise ValueError(
@@ -360,10 +361,15 @@ def _register_list(args, pairs: list[tuple[str, str]], shard: tuple[int, int], m
     identities = {k: results_log.identity(*pair) for k, pair in chosen}
     log = _open_results(args, pairs, key)
     latest: dict[int, dict] = {}
+    by_identity: dict[str, list[int]] = {}
+    for k, pair in identities.items():  # a list may name one pair twice: one result serves both
+        by_identity.setdefault(results_log.identity_key(pair), []).append(k)
 
     def take(records: list[dict]) -> None:  # the newest record of each chosen pair, finished ones first
         for record in records:
-            for k in [k for k, pair in identities.items() if results_log.same_pair(record, pair, key)]:
+            if record.get("settings") != key:
+                continue
+            for k in by_identity.get(results_log.identity_key(record.get("pair")), ()):
                 if results_log.finished(record) or not results_log.finished(latest.get(k, {})):
                     latest[k] = record
 

@@ -135,6 +135,6 @@ def finished(record: dict) -> bool:
     return "error" not in record and "level" in record
 
 
-def same_pair(record: dict, pair: dict, settings: dict) -> bool:
-    """Whether ``record`` is of the pair with identity ``pair`` (:func:`identity`) under ``settings``."""
-    return record.get("pair") == pair and record.get("settings") == settings
+def identity_key(pair: dict | None) -> str:
+    """A pair's identity (:func:`identity`) as one hashable string, the same for equal identities."""
+    return json.dumps(pair, sort_keys=True)
