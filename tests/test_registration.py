@@ -243,7 +243,7 @@ def test_agreement_verdict_trusts_a_moved_copy_and_flags_another_shape(modelnet_
     threshold."""
     model_ = registration.load(refine="none")  # the network's own evidence, as measured
     truth = euler_zyx_to_matrix([20.0, -15.0, 10.0])
-    for index in range(4):
+    for index in range(2):
         shape = modelnet_shapes[index].astype(np.float64)
         right = model_.register(shape, shape @ truth.T + [0.1, 0.0, -0.2])
         wrong = model_.register(shape, modelnet_shapes[index + 10].astype(np.float64) @ truth.T)
