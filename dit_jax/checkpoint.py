@@ -7,17 +7,23 @@ Layout (an orbax composite checkpoint)::
 
 Saving is atomic (orbax writes to a temporary directory and renames it), so an interrupted save leaves no
 half-written checkpoint behind. Restoring checks the stored tree against the stored config.
+
+Restoring through orbax (importing it, opening its tensor store) takes several times as long as the arrays
+take to read. While the compilation cache is on (:mod:`dit_jax.compile_cache`), :func:`restore` therefore
+keeps a plain copy of the params there, keyed by a digest of the checkpoint's params files, and later
+restores read that copy instead: the same arrays, bit for bit, and a checkpoint that changes gets a new key.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
 from typing import Any
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 
 from dit_jax import compile_cache
 from dit_jax.configs import DITConfig
@@ -29,7 +35,14 @@ class CheckpointError(ValueError):
     """A checkpoint is missing, damaged or does not fit its config."""
 
 
-def _handler() -> ocp.Checkpointer:
+def _ocp():
+    import orbax.checkpoint as ocp  # slow to import; a restore from the cache's copy never needs it
+
+    return ocp
+
+
+def _handler():
+    ocp = _ocp()
     return ocp.Checkpointer(ocp.CompositeCheckpointHandler())
 
 
@@ -45,6 +58,7 @@ def save(
     if os.path.exists(path) and not overwrite:
         raise CheckpointError(f"{path} already exists; choose a new directory")
     meta = {"format": FORMAT, "dit_config": config.to_dict(), "extra": extra or {}}
+    ocp = _ocp()
     with _handler() as ckptr:
         ckptr.save(
             path,
@@ -114,6 +128,14 @@ def _read_meta(directory: str | os.PathLike) -> dict:
     path = os.path.abspath(os.fspath(directory))
     if not os.path.isdir(path):
         raise CheckpointError(f"{path}: no such checkpoint directory")
+    try:  # orbax's JSON item is one plain file: read it without orbax
+        with open(os.path.join(path, "config", "metadata")) as f:
+            meta = json.load(f)
+        if isinstance(meta, dict) and meta.get("format") == FORMAT and "dit_config" in meta:
+            return meta
+    except (OSError, ValueError):
+        pass
+    ocp = _ocp()
     try:
         with _handler() as ckptr:
             meta = ckptr.restore(path, ocp.args.Composite(config=ocp.args.JsonRestore())).config
@@ -132,14 +154,12 @@ def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
     """
     config = read_config(directory)
     path = os.path.abspath(os.fspath(directory))
-    try:
-        with _handler() as ckptr:
-            params = ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore())).params
-    except Exception as err:
-        raise CheckpointError(
-            f"{path}: params do not restore for the stored config "
-            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
-        ) from None
+    params = _cached_params(path)
+    if params is None:
+        # As host arrays, as the copy gives them: placed on the device the same way, both compile to one
+        # program (one key in XLA's cache) whichever way the weights were read.
+        params = jax.tree.map(np.asarray, _restore_params(path))
+        _keep_params(path, params)
     stored = _shapes(params)
     expected = param_shapes(config)
     if stored != expected:
@@ -149,6 +169,74 @@ def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
             f"{wrong}: stored {stored.get(wrong)}, the config needs {expected.get(wrong)})"
         )
     return jax.device_put(params), config
+
+
+def _restore_params(path: str) -> Any:
+    """The params tree of the checkpoint at ``path``, through orbax."""
+    ocp = _ocp()
+    try:
+        with _handler() as ckptr:
+            return ckptr.restore(path, ocp.args.Composite(params=ocp.args.StandardRestore())).params
+    except Exception as err:
+        raise CheckpointError(
+            f"{path}: params do not restore for the stored config "
+            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
+
+
+def _params_copy_path(path: str) -> str | None:
+    """Where the compilation cache keeps a plain copy of this checkpoint's params (None: the cache is off or
+    the checkpoint has no params folder). The name is a digest of every file under ``path/params``."""
+    if compile_cache.directory() is None or not os.path.isdir(os.path.join(path, "params")):
+        return None
+    digest = hashlib.sha256()
+    for root, dirs, files in os.walk(os.path.join(path, "params")):
+        dirs.sort()
+        for name in sorted(files):
+            file = os.path.join(root, name)
+            digest.update(os.path.relpath(file, path).encode() + b"\0")
+            try:
+                with open(file, "rb") as f:
+                    digest.update(f.read())
+            except OSError:
+                return None
+    return os.path.join(compile_cache.directory(), "params", digest.hexdigest()[:32] + ".npz")
+
+
+def _cached_params(path: str) -> dict | None:
+    """The params tree from the cache's copy (:func:`_keep_params`), or None where there is none to read."""
+    copy = _params_copy_path(path)
+    if copy is None or not os.path.isfile(copy):
+        return None
+    try:
+        with np.load(copy, allow_pickle=False) as arrays:
+            flat = {name: arrays[name] for name in arrays.files}
+    except (OSError, ValueError, KeyError):  # damaged: restore through orbax, and write it afresh
+        return None
+    tree: dict = {}
+    for name, value in flat.items():
+        *parents, leaf = name.split("/")
+        node = tree
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def _keep_params(path: str, params: Any) -> None:
+    """Writes the cache's plain copy of ``params`` (nested dicts of arrays, as orbax restores them); a tree
+    of any other kind, or a failed write, leaves no copy."""
+    copy = _params_copy_path(path)
+    if copy is None:
+        return
+    flat = {}
+    for keys, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        if not all(isinstance(k, jax.tree_util.DictKey) and "/" not in str(k.key) for k in keys):
+            return
+        flat["/".join(str(k.key) for k in keys)] = np.asarray(leaf)
+    buffer = io.BytesIO()
+    np.savez(buffer, **flat)
+    compile_cache.write_atomically(copy, buffer.getvalue())
 
 
 def param_shapes(config: DITConfig) -> dict[str, tuple[int, ...]]:

@@ -30,7 +30,8 @@ import tempfile
 #: Overrides the default directory; "off" turns the cache off.
 ENV_VAR = "DIT_JAX_COMPILE_CACHE"
 
-_enabled: dict[str, str | None] = {"directory": None}
+#: The directory in use (None: off), and whether this process has chosen (a tool's flags, or :func:`enable`).
+_enabled: dict = {"directory": None, "chosen": False}
 #: In this process: a key's program, deserialized once.
 _programs: dict[str, object] = {}
 
@@ -60,6 +61,7 @@ def enable(directory: str | None) -> str | None:
     """Points JAX's persistent compilation cache at ``directory`` (created if missing) and caches every
     program, however quick to compile. Call before the first compilation. Returns the directory, or None
     where ``directory`` is None or cannot be created (a note goes to stderr)."""
+    _enabled["chosen"] = True
     if directory is None:
         return None
     directory = os.path.abspath(os.path.expanduser(directory))
@@ -81,6 +83,11 @@ def enable(directory: str | None) -> str | None:
 def directory() -> str | None:
     """The directory :func:`enable` turned on in this process, or None."""
     return _enabled["directory"]
+
+
+def chosen() -> bool:
+    """Whether this process has already turned the cache on or off (:func:`enable`, :func:`from_args`)."""
+    return _enabled["chosen"]
 
 
 @functools.cache
@@ -111,7 +118,7 @@ def _key(name: str, parts) -> str:
     return f"{name}-" + hashlib.sha256(f"{_source_digest()}|{parts!r}".encode()).hexdigest()[:32]
 
 
-def _write_atomically(path: str, data: bytes) -> None:
+def write_atomically(path: str, data: bytes) -> None:
     """Writes ``data`` to ``path`` through a temporary file, so a reader never sees half of it."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     handle, staging = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".staging-")
@@ -137,7 +144,7 @@ def memo(name: str, parts, compute):
     except (OSError, ValueError):
         pass
     value = compute()
-    _write_atomically(path, json.dumps(value).encode())
+    write_atomically(path, json.dumps(value).encode())
     return value
 
 
@@ -175,15 +182,18 @@ def _load_or_export(key: str, fn, args):
         pass
     jitted = jax.jit(fn)
     try:
-        exported = export.export(jitted)(*args)
-        _write_atomically(path, bytes(exported.serialize()))
+        serialized = bytes(export.export(jitted)(*args).serialize())
+        write_atomically(path, serialized)
     except Exception:  # cannot export: jit as usual (an error of fn's own comes back from the call)
         return jitted
-    return jax.jit(exported.call)
+    # The program read back, as a later process reads it: the fresh export compiles to a program that XLA's
+    # cache files under another key, so every later process would compile its own once more.
+    return jax.jit(export.deserialize(bytearray(serialized)).call)
 
 
 def from_args(args: argparse.Namespace) -> str | None:
     """:func:`enable` as :func:`add_arguments`' flags say."""
     if args.no_compile_cache:
+        _enabled["chosen"] = True
         return None
     return enable(args.compile_cache or default_dir())

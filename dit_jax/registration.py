@@ -94,10 +94,22 @@ def settings_from_extra(extra: dict) -> InferenceSettings:
     return InferenceSettings.from_dict(extra.get(SETTINGS_KEY) or {})
 
 
-def load(checkpoint: str | os.PathLike | None = None, **changes) -> Registrar:
+def load(
+    checkpoint: str | os.PathLike | None = None, *, compile_cache: str | os.PathLike | bool = True, **changes
+) -> Registrar:
     """A :class:`Registrar` from an orbax checkpoint directory, the authors' ``.pth`` weights, or (None) the
-    shipped weights, with the inference settings the checkpoint stores; ``changes`` override any of them."""
-    from dit_jax import checkpoint as ckpt_lib  # orbax is slow to import; only loading needs it
+    shipped weights, with the inference settings the checkpoint stores; ``changes`` override any of them.
+
+    ``compile_cache``: where compiled programs (and a plain copy of the weights) are kept between processes,
+    so that the next process's first registration loads them instead of compiling (:mod:`dit_jax.compile_cache`):
+    True, the default directory (``$DIT_JAX_COMPILE_CACHE``, else ``~/.cache/dit-jax/xla``; the variable set
+    to ``off`` turns it off); a directory; or False, off. Where the process has already chosen (a
+    command-line tool's flags, an earlier ``load``), its choice stands."""
+    from dit_jax import checkpoint as ckpt_lib
+    from dit_jax import compile_cache as cache_lib
+
+    if compile_cache is not False and not cache_lib.chosen():
+        cache_lib.enable(cache_lib.default_dir() if compile_cache is True else os.fspath(compile_cache))
 
     path = os.fspath(checkpoint) if checkpoint is not None else shipped_weights()
     if checkpoint is None and not os.path.isdir(path):

@@ -82,3 +82,39 @@ def test_update_config_changes_inference_fields_and_refuses_shape_changes(tmp_pa
     with pytest.raises(checkpoint.CheckpointError, match="cannot apply"):
         checkpoint.update_config(path, {"no_such_field": 1})
     assert checkpoint.read_config(path) == new, "a refused change leaves the config as it was"
+
+
+def test_restore_keeps_a_plain_copy_in_the_cache_and_reads_it_without_orbax(tmp_path, monkeypatch):
+    """With the compilation cache on, the first restore writes the params' plain copy and later ones read it
+    (orbax's restore is not called), bit for bit; a damaged copy is restored through orbax again and
+    rewritten; another checkpoint's params at the same path get a copy of their own."""
+    from dit_jax import compile_cache
+
+    monkeypatch.setitem(compile_cache._enabled, "directory", str(tmp_path / "cache"))
+    config = configs.tiny()
+    params = model.init(jax.random.key(0), config)
+    checkpoint.save(tmp_path / "ck", params, config)
+    first, _ = checkpoint.restore(tmp_path / "ck")
+    (copy,) = (tmp_path / "cache" / "params").iterdir()
+
+    def no_orbax(path):
+        raise AssertionError("restored through orbax")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(checkpoint, "_restore_params", no_orbax)
+        again, _ = checkpoint.restore(tmp_path / "ck")
+    for a, b, c in zip(jax.tree.leaves(params), jax.tree.leaves(first), jax.tree.leaves(again)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+    assert jax.tree.structure(params) == jax.tree.structure(again)
+
+    copy.write_bytes(b"damaged")
+    repaired, _ = checkpoint.restore(tmp_path / "ck")
+    np.testing.assert_array_equal(np.asarray(jax.tree.leaves(repaired)[0]), np.asarray(jax.tree.leaves(params)[0]))
+    assert copy.read_bytes() != b"damaged"
+
+    other = model.init(jax.random.key(1), config)
+    checkpoint.save(tmp_path / "ck", other, config, overwrite=True)
+    restored, _ = checkpoint.restore(tmp_path / "ck")
+    np.testing.assert_array_equal(np.asarray(jax.tree.leaves(restored)[0]), np.asarray(jax.tree.leaves(other)[0]))
+    assert len(list((tmp_path / "cache" / "params").iterdir())) == 2

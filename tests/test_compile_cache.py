@@ -1,3 +1,5 @@
+import json
+import os
 import pathlib
 import subprocess
 import sys
@@ -128,3 +130,53 @@ def test_memo_computes_once_per_parts(cache_dir):
     assert len(computed) == 1
     compile_cache.memo("m", ("config", 2), compute)
     assert len(computed) == 2
+
+
+# A Python user's session: load the shipped weights, register the README's pair, and say what was imported.
+_API_SESSION = """
+import json, sys
+from dit_jax import io, registration
+cache = sys.argv[1]
+model = registration.load(compile_cache={"default": True, "off": False}.get(cache, cache))
+result = model.register(io.read("examples/chair_src.ply"), io.read("examples/chair_tgt.pcd"))
+heavy = ("orbax", "open3d", "matplotlib", "tensorflow_datasets", "optax", "tensorflow")
+print(json.dumps({"matrix": result.matrix.round(6).tolist(), "imported": sorted(
+    {name.split(".")[0] for name in sys.modules} & set(heavy))}))
+"""
+
+
+def _api_session(cache: str, env: dict) -> dict:
+    done = subprocess.run(
+        [sys.executable, "-c", _API_SESSION, cache], cwd=ROOT, capture_output=True, text=True, timeout=600, env=env
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def test_the_python_api_keeps_programs_and_weights_in_the_cache_by_default(tmp_path):
+    """registration.load() turns the cache on as the command-line tools do: the first session fills the
+    default directory ($DIT_JAX_COMPILE_CACHE here) with programs and the weights' plain copy; the next one
+    registers the same pair to the same matrix without importing orbax (or Open3D, matplotlib, TFDS, optax)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DIT_JAX_COMPILE_CACHE", "DIT_JAX_TEST_XLA_CACHE")}
+    env["DIT_JAX_COMPILE_CACHE"] = str(tmp_path / "default")
+    first = _api_session("default", env)
+    cache = tmp_path / "default"
+    assert list((cache / "params").glob("*.npz")) and list((cache / "exported").glob("register-*"))
+    second = _api_session("default", env)
+    assert second["matrix"] == first["matrix"] and second["imported"] == []
+
+
+def test_load_turns_the_cache_on_unless_told_not_to_or_one_is_on(monkeypatch, tmp_path):
+    from dit_jax import registration
+
+    turned_on = []
+    monkeypatch.setattr(compile_cache, "enable", lambda directory: turned_on.append(directory))
+    monkeypatch.setenv(compile_cache.ENV_VAR, str(tmp_path / "env"))
+    monkeypatch.setitem(compile_cache._enabled, "chosen", False)
+    registration.load(compile_cache=False)
+    registration.load(compile_cache=tmp_path / "mine")
+    registration.load()
+    assert turned_on == [str(tmp_path / "mine"), str(tmp_path / "env")]
+    monkeypatch.setitem(compile_cache._enabled, "chosen", True)  # a tool's --no-compile-cache, say
+    registration.load(compile_cache=tmp_path / "other")
+    assert len(turned_on) == 2
