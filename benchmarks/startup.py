@@ -1,14 +1,23 @@
-"""Start-up time of `dit-register` with JAX's persistent compilation cache (dit_jax.compile_cache).
+"""What a user waits for, from Python and from the shell, on one pair: start-up, loading, the first and later
+registrations, with JAX's persistent compilation cache (dit_jax.compile_cache) empty and filled.
 
     python benchmarks/startup.py                     # the README's example pair
-    python benchmarks/startup.py --src a.ply --tgt b.ply
+    python benchmarks/startup.py --src a.ply --tgt b.ply --repeats 5
 
-Runs `dit-register --json` as a user would, each call a fresh process, and times it from the outside: once
-with the cache off, then twice with a new, empty cache directory (the first call fills it, the second reads
-it). Each call's wall time is split into its start-up (from launching the interpreter to the registration's
-start: imports, reading the files and the weights), the registration (network, refinement and second
-candidate, as its JSON reports them; the network's share includes compiling its program, or reading it from
-the cache) and the rest (printing, and the interpreter's exit, where JAX shuts down). Prints a markdown table.
+Three parts, each call a fresh process:
+
+* **Python API**: a session that imports JAX, imports ``dit_jax.registration``, ``load()``s the shipped
+  weights, reads the pair and registers it three times (the first call compiles or reads its programs from
+  the cache), then once with ``refine="none"``; run with an empty cache (a machine's first-ever call), then
+  twice more on it (the second of those is a warm cache's).
+* **dit-register**: `dit-register --json`, timed from outside, with the cache off, then an empty one, then
+  filled; each wall time split into start-up (launching the interpreter to the registration's start:
+  imports, reading the files and the weights), the registration (as its JSON reports it) and the rest
+  (printing, the interpreter's exit).
+* **Beside Open3D**: the whole `dit-register` process on a warm cache and `benchmarks/open3d_pair.py` (the
+  same pair by Open3D's FPFH, RANSAC and point-to-plane ICP), alternating, ``--repeats`` times each; medians.
+
+Prints Markdown tables, then one JSON record of it all (with the CPU's model name).
 """
 
 import argparse
@@ -16,13 +25,14 @@ import datetime
 import json
 import os
 import pathlib
+import platform
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 # Runs dit-register's main() as its console script does, and notes when main() starts and returns.
 _WRAPPER = """
@@ -35,46 +45,118 @@ with contextlib.redirect_stdout(out):
 print(json.dumps({"started": started, "returned": time.time(), "status": status, "report": out.getvalue()}))
 """
 
+# A Python user's session, each step timed.
+_SESSION = """
+import json, sys, time
+marks = [time.perf_counter()]
+import jax
+marks.append(time.perf_counter())
+from dit_jax import io, registration
+marks.append(time.perf_counter())
+model = registration.load()
+marks.append(time.perf_counter())
+src, tgt = io.read(sys.argv[1]), io.read(sys.argv[2])
+marks.append(time.perf_counter())
+for _ in range(3):
+    result = model.register(src, tgt)
+    marks.append(time.perf_counter())
+model.register(src, tgt, refine="none")
+marks.append(time.perf_counter())
+steps = ("import_jax", "import_registration", "load", "read", "first_register", "second_register",
+         "third_register", "register_refine_none")
+record = {name: round(b - a, 4) for name, a, b in zip(steps, marks, marks[1:])}
+record["refine_s"] = round(result.refine_seconds, 4)
+print(json.dumps(record))
+"""
 
-def timed_call(args: list[str]) -> tuple[float, float, float]:
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def _run(command: list[str], env: dict | None = None) -> tuple[float, str]:
+    launched = time.perf_counter()
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - launched
+    if done.returncode not in (0, 3):  # 3: dit-register's suspect verdict, still a full run
+        raise SystemExit(f"{' '.join(command[:3])} failed ({done.returncode}): {done.stderr.strip()[-500:]}")
+    return wall, done.stdout
+
+
+def api_session(pair: list[str], cache: str) -> dict:
+    """One fresh Python process's :data:`_SESSION` with its cache at ``cache``."""
+    env = dict(os.environ, DIT_JAX_COMPILE_CACHE=cache)
+    wall, out = _run([sys.executable, "-c", _SESSION, *pair], env)
+    return {**json.loads(out.splitlines()[-1]), "process_s": round(wall, 4)}
+
+
+def cli_call(args: list[str]) -> dict:
     """(wall, start-up, registration) seconds of one `dit-register --json` process (see the module doc)."""
     launched = time.time()
-    done = subprocess.run([sys.executable, "-c", _WRAPPER, *args, "--json"], cwd=ROOT, capture_output=True, text=True)
+    _, out = _run([sys.executable, "-c", _WRAPPER, *args, "--json"])
     ended = time.time()
-    if done.returncode != 0:
-        raise SystemExit(f"dit-register failed: {done.stderr.strip()[-500:]}")
-    run = json.loads(done.stdout)
-    if run["status"] not in (0, 3):  # 3: a suspect verdict, still a full run
-        raise SystemExit(f"dit-register exited with {run['status']}: {done.stderr.strip()[-500:]}")
+    run = json.loads(out)
     report = json.loads(run["report"])
     work = report["seconds"] + report["refine_seconds"] + report["candidate_seconds"]
-    return ended - launched, run["returned"] - launched - work, work
+    return {"wall_s": ended - launched, "startup_s": run["returned"] - launched - work, "registration_s": work}
+
+
+def side_by_side(pair: list[str], cache: str, repeats: int) -> dict:
+    """Median wall seconds of the whole `dit-register` process (warm cache) and of the Open3D script,
+    alternating."""
+    dit = [sys.executable, "-m", "dit_jax.cli", *pair, "--compile-cache", cache]
+    o3d = [sys.executable, "benchmarks/open3d_pair.py", *pair]
+    times: dict[str, list[float]] = {"dit_register_s": [], "open3d_script_s": []}
+    _run(dit)  # fills whatever the cache still lacks for these settings
+    for _ in range(repeats):
+        times["dit_register_s"].append(_run(dit)[0])
+        times["open3d_script_s"].append(_run(o3d)[0])
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    return {**medians, "ratio": medians["dit_register_s"] / medians["open3d_script_s"], "all": times}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--src", default="examples/chair_src.ply")
     parser.add_argument("--tgt", default="examples/chair_tgt.pcd")
-    parser.add_argument(
-        "--refine",
-        choices=("auto", "icp", "gicp", "none"),
-        default=None,
-        help="dit-register's --refine (default: the shipped settings')",
-    )
+    parser.add_argument("--repeats", type=int, default=5, help="alternating runs of each side by side")
     args = parser.parse_args()
-    pair = [args.src, args.tgt] + (["--refine", args.refine] if args.refine else [])
-    with tempfile.TemporaryDirectory() as cache:
-        rows = [("cache off", timed_call(pair + ["--no-compile-cache"]))]
-        rows.append(("first call, empty cache", timed_call(pair + ["--compile-cache", cache])))
-        rows.append(("second call, cache filled", timed_call(pair + ["--compile-cache", cache])))
-        size = sum(f.stat().st_size for f in pathlib.Path(cache).rglob("*") if f.is_file())
+    pair = [args.src, args.tgt]
+    with tempfile.TemporaryDirectory() as api_cache, tempfile.TemporaryDirectory() as cli_cache:
+        sessions = [api_session(pair, api_cache) for _ in range(3)]
+        calls = {"cache off": cli_call(pair + ["--no-compile-cache"])}
+        calls["first call, empty cache"] = cli_call(pair + ["--compile-cache", cli_cache])
+        calls["second call, cache filled"] = cli_call(pair + ["--compile-cache", cli_cache])
+        beside = side_by_side(pair, cli_cache, args.repeats)
+    record = {
+        "benchmark": "startup",
+        "date": datetime.date.today().isoformat(),
+        "cpu": cpu_model(),
+        "cpus": os.cpu_count(),
+        "pair": pair,
+        "api_empty_cache": sessions[0],
+        "api_warm_cache": sessions[2],
+        "dit_register": calls,
+        "beside_open3d": beside,
+    }
+    print(f"{record['date']}, {record['cpus']} CPUs, {record['cpu']}; pair {' '.join(pair)}\n")
+    print("| Python session (fresh process) | empty cache s | warm cache s |\n|---|---|---|")
+    for step in ("import_jax", "import_registration", "load", "read", "first_register", "second_register",
+                 "third_register", "register_refine_none", "refine_s", "process_s"):  # fmt: skip
+        print(f"| {step} | {sessions[0][step]:.2f} | {sessions[2][step]:.2f} |")
+    print("\n| `dit-register` call | wall s | start-up s | registration s | output and exit s |\n|---|---|---|---|---|")
+    for name, c in calls.items():
+        rest = c["wall_s"] - c["startup_s"] - c["registration_s"]
+        print(f"| {name} | {c['wall_s']:.2f} | {c['startup_s']:.2f} | {c['registration_s']:.2f} | {rest:.2f} |")
     print(
-        f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, `dit-register {' '.join(pair)}`; "
-        f"cache size {size / 2**20:.1f} MB\n"
+        f"\nWhole process, warm cache, median of {args.repeats} alternating: dit-register "
+        f"{beside['dit_register_s']:.2f} s, Open3D script {beside['open3d_script_s']:.2f} s ({beside['ratio']:.2f}x)\n"
     )
-    print("| call | wall s | start-up s | registration s | output and exit s |\n|---|---|---|---|---|")
-    for name, (wall, startup, work) in rows:
-        print(f"| {name} | {wall:.2f} | {startup:.2f} | {work:.2f} | {wall - startup - work:.2f} |")
+    print(json.dumps(record))
 
 
 if __name__ == "__main__":
