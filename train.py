@@ -105,7 +105,7 @@ def parse(argv=None):
     except (TypeError, ValueError) as err:
         _usage_error(err)
     if config.init_from:
-        config = dataclasses.replace(config, init_from=os.path.abspath(config.init_from))
+        config = dataclasses.replace(config, init_from=os.path.normpath(config.init_from))
     recipe = os.path.splitext(os.path.basename(config_flags.get_config_filename(FLAGS["config"])))[0]
     workdir = workdir or f"runs/{recipe}-{'mix' if config.settings else config.setting}"
     options = types.SimpleNamespace(

@@ -14,7 +14,7 @@ the bounds trust, how many of those are right, and how many of the wrong ones th
 set and per scene, so a bound can be read with one scene left out; ``right_15`` counts right by the lists'
 own criterion (15 degrees and 0.3 m) where the data have one. ``--max-pairs 0`` takes every pair. Prints one
 JSON record per pair set, then Markdown tables; ``--record`` writes the records to a file, which the verdict's
-rival table in docs/verdict.md is generated from (python -m dit_jax.release.results_page).
+rival table in docs/verdict.md is generated from (python tools/results_page.py).
 
 Calibration with a scene left out: over every pair of the benchmark lists at once, for each scene, the rival
 and twin bounds of :data:`GRID` (at the settings' degrees and spacings) that trust the most right results of

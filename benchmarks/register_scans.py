@@ -25,7 +25,7 @@ results trusted or unconfirmed and how many were right; ``flagged``: the wrong r
         --pairs-out runs/rooms_pairs.jsonl --record docs/rooms_full_lists.jsonl
 
 ``--record`` writes the per-set records to a file: docs/rooms_full_lists.jsonl is the one the rooms' full-list
-table of docs/results.md and the README is generated from (python -m dit_jax.release.results_page).
+table of docs/results.md and the README is generated from (python tools/results_page.py).
 """
 
 import argparse

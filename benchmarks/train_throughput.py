@@ -155,7 +155,8 @@ def measure(
         "t": np.full((b, 3), 0.1, np.float32),
     }
     auto = None
-    if config.train_precision == "auto":  # as train.py chooses it on this machine
+    # A tree older than the precision setting (--compare REV) has neither the field nor the step's own config.
+    if getattr(config, "train_precision", None) == "auto":  # as train.py chooses it on this machine
         auto = training.precision.choose(config, optimizer, mesh, host_batch)
         config = dataclasses.replace(config, train_precision=auto.precision)
     state = training.replicate(training.init_state(config, optimizer), mesh)
@@ -167,7 +168,7 @@ def measure(
         "batch_size": b,
         "train_iters": config.train_iters,
         "remat": config.model_config().remat,
-        "precision": config.train_model_config().precision,
+        "precision": getattr(config, "train_model_config", config.model_config)().precision,
     }
     record["auto_precision"] = None if auto is None else dataclasses.asdict(auto) | {"speedup": auto.speedup}
     if count:

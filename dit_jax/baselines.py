@@ -18,7 +18,7 @@ clouds' own units, untuned (5 cm voxel, normals within 2 voxels, FPFH within 5, 
 what a 20-line script registers 3DMatch fragments with (:data:`RECIPES`).
 
 Every option is an :class:`Options` field. The defaults are tuned on validation pairs of training shapes
-(``dit-tune-baselines``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
+(``python tools/tune_baselines.py``; grid, scores and choice in docs/baselines_tuning.md), per data setting:
 :func:`get` with ``setting=`` gives that setting's choice, without one the choice that scores best over all
 settings together (for clouds of unknown origin, such as real scans). Clouds far denser than the tuning data
 (more than :data:`DENSE_POINTS` points) are voxel-downsampled at :data:`DENSE_VOXEL` before features, as

@@ -26,7 +26,7 @@ the features' two (two independent estimates agree) and no turned twin of it fit
 the features' better fitting motion, "probably wrong".
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
-calibration of the verdict (:mod:`dit_jax.release.calibrate`) and the benchmarks call it on many pairs.
+calibration of the verdict (`tools/calibrate.py`) and the benchmarks call it on many pairs.
 Every setting of the pipeline lives in one frozen :class:`InferenceSettings`, saved with the weights.
 
 Motions map back to the caller's units (stage 2): with ``x' = (x - c_x) / s``, ``y' = (y - c_y) / s`` and

@@ -46,7 +46,7 @@ MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterat
 @dataclasses.dataclass(frozen=True)
 class InferenceSettings(Record):
     """Every setting of the registration pipeline, in one place. A checkpoint stores its own (chosen on
-    validation pairs by :mod:`dit_jax.release.calibrate`); these defaults serve checkpoints that record none.
+    validation pairs by `tools/calibrate.py`); these defaults serve checkpoints that record none.
 
     Attributes:
       n_points: points per cloud the network sees (stage 1).

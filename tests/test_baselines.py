@@ -43,7 +43,7 @@ def test_clean_pairs_with_small_motion_are_registered(name, modelnet_shapes):
 
 
 def test_every_method_and_setting_has_tuned_options_recorded_in_docs():
-    """The shipped choice (dit-tune-baselines) covers every baseline, every setting and "any"."""
+    """The shipped choice (python tools/tune_baselines.py) covers every baseline, every setting and "any"."""
     from dit_jax.data.pairs import SETTINGS
 
     choice = baselines.tuned()
@@ -61,7 +61,7 @@ def test_every_method_and_setting_has_tuned_options_recorded_in_docs():
 
 def test_refine_option_refines_as_dit_does(modelnet_shapes):
     """``icp_method="refine"`` is DIT+ICP's refinement (dit_jax.icp.refine), the schedule fields unused; the
-    shipped choice uses it only where dit_jax.release.compare_baseline_refinement recorded why."""
+    shipped choice uses it only where tools/compare_baseline_refinement.py recorded why."""
     from dit_jax import icp
 
     rng = np.random.default_rng(4)

@@ -1,11 +1,11 @@
-"""dit_jax.release.calibrate: the rule that sets the shipped thresholds, made again from kept evidence, and
+"""tools/calibrate.py: the rule that sets the shipped thresholds, made again from kept evidence, and
 what it writes into a checkpoint's inference settings."""
 
+import calibrate
 import jax
 import numpy as np
 
 from dit_jax import checkpoint, configs, model, registration
-from dit_jax.release import calibrate
 
 
 def _evidence(errors, agreement, settings):

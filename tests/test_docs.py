@@ -262,11 +262,11 @@ def test_every_public_function_of_the_api_pages_has_a_docstring():
 
 
 def test_the_generated_tables_are_current():
-    """Every table between <!-- results:NAME --> markers is what dit_jax.release.results_page makes of the
+    """Every table between <!-- results:NAME --> markers is what tools/results_page.py makes of the
     committed results files (nothing is registered)."""
-    from dit_jax.release import results_page
+    import results_page
 
     for name in results_page.TABLES:
         for page in results_page._pages(name):
             now, generated = results_page.render(name, page)
-            assert now == generated, f"{page.name}: table {name} is stale; run python -m dit_jax.release.results_page"
+            assert now == generated, f"{page.name}: table {name} is stale; run python tools/results_page.py"

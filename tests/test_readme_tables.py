@@ -1,6 +1,6 @@
-"""dit_jax.release.readme_tables: the README's summary tables, ranked as the README says they are."""
+"""tools/readme_tables.py: the README's summary tables, ranked as the README says they are."""
 
-from dit_jax.release import readme_tables
+import readme_tables
 
 
 def _stats(success, within, iso, seconds=0.1):

@@ -1,8 +1,7 @@
 """The shipping rule's verdict and its resampled copy of the validation pairs."""
 
 import numpy as np
-
-from dit_jax.release import shipping_rule
+import shipping_rule
 
 
 def _rows(clean, *hard):
@@ -53,7 +52,7 @@ def test_both_checkpoints_run_the_shipped_weights_model_options():
 
 
 def test_shipped_records_name_the_modelnet40_folder_not_the_machines_path():
-    from dit_jax.release.ship_weights import portable
+    from ship_weights import portable
 
     record = {
         "command": "python train.py --config.data_dir=../shared/data/mn40 --unseen",

@@ -439,6 +439,62 @@ def test_the_shipped_recipe_files_are_what_trained_the_shipped_weights():
         assert recorded.init_from and recipe.init_from, path
 
 
+def test_the_shipped_weights_record_holds_no_absolute_path_and_commands_that_run_today():
+    """Every run in the shipped weights' record names its recipe file and today's command for it, which
+    parses with train.py's flags and loads that recipe; no string in the record is an absolute path (the
+    training machine's folders mean nothing on another)."""
+    import shlex
+
+    import train
+    from dit_jax import checkpoint, registration
+
+    strings = []
+
+    def walk(value):
+        if isinstance(value, dict):
+            [walk(v) for v in value.values()]
+        elif isinstance(value, list):
+            [walk(v) for v in value]
+        elif isinstance(value, str):
+            strings.append(value)
+
+    extra = checkpoint.read_extra(registration.shipped_weights())
+    walk(extra)
+    assert not [s for s in strings if os.path.isabs(s)]
+    files = [f for f in pathlib.Path(registration.shipped_weights()).rglob("*") if f.is_file()]
+    assert not [f for f in files if b"/work/" in f.read_bytes() or b"/tmp/" in f.read_bytes()]
+    runs = 0
+    while extra:
+        words = shlex.split(extra["command"])
+        assert words[:3] == ["python", "train.py", "--config"] and words[3] == extra["recipe"], extra["command"]
+        assert words[4] == "--workdir" and len(words) == 6, extra["command"]
+        with pytest.MonkeyPatch.context() as patch:
+            patch.chdir(ROOT)  # where the command is run
+            _, config, workdir = train.parse(words[2:])
+        assert config == training.load_config(ROOT / extra["recipe"]) and workdir == words[5]
+        extra, runs = extra.get("trained_from"), runs + 1
+    assert runs == len(list((ROOT / "configs" / "shipped").glob("run*.py")))
+
+
+def test_ship_weights_exports_a_run_with_its_record(tmp_path, tiny_run):
+    """tools/ship_weights.py on the tiny run: the checkpoint it writes restores, and its record names the
+    command, the steps run and the last validation, with no absolute path in it."""
+    import ship_weights
+
+    from dit_jax import checkpoint
+
+    out = tmp_path / "shipped"
+    ship_weights.main(
+        [str(tiny_run.workdir), "--command", "python train.py --config configs/tiny.py", "--out", str(out)]
+    )
+    params, config = checkpoint.restore(out)
+    extra = checkpoint.read_extra(out)
+    assert config == TINY.model_config() and extra["steps_run"] == 12 and extra["last_validation"]["step"] == 12
+    assert extra["command"] == "python train.py --config configs/tiny.py"
+    assert not [v for v in jax.tree.leaves(extra) if isinstance(v, str) and os.path.isabs(v)]
+    assert not [f for f in out.rglob("*") if f.is_file() and str(tmp_path).encode() in f.read_bytes()]
+
+
 def test_unseen_split_validates_on_held_out_training_categories(prepared):
     """With --unseen, validation pairs come from held-out shapes of categories 0-19 (never empty, never the
     test categories)."""

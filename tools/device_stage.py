@@ -19,7 +19,7 @@ learning-rate schedule whole, starts the runs side by side, stops any run still 
 best checkpoint so far is kept, or its latest where it never validated: ``--config.validate_at_start=False``
 skips the validation before the first step, whose compiling ate most of a 15-minute lease), and writes to
 ``--out`` for each run one ``NAME.tar`` (``best/`` or ``checkpoints/``,
-``metrics.jsonl``, ``train_config.json``: what ``dit-ship-weights`` and
+``metrics.jsonl``, ``train_config.json``: what ``python tools/ship_weights.py`` and
 ``dit_jax.training.export_params`` read) and a log, and ``xla_cache.tar``: the persistent compilation cache,
 which the next lease carries back in (``--cache-from``) so that programs of the same shapes load instead of
 compiling. Each run is ``python train.py``'s ``training.train``

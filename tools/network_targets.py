@@ -4,14 +4,14 @@ weights: a development tool beside the package, not part of it.
     python tools/network_targets.py runs/stage8/model --out runs/stage8/targets.json
 
 Both checkpoints run under the shipped weights' inference settings and model options, unrefined
-(:func:`dit_jax.release.shipping_rule.inference_settings`), so that a checkpoint exported from training is
+(`tools/shipping_rule.py`), so that a checkpoint exported from training is
 not judged by the authors' GMCCE defaults its config carries. Two figures each, the share within 5 degrees and
 the median:
 
 * the first ``--pairs`` independently sampled clean pairs of ModelNet40's unseen categories (test split);
 * the Stanford dragon's neighbouring scans (24 degrees apart), from the shared data folder.
 
-The shipping rule (:mod:`dit_jax.release.shipping_rule`) decides on validation pairs; these test figures are
+The shipping rule (`tools/shipping_rule.py`) decides on validation pairs; these test figures are
 what the docs and the model card quote.
 """
 
@@ -21,13 +21,13 @@ import argparse
 import json
 
 import numpy as np
+import shipping_rule
 
 from dit_jax import geometry, registration
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import scans as scans_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import common
-from dit_jax.release import shipping_rule
 
 
 def errors_deg(registrar: registration.Registrar, pairs: list, rotations: list, batch_size: int) -> np.ndarray:

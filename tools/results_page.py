@@ -1,7 +1,7 @@
 """The result tables of the README and docs/, generated from what evaluate.py wrote (docs/eval_*/results.json).
 
-    python -m dit_jax.release.results_page            # rewrites every generated table in place
-    python -m dit_jax.release.results_page --check    # exit status 1 where a committed table differs
+    python tools/results_page.py            # rewrites every generated table in place
+    python tools/results_page.py --check    # exit status 1 where a committed table differs
 
 Each table sits between ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->`` in its page, so the prose
 around it is written by hand and the figures never are. Nothing is registered: the figures are those of the
@@ -43,7 +43,7 @@ from dit_jax import pipeline
 from dit_jax.evaluators import common
 from dit_jax.evaluators import scans as scans_evaluator
 
-ROOT = pathlib.Path(__file__).resolve().parents[2]
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 NETWORK = common.PIPELINE_METHODS
 FEATURES = baselines_lib.FEATURE_CANDIDATE
@@ -498,7 +498,7 @@ def main(argv=None) -> int:
                 if not args.check:
                     path.write_text(generated)
     if args.check and stale:
-        print("stale tables: " + ", ".join(stale) + "; run python -m dit_jax.release.results_page", file=sys.stderr)
+        print("stale tables: " + ", ".join(stale) + "; run python tools/results_page.py", file=sys.stderr)
         return 1
     print(("updated: " if stale else "up to date: ") + (", ".join(stale) or ", ".join(TABLES)))
     return 0

@@ -1,7 +1,7 @@
 """Prints the README's summary tables of an evaluate.py output directory, from its results.json.
 
-    python -m dit_jax.release.readme_tables docs/eval_modelnet40_unseen [--before OLD/results.json]
-    python -m dit_jax.release.readme_tables --verdict docs/eval_stanford_dragon docs/eval_modelnet40_unseen
+    python tools/readme_tables.py docs/eval_modelnet40_unseen [--before OLD/results.json]
+    python tools/readme_tables.py --verdict docs/eval_stanford_dragon docs/eval_modelnet40_unseen
 
 Two tables per directory: which method is best per setting and the runner-up (ranked by success, then the
 share within 5 degrees and 0.05, then the lower mean isotropic rotation error), with DIT's and DIT+ICP's
@@ -129,7 +129,7 @@ def verdict_table(directories: list[str]) -> list[str]:
     return lines
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "directory",
@@ -138,7 +138,7 @@ def main() -> None:
     )
     parser.add_argument("--before", default=None, help="an earlier results.json of the same pairs")
     parser.add_argument("--verdict", action="store_true", help="the agreement verdict's table instead")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.verdict:
         print("\n".join(verdict_table(args.directory)))
         return

@@ -1,12 +1,12 @@
 """The baselines' refinement against DIT's, after the same global estimates, on validation pairs.
 
 ``fpfh_ransac_icp`` and ``fgr_icp`` refine their global estimate with the single ICP schedule tuned for them
-per setting (``dit-tune-baselines``); DIT + ICP uses :func:`dit_jax.icp.refine`, the best fit among
+per setting (``python tools/tune_baselines.py``); DIT + ICP uses :func:`dit_jax.icp.refine`, the best fit among
 several ICP runs. This asks whether the baselines would be stronger with DIT's refinement: each global
 estimate (tuned options per setting) is refined both ways and scored as the tuning scores (success,
 share within 5 degrees and 0.05, median rotation error). Validation pairs of training shapes only.
 
-    python -m dit_jax.release.compare_baseline_refinement --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
+    python tools/compare_baseline_refinement.py --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
 
 Prints a markdown table. ``--write`` also makes it the last tuning stage: per setting, each of
 ``fpfh_ransac_icp`` and ``fgr_icp`` keeps whichever refinement scores better there (ties keep the single
@@ -21,16 +21,16 @@ import json
 import pathlib
 
 import numpy as np
+from tune_baselines import score  # the tuning's own score, so the two tables compare
 
 from dit_jax import baselines, icp, training
 from dit_jax.data.pairs import SETTINGS
-from dit_jax.release.tune_baselines import score  # the tuning's own score, so the two tables compare
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TUNED_PATH = ROOT / "dit_jax" / baselines.TUNED_FILE
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
@@ -42,7 +42,7 @@ def main() -> None:
         help="write the per-setting choice into dit_jax/baselines_tuned.json and the table into "
         "docs/baselines_refinement.md",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     import open3d as o3d
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its warnings go to stdout, into the table
@@ -53,7 +53,7 @@ def main() -> None:
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").
     single = tuned_json.get("refinement", {}).get("single_icp_method", {})
     command = (
-        "python -m dit_jax.release.compare_baseline_refinement "
+        "python tools/compare_baseline_refinement.py "
         + (f"--data-dir {args.data_dir} " if args.data_dir else "")
         + ("--unseen " if args.unseen else "")
         + f"--pairs {args.pairs}"

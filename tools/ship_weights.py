@@ -1,13 +1,13 @@
 """Exports a training run's best params as the weights that ship with dit-jax (dit_jax/weights/...).
 
-    dit-ship-weights runs/mn40-clean --command "python train.py ..." [--out DIR]
-    dit-ship-weights runs/mix --command "..." --choice runs/mix/choice.json
+    python tools/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
+    python tools/ship_weights.py runs/mix --command "..." --choice runs/mix/choice.json
 
 Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and its inference settings
 (:class:`dit_jax.pipeline.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
-``--choice`` (the output of ``dit-calibrate``) is then recorded into those settings as ``dit-calibrate
+``--choice`` (the output of ``python tools/calibrate.py``) is then recorded into those settings as ``python tools/calibrate.py
 --record`` records one.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
 history travels with the weights.
@@ -18,19 +18,22 @@ import json
 import os
 import shutil
 
+import calibrate
+
 from dit_jax import checkpoint, pipeline, registration, training
-from dit_jax.release import calibrate
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="dit-ship-weights", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python tools/ship_weights.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("workdir")
     parser.add_argument("--command", required=True, help="the command(s) that trained it, for the record")
     parser.add_argument("--out", default=registration.shipped_weights())
     parser.add_argument("--inference-points", type=int, default=1000)
     parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
     parser.add_argument(
-        "--choice", default=None, help="inference settings and verdict threshold to ship (dit-calibrate's output)"
+        "--choice",
+        default=None,
+        help="inference settings and verdict threshold to ship (python tools/calibrate.py's output)",
     )
     args = parser.parse_args(argv)
 
@@ -66,6 +69,11 @@ def main(argv: list[str] | None = None) -> None:
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
     checkpoint.save(args.out, params, config, extra=extra)
+    # orbax's commit markers name the folder they were written in; what ships names no machine's folder.
+    for root, _, files in os.walk(args.out):
+        if "commit_success.txt" in files:
+            with open(os.path.join(root, "commit_success.txt"), "w") as f:
+                f.write("Checkpoint commit was successful")
     if args.choice:
         calibrate.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)

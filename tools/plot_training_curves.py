@@ -1,6 +1,6 @@
 """Plot the training curves of one or more runs into one PNG.
 
-python -m dit_jax.release.plot_training_curves OUT.png runs/a runs/b ... [--labels "seed 0" "seed 1" ...]
+python tools/plot_training_curves.py OUT.png runs/a runs/b ... [--labels "seed 0" "seed 1" ...]
 """
 
 import argparse
@@ -8,13 +8,13 @@ import argparse
 from dit_jax import training
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", help="PNG to write")
     parser.add_argument("workdirs", nargs="+", help="training workdirs (each with metrics.jsonl)")
     parser.add_argument("--labels", nargs="+", default=None, help="one per workdir (default: the workdirs)")
     parser.add_argument("--title", default=None)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     labels = args.labels or args.workdirs
     if len(labels) != len(args.workdirs):
         parser.error(f"{len(labels)} labels for {len(args.workdirs)} workdirs")

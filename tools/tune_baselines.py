@@ -1,7 +1,7 @@
 """Tunes the classical baselines (and DIT's ICP refinement) on validation pairs of training shapes, never on
 test pairs, and writes the choice that evaluate.py and the API use by default.
 
-    python -m dit_jax.release.tune_baselines --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
+    python tools/tune_baselines.py --data-dir /data/modelnet40_ply_hdf5_1024 --unseen
 
 Validation pairs: the training split's held-out shapes (categories 0-19 with ``--unseen``), ``--pairs`` per
 setting, every setting of :data:`dit_jax.data.pairs.SETTINGS`. Each configuration is scored per setting by
@@ -18,7 +18,7 @@ unknown: real scans, users' clouds). The search, in stages:
 
 Writes ``dit_jax/baselines_tuned.json`` (the choice, read by :func:`dit_jax.baselines.tuned`) and
 ``docs/baselines_tuning.md`` / ``.json`` (grid, every score, the choice). Then run
-``python -m dit_jax.release.compare_baseline_refinement --write``, the last stage: it lets each ``*_icp`` baseline take DIT's
+``python tools/compare_baseline_refinement.py --write``, the last stage: it lets each ``*_icp`` baseline take DIT's
 own refinement (:func:`dit_jax.icp.refine`) where that scores better on 48 validation pairs per setting.
 """
 
@@ -129,7 +129,7 @@ def _feature_grid(batches: dict, log) -> tuple[dict, dict]:
     return estimates, options
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
@@ -143,7 +143,7 @@ def main() -> None:
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS))
     parser.add_argument("--out-json", default="dit_jax/baselines_tuned.json")
     parser.add_argument("--report", default="docs/baselines_tuning")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     started = time.time()
     batches = training.validation_batches(
         args.data_dir, args.settings, count=args.pairs, n_points=args.n_points, unseen=args.unseen
@@ -160,7 +160,7 @@ def main() -> None:
 
     report = {
         "date": datetime.date.today().isoformat(),
-        "command": "python " + " ".join(sys.argv),
+        "command": "python tools/tune_baselines.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "pairs": args.pairs,
         "n_points": args.n_points,
         "unseen": args.unseen,
@@ -205,8 +205,8 @@ def main() -> None:
         registrar = registration.load(args.checkpoint, verdict_rule="fitness", refine="none")
         dit_est = {}
         for setting, b in batches.items():
-            est = common.run_dit(registrar, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
-            dit_est[setting] = list(zip(est.rotation, est.translation))
+            network = common.run_dit(registrar, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
+            dit_est[setting] = list(zip(network.rotation, network.translation))
         report["rows"]["DIT"] = [row("DIT", {}, dit_est)]
     for method in ("fpfh_ransac", "fgr", "DIT"):
         if method == "DIT":

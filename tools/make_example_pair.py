@@ -7,9 +7,10 @@ views see go to one of them at random, so the two clouds share no point; each ge
 The target is then turned by 30 degrees about the vertical, tilted 5 degrees, moved 0.35 m and shuffled.
 The true motion is printed and written to examples/chair_truth.txt.
 
-    python -m dit_jax.release.make_example_pair
+    python tools/make_example_pair.py [--out DIR]
 """
 
+import argparse
 import os
 
 import numpy as np
@@ -21,7 +22,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "examples")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=OUT, help="the folder to write the three files to (default: examples/)")
+    out = parser.parse_args(argv).out
+    os.makedirs(out, exist_ok=True)
     data = np.load(os.path.join(HERE, "..", "dit_jax", "data", "embedded", "sh3d_furniture_1024.npz"))
     index = int(np.flatnonzero(data["id"] == "BlendSwap-CC-0/oakChair")[0])
     shape = data["points"][index].astype(np.float64) / 32767.0  # the unit sphere, as stored
@@ -39,12 +44,12 @@ def main() -> None:
     rotation = euler_zyx_to_matrix([30.0, 5.0, 0.0])
     translation = np.array([0.25, -0.2, 0.1]) + room - rotation @ room
     tgt = (tgt_before @ rotation.T + translation)[rng.permutation(len(tgt_rows))]
-    io.write(os.path.join(OUT, "chair_src.ply"), src.astype(np.float32))
-    io.write(os.path.join(OUT, "chair_tgt.pcd"), tgt.astype(np.float32), binary=False)
+    io.write(os.path.join(out, "chair_src.ply"), src.astype(np.float32))
+    io.write(os.path.join(out, "chair_tgt.pcd"), tgt.astype(np.float32), binary=False)
     matrix = np.eye(4)
     matrix[:3, :3], matrix[:3, 3] = rotation, translation
     np.savetxt(
-        os.path.join(OUT, "chair_truth.txt"),
+        os.path.join(out, "chair_truth.txt"),
         matrix,
         fmt="%.9f",
         header="true 4x4 motion of chair_src.ply onto chair_tgt.pcd (tgt = R src + t)",

@@ -2,9 +2,9 @@
 test pairs) through the registration pipeline, and recorded in the checkpoint's
 :class:`~dit_jax.pipeline.InferenceSettings`.
 
-    dit-calibrate runs/mix/model --data-dir /data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
-    dit-calibrate dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
-    dit-calibrate dit_jax/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
+    python tools/calibrate.py runs/mix/model --data-dir /data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
+    python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
+    python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
 
 Validation pairs come from the training split's held-out shapes (the ones training validates on). Every
 combination of the GMCCE grid (:data:`GRID`, and ``--n-iters``) registers them, the network alone; the one
@@ -209,7 +209,7 @@ def _pooled(settings, pool: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="dit-calibrate", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python tools/calibrate.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint")
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
@@ -277,3 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.record:
         record(args.checkpoint, report)
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,6 +1,6 @@
 """The shipping rule: whether a candidate's weights may replace the shipped ones.
 
-    python -m dit_jax.release.shipping_rule runs/stage/model --data-dir /data/modelnet40_ply_hdf5_1024 \
+    python tools/shipping_rule.py runs/stage/model --data-dir /data/modelnet40_ply_hdf5_1024 \
         --pairs 32 --out runs/stage/rule.json
 
 Both checkpoints register the same held-out validation pairs (the training split's held-out shapes,
@@ -96,9 +96,7 @@ def table(results: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m dit_jax.release.shipping_rule", description=__doc__.split("\n\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog="python tools/shipping_rule.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("candidate", help="a model checkpoint (dit_jax.training.export_params)")
     parser.add_argument("--shipped", default=None, help="the weights to beat (default: the shipped ones)")
     parser.add_argument("--data-dir", required=True)

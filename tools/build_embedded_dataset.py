@@ -1,7 +1,7 @@
 """Rebuilds dit-jax's embedded dataset from Debian's ``sweethome3d-furniture`` package.
 
     apt-get install sweethome3d-furniture          # or: apt-get download sweethome3d-furniture
-    python -m dit_jax.release.build_embedded_dataset [--furniture-dir DIR | --deb FILE.deb]
+    python tools/build_embedded_dataset.py [--furniture-dir DIR | --deb FILE.deb] [--out DIR]
 
 Every furniture model of the package's five catalogues (CC0 and CC-BY 3.0 CAD models) is read from its OBJ
 mesh, turned z-up, sampled with 1024 points uniformly over its surface area (seeded by the model's id, so the
@@ -229,7 +229,7 @@ def normalise(points: np.ndarray) -> np.ndarray:
     return points / np.max(np.linalg.norm(points, axis=1))
 
 
-def build(furniture_dir: pathlib.Path) -> None:
+def build(furniture_dir: pathlib.Path, out_dir: pathlib.Path = OUT_DIR) -> None:
     records = []
     for catalogue in sorted(LICENCES):
         path = furniture_dir / f"{catalogue}.sh3f"
@@ -265,7 +265,7 @@ def build(furniture_dir: pathlib.Path) -> None:
                     print(f"{len(records)} models", file=sys.stderr)
     points = np.stack([r["points"] for r in records])
     np.savez_compressed(
-        OUT_DIR / "sh3d_furniture_1024.npz",
+        out_dir / "sh3d_furniture_1024.npz",
         # Radius 0.9999 before rounding keeps every dequantised point inside the unit sphere.
         points=np.round(points * (0.9999 * QUANT)).astype(np.int16),
         label=np.asarray([r["label"] for r in records], np.int16),
@@ -277,7 +277,7 @@ def build(furniture_dir: pathlib.Path) -> None:
         "# Embedded dataset: attribution",
         "",
         f"`sh3d_furniture_1024.npz` holds {len(records)} point clouds of {N_POINTS} points, sampled by",
-        "`python -m dit_jax.release.build_embedded_dataset` from the 3D models of Debian's `sweethome3d-furniture` package",
+        "`python tools/build_embedded_dataset.py` from the 3D models of Debian's `sweethome3d-furniture` package",
         "(version 1.8-1; https://www.sweethome3d.com/importModels.jsp). The clouds are derived works of",
         "these models, shared under the same licences:",
         "",
@@ -296,23 +296,25 @@ def build(furniture_dir: pathlib.Path) -> None:
     for r in records:
         label = MODELNET40[r["label"]] if r["label"] >= 0 else "-"
         lines.append(f"| {r['id']} | {r['name']} | {r['creator']} | {r['licence']} | {label} |")
-    (OUT_DIR / "ATTRIBUTION.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "ATTRIBUTION.md").write_text("\n".join(lines) + "\n")
     labelled = sum(r["label"] >= 0 for r in records)
-    print(f"wrote {len(records)} models ({labelled} with a ModelNet40 category) to {OUT_DIR}")
+    print(f"wrote {len(records)} models ({labelled} with a ModelNet40 category) to {out_dir}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--furniture-dir", type=pathlib.Path, default=DEFAULT_DIR)
     group.add_argument("--deb", type=pathlib.Path, help="the package file from `apt-get download`")
-    args = parser.parse_args()
+    parser.add_argument("--out", type=pathlib.Path, default=OUT_DIR, help="default: the package's embedded folder")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
     if args.deb:
         with tempfile.TemporaryDirectory() as tmp:
             subprocess.run(["dpkg", "-x", str(args.deb), tmp], check=True)
-            build(pathlib.Path(tmp) / "usr/share/sweethome3d/furniture")
+            build(pathlib.Path(tmp) / "usr/share/sweethome3d/furniture", args.out)
     else:
-        build(args.furniture_dir)
+        build(args.furniture_dir, args.out)
 
 
 if __name__ == "__main__":
