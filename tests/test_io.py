@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dit_jax import io
+from dit_jax.io import text as io_text
 
 
 @pytest.fixture
@@ -663,9 +664,9 @@ def test_text_files_read_alike_by_both_readers(tmp_path):
     for name, text in files.items():
         (tmp_path / name).write_text(text)
         np.testing.assert_array_equal(io.read(tmp_path / name), [[1, 2, 3], [4, 5, 6]], err_msg=name)
-        by_line = io._read_text_by_line(str(tmp_path / name))
+        by_line = io_text._read_text_by_line(str(tmp_path / name))
         np.testing.assert_array_equal(by_line, [[1, 2, 3], [4, 5, 6]], err_msg=name)
-        fast = io._read_text_fast(str(tmp_path / name))
+        fast = io_text._read_text_fast(str(tmp_path / name))
         assert (fast is None) == (name == "e.xyz") and (fast is None or np.array_equal(fast, by_line)), name
     (tmp_path / "empty.xyz").write_text("# nothing\n")
     assert io.read(tmp_path / "empty.xyz", drop_nonfinite=True).shape == (0, 3)
