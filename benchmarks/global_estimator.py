@@ -17,10 +17,11 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import time
 
 import numpy as np
+
+from dit_jax.training.precision import cpu_model
 
 STEPS = ("features", "matching", "compatibility", "scoring", "icp", "twin")
 
@@ -117,7 +118,7 @@ def main() -> None:
                 "benchmark": "global_estimator",
                 "date": datetime.date.today().isoformat(),
                 "cpus": os.cpu_count(),
-                "cpu": _cpu_model(),
+                "cpu": cpu_model(),
                 "data": os.path.basename(os.path.normpath(folder)),
                 "set": set_name,
                 "pairs": len(seconds),
@@ -127,7 +128,7 @@ def main() -> None:
             }
             records.append(record)
             print(json.dumps(record), flush=True)
-    print(f"\n{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, {_cpu_model()}, one direction per pair\n")
+    print(f"\n{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, {cpu_model()}, one direction per pair\n")
     print(
         "| data | pairs | found: ours, Open3D RANSAC | "
         + " | ".join(f"{s} (median s)" for s in STEPS)
@@ -141,15 +142,6 @@ def main() -> None:
             + " | ".join(f"{m[s]:.3f}" for s in STEPS)
             + f" | {r['ours_median_s']:.2f} | {m['open3d_ransac']:.2f} |"
         )
-
-
-def _cpu_model() -> str:
-    """lscpu's model name where /proc/cpuinfo gives one, else the platform's processor."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
 
 
 if __name__ == "__main__":

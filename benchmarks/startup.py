@@ -25,12 +25,13 @@ import datetime
 import json
 import os
 import pathlib
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+
+from dit_jax.training.precision import cpu_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -68,14 +69,6 @@ record = {name: round(b - a, 4) for name, a, b in zip(steps, marks, marks[1:])}
 record["refine_s"] = round(result.refine_seconds, 4)
 print(json.dumps(record))
 """
-
-
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        return platform.processor() or platform.machine()
 
 
 def _run(command: list[str], env: dict | None = None) -> tuple[float, str]:

@@ -72,20 +72,23 @@ def decide(float32_step_s: float, bfloat16_step_s: float, margin: float = MARGIN
     return "bfloat16" if float32_step_s >= margin * bfloat16_step_s else None
 
 
+def cpu_model() -> str:
+    """The CPU's model name as ``lscpu`` gives it (from /proc/cpuinfo), else the platform's processor."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
 def machine() -> tuple[str, ...]:
     """What a step's speed depends on besides the program: the backend, its devices, the CPU and XLA's flags."""
     devices = jax.devices()
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
-    except OSError:
-        pass
     return (
         jax.default_backend(),
         devices[0].device_kind,
         str(len(devices)),
-        cpu,
+        cpu_model(),
         str(os.cpu_count()),
         os.environ.get("XLA_FLAGS", ""),
     )
