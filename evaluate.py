@@ -45,6 +45,7 @@ _IGNORED_BY = {
     ),
     "--angle-sweep": (
         "skips",
+        "features",
         "variant",
         "iters",
         "gmcce_threshold",
@@ -167,7 +168,7 @@ def main(argv=None) -> int:
                 pairs_per_angle=args.max_pairs or 24,
                 n_points=args.points,
                 progress=not args.no_progress,
-                refine=args.refine != "none",
+                refine=args.refine or "icp",
             )
             print(results["table"])
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")

@@ -229,6 +229,7 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
         ["--scans", str(tmp_path), "--unseen"],
         ["--scans", str(tmp_path), "--angle-sweep"],
         ["--angle-sweep", "--iters", "2"],
+        ["--angle-sweep", "--features", "on"],
         ["--skips", "3"],
     ):
         with pytest.raises(SystemExit):
@@ -247,6 +248,13 @@ def test_angle_sweep_reports_every_angle(tiny_checkpoint, tmp_path):
     assert set(results["angles"]) == {0.0, 90.0} and all(len(r["errors"]) == 2 for r in results["angles"].values())
     assert all(len(r["icp"]["errors"]) == 2 for r in results["angles"].values())
     assert (tmp_path / "angle_sweep.png").exists() and "| 90 |" in results["table"] and "DIT+ICP" in results["table"]
+    gicp = evaluation.angle_sweep(
+        tiny_checkpoint, str(tmp_path / "gicp"), angles=(0,), pairs_per_angle=2, unseen=False, progress=False,
+        refine="gicp",
+    )  # fmt: skip
+    assert "DIT+GICP" in gicp["table"] and len(gicp["angles"][0.0]["icp"]["errors"]) == 2
+    with pytest.raises(ValueError, match="refine must be one of"):
+        evaluation.angle_sweep(tiny_checkpoint, str(tmp_path / "no"), refine="yes")
 
 
 def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):

@@ -12,6 +12,7 @@ from dit_jax import geometry, plotting
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators.common import METHOD_DIT, METHOD_DIT_ICP, progress_bar, rotation_error_deg, run_dit
+from dit_jax.settings import REFINEMENTS
 
 
 def angle_sweep(
@@ -25,19 +26,22 @@ def angle_sweep(
     pairs_per_angle: int = 24,
     n_points: int | None = None,
     progress: bool = True,
-    refine: bool = True,
+    refine: str = "icp",
 ) -> dict:
     """DIT's error against the rotation angle: test pairs of ``setting`` re-posed to rotations of exactly each
     angle about random axes (translations as drawn), through the registration pipeline as users run it: the
-    network's result and, with ``refine``, the refined one.
+    network's result and, unless ``refine`` is "none", the result refined as ``register(refine=...)`` refines it
+    ("icp", "gicp" or "auto"; the JSON keeps it under "icp" whichever it is).
     Writes ``angle_sweep.md``, ``.json`` and ``.png``."""
     from dit_jax import registration
 
     # The network's own range: no second candidate (its results are not what the sweep measures).
-    changes = {"refine": "icp" if refine else "none", "feature_candidate": "off"} | (
-        {"n_points": n_points} if n_points else {}
-    )
+    if refine not in REFINEMENTS:
+        raise ValueError(f"refine must be one of {', '.join(REFINEMENTS)}, got {refine!r}")
+    changes = {"refine": refine, "feature_candidate": "off"} | ({"n_points": n_points} if n_points else {})
     registrar = registration.load(checkpoint_dir, **changes)
+    label = {"icp": "DIT+ICP", "gicp": "DIT+GICP", "auto": "DIT+refinement (auto)"}.get(refine)
+    refine = refine != "none"
     n_points = registrar.settings.n_points
     test_shapes = shapes_lib.load_shapes(
         data_dir, "test", progress=progress, n_points=pairs_lib.shape_points(data_dir, n_points, [setting])
@@ -88,10 +92,10 @@ def angle_sweep(
     lines = [
         f"DIT on {len(indices)} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
         f"{results['data']}) per angle, random axes"
-        + ("; DIT+ICP as `register` returns it (both directions refined, the better fitting kept)" if refine else ""),
+        + (f"; {label} as `register` returns it (both directions refined, the better fitting kept)" if refine else ""),
         "",
         "| rotation (deg) | median error (deg) | within 5 deg | within 10 deg |"
-        + (" DIT+ICP median | DIT+ICP within 1 deg | DIT+ICP within 5 deg |" if refine else ""),
+        + (f" {label} median | {label} within 1 deg | {label} within 5 deg |" if refine else ""),
         "|---|---|---|---|" + ("---|---|---|" if refine else ""),
     ]
     for a, r in rows.items():
@@ -110,8 +114,8 @@ def angle_sweep(
     ax.plot(xs, [rows[a]["within_5"] for a in xs], marker="o", label="within 5 deg")
     ax.plot(xs, [rows[a]["within_10"] for a in xs], marker="o", label="within 10 deg")
     if refine:
-        ax.plot(xs, [rows[a]["icp"]["within_1"] for a in xs], marker="s", ls="--", label="DIT+ICP within 1 deg")
-        ax.plot(xs, [rows[a]["icp"]["within_5"] for a in xs], marker="s", ls="--", label="DIT+ICP within 5 deg")
+        ax.plot(xs, [rows[a]["icp"]["within_1"] for a in xs], marker="s", ls="--", label=f"{label} within 1 deg")
+        ax.plot(xs, [rows[a]["icp"]["within_5"] for a in xs], marker="s", ls="--", label=f"{label} within 5 deg")
     # Euler angles up to 45 degrees each: rotations up to 86 degrees, 90 % of them below 58.
     ax.axvspan(0, 58, color="tab:green", alpha=0.08, label="90 % of training rotations")
     ax.set_xlabel("rotation angle (deg)")
@@ -119,7 +123,7 @@ def angle_sweep(
     ax.set_ylim(0, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title(f"DIT{' and DIT+ICP' if refine else ''} against rotation angle ({setting})", fontsize=10)
+    ax.set_title(f"DIT{f' and {label}' if refine else ''} against rotation angle ({setting})", fontsize=10)
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "angle_sweep.png"), dpi=110)
     plt.close(fig)
