@@ -93,7 +93,7 @@ CONFIRM_REACH = 60.0
 # ------------------------------------------------------------------------------------------ stage 2: network
 
 
-class Estimates(NamedTuple):
+class NetworkEstimates(NamedTuple):
     """Stage 2's output for a batch of B pairs, in the normalised frame: ``tgt_n ~ src_n @ rotation.T +
     translation``.
 
@@ -158,11 +158,11 @@ def network(
         timings.
 
     Returns:
-      :class:`Estimates` of the B pairs.
+      :class:`NetworkEstimates` of the B pairs.
     """
     if rotation_search:
         found = [_search_one(params, config, src_n[i], tgt_n[i], seed) for i in range(len(src_n))]
-        return Estimates(
+        return NetworkEstimates(
             rotation=np.stack([f.rotation for f in found]),
             translation=np.stack([f.translation for f in found]),
             extras=jax.tree.map(lambda *a: np.stack(a), *[f.extras for f in found]),
@@ -185,7 +185,7 @@ def _batched(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, ba
         seconds.append(np.full(real, (time.perf_counter() - started) / real))
         outputs.append(jax.tree.map(lambda a: a[:real], out))
     rotation, translation, extras = jax.tree.map(lambda *a: np.concatenate(a), *outputs)
-    return Estimates(
+    return NetworkEstimates(
         rotation=np.asarray(rotation, np.float64),
         translation=np.asarray(translation, np.float64),
         extras=extras,
@@ -206,8 +206,8 @@ def _register(params, src: jax.Array, tgt: jax.Array, config: DITConfig):
     return compile_cache.call("register", program, config, params, src, tgt)
 
 
-def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int) -> Estimates:
-    """The rotation search for one pair: its :class:`Estimates` without the batch axis."""
+def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray, seed: int) -> NetworkEstimates:
+    """The rotation search for one pair: its :class:`NetworkEstimates` without the batch axis."""
     started = time.perf_counter()
     points = np.asarray(src_n, np.float64)
     centre = points.mean(axis=0)
@@ -220,7 +220,7 @@ def _search_one(params, config: DITConfig, src_n: np.ndarray, tgt_n: np.ndarray,
         icp_lib.start_scores(points, np.asarray(tgt_n, np.float64), (rotations, translations), seed=seed)
     )
     turn = round(geometry.rotation_angle_deg(SEARCH_TURNS[k]), 6)  # 0, 90, 120 or 180
-    return Estimates(
+    return NetworkEstimates(
         rotations[k], translations[k], jax.tree.map(lambda a: a[k], runs.extras), turn, time.perf_counter() - started
     )
 
@@ -398,10 +398,10 @@ def register_pairs(
     return results
 
 
-def _pair_estimate(p: Normalised, forward: Estimates, backward: Estimates | None, k: int) -> PairEstimate:
+def _pair_estimate(p: Normalised, forward: NetworkEstimates, backward: NetworkEstimates | None, k: int) -> PairEstimate:
     """Pair ``k`` of a batch's estimates, both directions moved back to the caller's units."""
 
-    def direction(found: Estimates, from_centre, to_centre) -> Direction:
+    def direction(found: NetworkEstimates, from_centre, to_centre) -> Direction:
         translation = to_caller_units(found.rotation[k], found.translation[k], from_centre, to_centre, p.scale)
         return Direction(found.rotation[k], translation, float(found.start_turn[k]))
 

@@ -81,14 +81,14 @@ def test_the_baselines_tune_and_compare_their_refinement_on_a_pair(tmp_path, cap
 
     out = tmp_path / "tuned.json"
     tune_baselines.main(
-        ["--pairs", "1", "--n-points", "128", "--settings", "clean", "--checkpoint", "none",
+        ["--pairs", "1", "--points", "128", "--settings", "clean", "--checkpoint", "none",
          "--out-json", str(out), "--report", str(tmp_path / "report")]
     )  # fmt: skip
     tuned = json.loads(out.read_text())
     assert {"fpfh_ransac", "fgr", "fpfh_ransac_icp", "fgr_icp"} <= set(tuned["choice"])
     assert (tmp_path / "report.md").exists()
     capsys.readouterr()
-    compare_baseline_refinement.main(["--pairs", "1", "--n-points", "128"])
+    compare_baseline_refinement.main(["--pairs", "1", "--points", "128"])
     printed = capsys.readouterr().out
     assert "| fgr_icp | scan_high_noise |" in printed and "DIT's refinement on" in printed
 

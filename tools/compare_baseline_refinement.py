@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data-dir", default=None, help="ModelNet40 in the h5 layout (default: embedded set)")
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=16, help="validation pairs per setting")
-    parser.add_argument("--n-points", type=int, default=1000)
+    parser.add_argument("--points", type=int, default=1000, help="points per cloud of the validation pairs")
     parser.add_argument(
         "--write",
         action="store_true",
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # its warnings go to stdout, into the table
     batches = training.validation_batches(
-        args.data_dir, list(SETTINGS), count=args.pairs, n_points=args.n_points, unseen=args.unseen
+        args.data_dir, list(SETTINGS), count=args.pairs, n_points=args.points, unseen=args.unseen
     )
     tuned_json = json.loads(TUNED_PATH.read_text())
     # The single ICP each method was tuned with (kept here once --write has switched a setting to "refine").

@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=24, help="validation pairs per setting")
-    parser.add_argument("--n-points", type=int, default=1000)
+    parser.add_argument("--points", type=int, default=1000, help="points per cloud of the validation pairs")
     parser.add_argument(
         "--checkpoint",
         default=None,
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     started = time.time()
     batches = training.validation_batches(
-        args.data_dir, args.settings, count=args.pairs, n_points=args.n_points, unseen=args.unseen
+        args.data_dir, args.settings, count=args.pairs, n_points=args.points, unseen=args.unseen
     )
     log = lambda msg: print(f"[{time.time() - started:6.0f} s] {msg}", flush=True)
 
@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
         "date": datetime.date.today().isoformat(),
         "command": "python tools/tune_baselines.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "pairs": args.pairs,
-        "n_points": args.n_points,
+        "n_points": args.points,
         "unseen": args.unseen,
         "data": args.data_dir or "embedded",
         "grid": {
