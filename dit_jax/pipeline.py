@@ -350,13 +350,14 @@ def register_pairs(
     on_pair: Callable[[int], None] | None = None,
 ) -> list[Result]:
     """Registers each ``(src (N, 3), tgt (M, 3))`` of ``pairs``, in the caller's units, through the four stages.
+    ``config`` is the network as it runs, the settings' model overrides already applied
+    (:attr:`dit_jax.registration.Registrar.config`).
 
     Pairs whose sampled clouds have the same sizes go through the network together, ``batch_size`` at a time.
     ``on_pair(count)`` is called as pairs finish (a progress bar's ``update``). Raises :class:`InputError` on
     the first cloud DIT cannot register, before any network work.
     """
-    run_config = settings.model_config(config)
-    need = run_config.min_points
+    need = config.min_points
     clouds = []
     for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
         clouds.append(check_pair(src, tgt, need))
@@ -379,20 +380,18 @@ def register_pairs(
         src_n = np.stack([prepared[i].src_n for i in rows])
         tgt_n = np.stack([prepared[i].tgt_n for i in rows])
         options = dict(rotation_search=settings.rotation_search, seed=settings.seed, batch_size=batch_size)
-        forward = network(params, run_config, src_n, tgt_n, **options)
-        backward = network(params, run_config, tgt_n, src_n, **options) if both else None
+        forward = network(params, config, src_n, tgt_n, **options)
+        backward = network(params, config, tgt_n, src_n, **options) if both else None
         for k, i in enumerate(rows):
             estimates[i] = _pair_estimate(prepared[i], forward, backward, k)
     results = []
     for (src, tgt), p, e, found, done, skip in zip(clouds, prepared, estimates, features, settled, alone):
         if skip:
-            results.append(features_result(src, tgt, found, settings, run_config, trusted=done))
+            results.append(features_result(src, tgt, found, settings, config, trusted=done))
         elif found is not None:
-            results.append(
-                combine(p, confirm_by_network(p, e, found, settings, run_config), found, settings, run_config)
-            )
+            results.append(combine(p, confirm_by_network(p, e, found, settings, config), found, settings, config))
         else:
-            results.append(_finish(p, e, settings, run_config))
+            results.append(_finish(p, e, settings, config))
         if on_pair is not None:
             on_pair(1)
     return results
