@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import os
 from collections.abc import Sequence
 
@@ -201,12 +202,15 @@ def icp(
             rotation, translation = new_rotation, new_translation
             if change <= tolerance * distance:
                 break
-    # The last stage's figures for the returned motion.
-    gap, _ = tree.query(src @ rotation.T + translation, distance_upper_bound=stages[-1])
+    return _result(src, tree, rotation, translation, stages[-1], iterations)
+
+
+def _result(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, distance: float, iterations: int):
+    """:class:`ICPResult` of a motion, with its fitness and rmse at pairing ``distance`` (``tree``: the target's)."""
+    gap, _ = tree.query(src @ rotation.T + translation, distance_upper_bound=distance)
     paired = np.isfinite(gap)
-    fitness = float(paired.mean())
     rmse = float(np.sqrt(np.mean(gap[paired] ** 2))) if paired.any() else 0.0
-    return ICPResult(rotation=rotation, translation=translation, fitness=fitness, rmse=rmse, iterations=iterations)
+    return ICPResult(rotation, translation, float(paired.mean()), rmse, iterations)
 
 
 def trimmed_fit(
@@ -406,56 +410,15 @@ def refine(
     score = lambda r, t: trimmed_fit(src, tree, r, t, seed=seed, max_points=max_points)
     normals = estimate_normals(tgt, tree=tree)
 
-    def descend(rotation, translation):
-        best = icp(src, tgt, rotation, translation, distances=finest, max_iterations=0, tree=tree)
-        best_score, iterations = score(best.rotation, best.translation), 0
-        for _ in range(rounds):
-            improved = False
-            for method, distances, trim in REFINE_CANDIDATES:
-                run = icp(
-                    src,
-                    tgt,
-                    best.rotation,
-                    best.translation,
-                    distances=tuple(scale * d for d in distances),
-                    method=method,
-                    trim=trim,
-                    seed=seed,
-                    tree=tree,
-                    max_points=max_points,
-                    normals=normals,
-                )
-                iterations += run.iterations
-                if max_shift is not None and mean_shift(src, run.rotation, run.translation, *start) > max_shift * scale:
-                    continue
-                run_score = score(run.rotation, run.translation)
-                if run_score < best_score:
-                    best, best_score, improved = run, run_score, True
-            if not improved:
-                break
-        return best, best_score, iterations
+    descend = functools.partial(
+        _descend, src, tgt, tree, normals, score, start, scale=scale, seed=seed, rounds=rounds,
+        max_points=max_points, max_shift=max_shift,
+    )  # fmt: skip
 
     best, best_score, iterations = descend(*start)
     # An exact fit (shared points at the true pose) cannot be bettered; the search would only cost time.
     if translation_search is not None and best_score > (1e-6 * scale) ** 2:
-        span, step, starts = translation_search
-        offsets = scale * _translation_offsets(span, step)
-        # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
-        grid_scores = trimmed_fit(
-            src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS, cap=step * scale
-        )
-        chosen = np.argsort(grid_scores, kind="stable")[:starts]
-        # The searched descents are independent NumPy and scipy work (which releases the GIL), so they run
-        # side by side; they are then weighed in the grid's order, which keeps the result the serial one's.
-        if workers is None:
-            workers = min(len(chosen), os.cpu_count() or 1) if len(tgt) >= PARALLEL_MIN_TARGET else 1
-        workers = max(1, int(workers))
-        descents = lambda k: descend(start[0], start[1] + offsets[k])
-        if workers > 1 and len(chosen) > 1:
-            with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-                searched = list(pool.map(descents, chosen))
-        else:
-            searched = [descents(k) for k in chosen]
+        searched = _searched_descents(descend, src, tree, start, scale, seed, translation_search, workers, len(tgt))
         for run, run_score, run_iterations in searched:
             iterations += run_iterations
             shift_ok = max_shift is None or mean_shift(src, run.rotation, run.translation, *start) <= max_shift * scale
@@ -465,6 +428,67 @@ def refine(
         return best
     final = icp(src, tgt, best.rotation, best.translation, distances=finest, max_iterations=0, tree=tree)
     return dataclasses.replace(final, iterations=iterations)
+
+
+def _descend(
+    src, tgt, tree, normals, score, start: tuple, rotation, translation, *, scale, seed, rounds, max_points, max_shift
+) -> tuple[ICPResult, float, int]:
+    """:func:`refine`'s descent from one estimate: up to ``rounds`` rounds of every :data:`REFINE_CANDIDATES` ICP
+    from the best motion so far, each kept where ``score`` (lower is better) improves and it moves the source no
+    further than ``max_shift`` times ``scale`` from ``start``. Returns (the best run, its score, iterations)."""
+    finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
+    best = icp(src, tgt, rotation, translation, distances=finest, max_iterations=0, tree=tree)
+    best_score, iterations = score(best.rotation, best.translation), 0
+    for _ in range(rounds):
+        improved = False
+        for method, distances, trim in REFINE_CANDIDATES:
+            run = icp(
+                src,
+                tgt,
+                best.rotation,
+                best.translation,
+                distances=tuple(scale * d for d in distances),
+                method=method,
+                trim=trim,
+                seed=seed,
+                tree=tree,
+                max_points=max_points,
+                normals=normals,
+            )
+            iterations += run.iterations
+            if max_shift is not None and mean_shift(src, run.rotation, run.translation, *start) > max_shift * scale:
+                continue
+            run_score = score(run.rotation, run.translation)
+            if run_score < best_score:
+                best, best_score, improved = run, run_score, True
+        if not improved:
+            break
+    return best, best_score, iterations
+
+
+def _searched_descents(
+    descend, src, tree, start: tuple, scale: float, seed: int, search: tuple, workers, n_target: int
+):
+    """:func:`refine`'s descents (``descend(rotation, translation)``'s results) from the estimate ``start``
+    moved by the ``search``'s best offsets (span, step, starts; :data:`TRANSLATION_SEARCH`), in the grid's order.
+    ``workers``: threads, as :func:`refine` takes them; ``n_target``: the target's points."""
+    span, step, starts = search
+    offsets = scale * _translation_offsets(span, step)
+    # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
+    grid_scores = trimmed_fit(
+        src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS, cap=step * scale
+    )
+    chosen = np.argsort(grid_scores, kind="stable")[:starts]
+    # The searched descents are independent NumPy and scipy work (which releases the GIL), so they run side by
+    # side; they are then weighed in the grid's order, which keeps the result the serial one's.
+    if workers is None:
+        workers = min(len(chosen), os.cpu_count() or 1) if n_target >= PARALLEL_MIN_TARGET else 1
+    workers = max(1, int(workers))
+    descents = lambda k: descend(start[0], start[1] + offsets[k])
+    if workers > 1 and len(chosen) > 1:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            return list(pool.map(descents, chosen))
+    return [descents(k) for k in chosen]
 
 
 #: :func:`refine_gicp`'s resolutions, in point spacings (:func:`point_spacing`): GICP runs on voxel-thinned

@@ -86,11 +86,21 @@ def angle_sweep(
         "pairs_per_angle": len(indices),
         "angles": rows,
     }
+    results["table"] = _write_outputs(out_dir, results, label if refine else None)
+    return results
+
+
+def _write_outputs(out_dir: str, results: dict, label: str | None) -> str:
+    """Writes the sweep's ``angle_sweep.json``, ``.md`` and ``.png`` to ``out_dir``; returns the Markdown table.
+    ``label``: the refined rows' name (None: the network alone)."""
+    rows, setting, unseen = results["angles"], results["setting"], results["unseen"]
+    refine = label is not None
+    n_pairs = results["pairs_per_angle"]
     os.makedirs(out_dir, exist_ok=True)
     with open(os.path.join(out_dir, "angle_sweep.json"), "w") as f:
         json.dump(results, f, indent=2)
     lines = [
-        f"DIT on {len(indices)} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
+        f"DIT on {n_pairs} {setting} pairs ({'unseen' if unseen else 'seen'} split of "
         f"{results['data']}) per angle, random axes"
         + (f"; {label} as `register` returns it (both directions refined, the better fitting kept)" if refine else ""),
         "",
@@ -127,5 +137,4 @@ def angle_sweep(
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "angle_sweep.png"), dpi=110)
     plt.close(fig)
-    results["table"] = table
-    return results
+    return table
