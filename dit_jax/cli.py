@@ -494,7 +494,6 @@ def main(argv: list[str] | None = None) -> int:
 
     compile_cache.from_args(args)
     from dit_jax import registration
-    from dit_jax.geometry import rotation_angle_deg
 
     if args.pairs is not None:
         try:
@@ -519,6 +518,20 @@ def main(argv: list[str] | None = None) -> int:
     except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too
         return _fail(str(err))
 
+    _print_result(result, args, len(src))
+    if result.level == "unconfirmed":
+        print(f"{PROG}: note: the result is not confirmed: {result.evidence()}", file=sys.stderr)
+    elif result.level == "probably wrong":
+        print(f"{PROG}: warning: the result is probably wrong: {result.evidence()}", file=sys.stderr)
+        return 0 if args.no_verdict_status else EXIT_SUSPECT
+    return 0
+
+
+def _print_result(result, args: argparse.Namespace, n_source: int) -> None:
+    """dit-register's report of one pair on stdout: its JSON with ``--json``, else the matrix, the motion, the
+    verdict and the timings (``n_source``: the source points read)."""
+    from dit_jax.geometry import rotation_angle_deg
+
     if args.json:
         report = result.to_json() | {"src": args.src, "tgt": args.tgt, "out": args.out, "plot": args.plot}
         print(json.dumps(report, indent=2))
@@ -530,7 +543,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{result.level}: {result.evidence()}")
         print(
             f"fitness {result.fitness:.3f}, inlier ratio {result.inlier_ratio:.3f}, "
-            f"{len(result.source_indices)} of {len(src)} source points used, {result.seconds:.2f} s"
+            f"{len(result.source_indices)} of {n_source} source points used, {result.seconds:.2f} s"
             + (f" + {result.refine_seconds:.2f} s of {result.refinement.upper()}" if result.refinement else "")
             + (f" + {result.candidate_seconds:.2f} s of feature matching" if result.candidate_seconds else "")
         )
@@ -540,12 +553,6 @@ def main(argv: list[str] | None = None) -> int:
         for written in (args.out, args.plot):
             if written is not None:
                 print(f"wrote {written}")
-    if result.level == "unconfirmed":
-        print(f"{PROG}: note: the result is not confirmed: {result.evidence()}", file=sys.stderr)
-    elif result.level == "probably wrong":
-        print(f"{PROG}: warning: the result is probably wrong: {result.evidence()}", file=sys.stderr)
-        return 0 if args.no_verdict_status else EXIT_SUSPECT
-    return 0
 
 
 SERIES_PROG = "dit-register-series"
@@ -643,7 +650,6 @@ def series_main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     from dit_jax import registration, series
-    from dit_jax.geometry import rotation_angle_deg
 
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
@@ -672,16 +678,49 @@ def series_main(argv: list[str] | None = None) -> int:
                 result = series.register_series(model, clouds, loop=args.loop, progress=link_done)
             except registration.InputError as err:
                 return fail(str(err))
-        if args.out is not None:
-            io.write(args.out, result.merged(clouds))
-        if args.plot is not None:
-            result.plot(args.plot, clouds, names=[os.path.basename(path) for path in args.scans])
-        if args.out_dir is not None:
-            os.makedirs(args.out_dir, exist_ok=True)
-            for path, pose, cloud in zip(args.scans, result.poses, clouds):
-                _write_moved(path, os.path.join(args.out_dir, os.path.basename(path)), pose[:3, :3], pose[:3, 3], cloud)
+        _write_series(result, args, clouds)
     except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too
         return fail(str(err))
+
+    names = args.scans
+    _print_series(result, args, pairs)
+    for (a, b), link in zip(pairs, result.links):
+        if link.level == "unconfirmed":
+            print(
+                f"{SERIES_PROG}: note: {names[a]} onto {names[b]} is not confirmed: {link.evidence()}", file=sys.stderr
+            )
+    problems = [
+        f"{names[a]} onto {names[b]} is probably wrong"
+        for (a, b), link in zip(pairs, result.links)
+        if link.level == "probably wrong"
+    ]
+    if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:
+        problems.append(
+            f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
+            f"a link is most likely wrong"
+        )
+    for problem in problems:
+        print(f"{SERIES_PROG}: warning: {problem}", file=sys.stderr)
+    return EXIT_SUSPECT if problems and not args.no_verdict_status else 0
+
+
+def _write_series(result, args: argparse.Namespace, clouds: list[np.ndarray]) -> None:
+    """dit-register-series's files: the merged cloud (``--out``), the picture (``--plot``) and each scan moved
+    into the first one's frame (``--out-dir``)."""
+    if args.out is not None:
+        io.write(args.out, result.merged(clouds))
+    if args.plot is not None:
+        result.plot(args.plot, clouds, names=[os.path.basename(path) for path in args.scans])
+    if args.out_dir is not None:
+        os.makedirs(args.out_dir, exist_ok=True)
+        for path, pose, cloud in zip(args.scans, result.poses, clouds):
+            _write_moved(path, os.path.join(args.out_dir, os.path.basename(path)), pose[:3, :3], pose[:3, 3], cloud)
+
+
+def _print_series(result, args: argparse.Namespace, pairs: list[tuple[int, int]]) -> None:
+    """dit-register-series's report on stdout: its JSON with ``--json``, else each scan's pose, each link's verdict
+    (``pairs``: the scans each link joins), the loop's gap and the files written."""
+    from dit_jax.geometry import rotation_angle_deg
 
     names = args.scans
     if args.json:
@@ -719,24 +758,6 @@ def series_main(argv: list[str] | None = None) -> int:
             print(f"wrote {len(args.scans)} moved scans to {args.out_dir}")
         if args.plot is not None:
             print(f"wrote {args.plot}")
-    for (a, b), link in zip(pairs, result.links):
-        if link.level == "unconfirmed":
-            print(
-                f"{SERIES_PROG}: note: {names[a]} onto {names[b]} is not confirmed: {link.evidence()}", file=sys.stderr
-            )
-    problems = [
-        f"{names[a]} onto {names[b]} is probably wrong"
-        for (a, b), link in zip(pairs, result.links)
-        if link.level == "probably wrong"
-    ]
-    if args.loop and result.loop_gap_deg > LOOP_GAP_WARNING_DEG:
-        problems.append(
-            f"the loop's gap is {result.loop_gap_deg:.1f} deg, above {LOOP_GAP_WARNING_DEG:g}: "
-            f"a link is most likely wrong"
-        )
-    for problem in problems:
-        print(f"{SERIES_PROG}: warning: {problem}", file=sys.stderr)
-    return EXIT_SUSPECT if problems and not args.no_verdict_status else 0
 
 
 if __name__ == "__main__":
