@@ -174,16 +174,7 @@ def evaluate_scans(
         "pair_set_info": {},
     }
     if registrar is not None:
-        # One untimed registration first, so that no pair's seconds include compiling the network (every scan
-        # is sampled to the same point count: one program serves them all).
-        first = next((pairs[0] for pairs in pair_sets.values() if pairs), None)
-        if first is not None:
-            registrar.register(first.source, first.target)
-        results["dit"] = {
-            "n_points": registrar.settings.n_points,
-            "n_iters": registrar.settings.model_config(registrar.config).n_iters,
-            "inference_settings": registrar.settings.to_dict(),
-        }
+        results["dit"] = _warm_up(registrar, pair_sets)
     for set_name, set_pairs in pair_sets.items():
         criterion = loaded[set_name].criterion
         results["pair_set_info"][set_name] = {
@@ -201,25 +192,7 @@ def evaluate_scans(
             if bar is not None:
                 bar.set_postfix_str(f"{set_name}: {name}")
             estimates[name] = _baseline_estimates(name, set_pairs, bar)
-        results["pair_sets"][set_name] = {}
-        for method, est in estimates.items():
-            settings = registrar.settings if registrar is not None else None
-            rows = [_pair_row(method, est, k, pair, settings) for k, pair in enumerate(set_pairs)]
-            summary = summarise_scans(rows, criterion)
-            if rows and "verdict" in rows[0]:
-                summary["verdict"] = verdict_summary(
-                    np.array([r["rot_err"] for r in rows]),
-                    np.array([r["verdict"] for r in rows]),
-                    _rule_text(method, registrar.settings),
-                )
-            results["pair_sets"][set_name][method] = {"summary": summary, "rows": rows}
-        done = results["pair_sets"][set_name]
-        if METHOD_DIT_ICP in done:
-            done[METHOD_DIT_ICP]["summary"]["refinement"] = refinement_summary(
-                np.array([r["rot_err"] for r in done[METHOD_DIT]["rows"]]),
-                np.array([r["rot_err"] for r in done[METHOD_DIT_ICP]["rows"]]),
-                np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]),
-            )
+        done = results["pair_sets"][set_name] = _score_pair_set(estimates, set_pairs, criterion, registrar)
         if worst_pairs:
             title = f"worst pair of each method: {set_name} ({os.path.basename(os.path.normpath(scans_dir))})"
             _plot_worst(done, set_pairs, os.path.join(out_dir, f"worst_{set_name}.png"), title)
@@ -230,6 +203,43 @@ def evaluate_scans(
     report.plot_scan_success(results, os.path.join(out_dir, "success_ratio.png"))
     results["table"] = table
     return results
+
+
+def _warm_up(registrar, pair_sets: dict) -> dict:
+    """Registers the first pair once, untimed, so that no pair's seconds include compiling the network (every
+    scan is sampled to the same point count: one program serves them all); returns what DIT ran with."""
+    first = next((pairs[0] for pairs in pair_sets.values() if pairs), None)
+    if first is not None:
+        registrar.register(first.source, first.target)
+    return {
+        "n_points": registrar.settings.n_points,
+        "n_iters": registrar.config.n_iters,
+        "inference_settings": registrar.settings.to_dict(),
+    }
+
+
+def _score_pair_set(estimates: dict[str, Estimates], pairs: Sequence, criterion, registrar) -> dict:
+    """Each method's rows and summary on one pair set (``{method: {"summary", "rows"}}``): errors, the
+    benchmark's ``criterion``, the verdict's precision and, for DIT+ICP, what the refinement changed."""
+    done = {}
+    for method, est in estimates.items():
+        settings = registrar.settings if registrar is not None else None
+        rows = [_pair_row(method, est, k, pair, settings) for k, pair in enumerate(pairs)]
+        summary = summarise_scans(rows, criterion)
+        if rows and "verdict" in rows[0]:
+            summary["verdict"] = verdict_summary(
+                np.array([r["rot_err"] for r in rows]),
+                np.array([r["verdict"] for r in rows]),
+                _rule_text(method, registrar.settings),
+            )
+        done[method] = {"summary": summary, "rows": rows}
+    if METHOD_DIT_ICP in done:
+        done[METHOD_DIT_ICP]["summary"]["refinement"] = refinement_summary(
+            np.array([r["rot_err"] for r in done[METHOD_DIT]["rows"]]),
+            np.array([r["rot_err"] for r in done[METHOD_DIT_ICP]["rows"]]),
+            np.array([r["beats_truth"] for r in done[METHOD_DIT_ICP]["rows"]]),
+        )
+    return done
 
 
 def _baseline_estimates(name: str, pairs: Sequence, bar) -> Estimates:
