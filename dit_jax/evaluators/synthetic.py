@@ -209,12 +209,9 @@ def evaluate(
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
     registrar = _registrar(checkpoint_dir, inference, compute_dtype)
     n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
+    shape_points = pairs_lib.shape_points(data_dir, n_points, settings)
     test_shapes = shapes_lib.load_shapes(
-        data_dir,
-        "test",
-        data_dir=prepared_dir,
-        progress=progress,
-        n_points=pairs_lib.shape_points(data_dir, n_points, settings),
+        data_dir, "test", data_dir=prepared_dir, progress=progress, n_points=shape_points
     )
     os.makedirs(out_dir, exist_ok=True)
     results = {
@@ -227,12 +224,7 @@ def evaluate(
         "settings": {},
         "setting_info": {},
     }
-    datasets = {}
-    for setting in settings:
-        ds = pairs_lib.PairDataset(
-            test_shapes, pairs_lib.PairConfig(setting=setting, unseen=unseen, variant=variant, n_points=n_points)
-        )
-        datasets[setting] = (ds, np.arange(min(len(ds), max_pairs or len(ds))))
+    datasets = {s: _test_pairs(test_shapes, s, unseen, variant, n_points, max_pairs) for s in settings}
     bar = progress_bar(
         progress, sum(len(ix) for _, ix in datasets.values()) * (len(baselines) + bool(registrar)), "evaluate"
     )
@@ -243,31 +235,14 @@ def evaluate(
         if registrar is not None and gmcce_threshold is not None:
             run = _with_settings(registrar, gmcce_threshold=_setting_threshold(setting, gmcce_threshold))
         preds = _dit_estimates(run, ds, indices, batch_size, bar, setting)
-        reused = {}
-        for name in baselines:
-            old = earlier.get(setting, {}).get(name)
-            if old is not None and old["pairs"] == len(indices) and old.get("options") == _options(name, setting):
-                reused[name] = old
-                if bar is not None:
-                    bar.update(len(indices))
-                continue
-            if bar is not None:
-                bar.set_postfix_str(f"{setting}: {name}")
-            preds[name] = predict_baseline(name, ds, indices, bar, setting)
+        reused = _run_baselines(baselines, setting, ds, indices, earlier.get(setting, {}), preds, bar)
         scored = _score_methods(preds, ds, indices, test_shapes.shape_names, registrar and registrar.settings)
         for name in baselines:
             if name in scored:
                 scored[name]["options"] = _options(name, setting)
         order = [m for m in (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE) if m in scored] + list(baselines)
         results["settings"][setting] = {name: scored.get(name) or reused[name] for name in order}
-        model_config = registrar and run.settings.model_config(run.config)
-        results["setting_info"][setting] = {
-            "pairs": int(len(indices)),
-            "split": "unseen" if unseen else "seen",
-            "variant": variant,
-            "gmcce_threshold": model_config and model_config.gmcce_threshold,
-            "n_iters": model_config and model_config.n_iters,
-        }
+        results["setting_info"][setting] = _setting_info(len(indices), unseen, variant, registrar and run.config)
         if first_dit is None and METHOD_DIT in preds:
             first_dit = (setting, ds, preds[METHOD_DIT])
         if worst_pairs and preds:
@@ -276,6 +251,43 @@ def evaluate(
         bar.close()
     _write_outputs(results, first_dit, out_dir)
     return results
+
+
+def _test_pairs(test_shapes, setting: str, unseen: bool, variant: str, n_points: int, max_pairs: int | None):
+    """(the setting's test :class:`~dit_jax.data.pairs.PairDataset`, the indices of its first ``max_pairs``)."""
+    config = pairs_lib.PairConfig(setting=setting, unseen=unseen, variant=variant, n_points=n_points)
+    ds = pairs_lib.PairDataset(test_shapes, config)
+    return ds, np.arange(min(len(ds), max_pairs or len(ds)))
+
+
+def _setting_info(pairs: int, unseen: bool, variant: str, model_config) -> dict:
+    """What a setting's rows were measured on: pairs, split, variant, and the network's GMCCE threshold and
+    iterations (``model_config``: the config it ran, None without DIT)."""
+    return {
+        "pairs": int(pairs),
+        "split": "unseen" if unseen else "seen",
+        "variant": variant,
+        "gmcce_threshold": model_config and model_config.gmcce_threshold,
+        "n_iters": model_config and model_config.n_iters,
+    }
+
+
+def _run_baselines(baselines: Sequence[str], setting: str, ds, indices: np.ndarray, earlier: dict, preds: dict, bar):
+    """Adds each baseline's :class:`Estimates` of the pairs ``indices`` of ``ds`` to ``preds``, except those
+    ``earlier`` (the setting's scores in a reused ``results.json``) holds for the same pairs and options: those
+    are returned, ``{name: scores}``, instead of being run again."""
+    reused = {}
+    for name in baselines:
+        old = earlier.get(name)
+        if old is not None and old["pairs"] == len(indices) and old.get("options") == _options(name, setting):
+            reused[name] = old
+            if bar is not None:
+                bar.update(len(indices))
+            continue
+        if bar is not None:
+            bar.set_postfix_str(f"{setting}: {name}")
+        preds[name] = predict_baseline(name, ds, indices, bar, setting)
+    return reused
 
 
 def _registrar(checkpoint_dir: str | None, inference: dict | None, compute_dtype: str):
