@@ -13,6 +13,7 @@ where an invariant fails.
 
 import argparse
 import collections
+import datetime
 import json
 import os
 import pathlib
@@ -24,6 +25,8 @@ import tempfile
 import time
 
 import numpy as np
+
+from dit_jax.training.precision import cpu_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -109,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     expected = {k: 1 for k in range(args.pairs)}
     record = {
         "benchmark": "kill_resume",
+        "date": datetime.date.today().isoformat(),
+        "cpu": cpu_model(),
         "pairs": args.pairs,
         "kills": killed["killed"],
         "runs_that_lost_bytes": killed["lost"],
