@@ -20,6 +20,7 @@ import hashlib
 import io
 import json
 import os
+import zipfile
 from typing import Any
 
 import jax
@@ -154,12 +155,13 @@ def restore(directory: str | os.PathLike) -> tuple[Any, DITConfig]:
     """
     config = read_config(directory)
     path = os.path.abspath(os.fspath(directory))
-    params = _cached_params(path)
+    copy = _params_copy_path(path)
+    params = _cached_params(copy)
     if params is None:
         # As host arrays, as the copy gives them: placed on the device the same way, both compile to one
         # program (one key in XLA's cache) whichever way the weights were read.
         params = jax.tree.map(np.asarray, _restore_params(path))
-        _keep_params(path, params)
+        _keep_params(copy, params)
     stored = _shapes(params)
     expected = param_shapes(config)
     if stored != expected:
@@ -203,15 +205,15 @@ def _params_copy_path(path: str) -> str | None:
     return os.path.join(compile_cache.directory(), "params", digest.hexdigest()[:32] + ".npz")
 
 
-def _cached_params(path: str) -> dict | None:
-    """The params tree from the cache's copy (:func:`_keep_params`), or None where there is none to read."""
-    copy = _params_copy_path(path)
+def _cached_params(copy: str | None) -> dict | None:
+    """The params tree from the cache's copy at ``copy`` (:func:`_params_copy_path`), or None where there is
+    none to read."""
     if copy is None or not os.path.isfile(copy):
         return None
     try:
         with np.load(copy, allow_pickle=False) as arrays:
             flat = {name: arrays[name] for name in arrays.files}
-    except (OSError, ValueError, KeyError):  # damaged: restore through orbax, and write it afresh
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # damaged: orbax, and a fresh copy
         return None
     tree: dict = {}
     for name, value in flat.items():
@@ -223,10 +225,9 @@ def _cached_params(path: str) -> dict | None:
     return tree
 
 
-def _keep_params(path: str, params: Any) -> None:
-    """Writes the cache's plain copy of ``params`` (nested dicts of arrays, as orbax restores them); a tree
-    of any other kind, or a failed write, leaves no copy."""
-    copy = _params_copy_path(path)
+def _keep_params(copy: str | None, params: Any) -> None:
+    """Writes the cache's plain copy of ``params`` (nested dicts of arrays, as orbax restores them) to ``copy``
+    (None: none); a tree of any other kind, or a failed write, leaves no copy."""
     if copy is None:
         return
     flat = {}
