@@ -103,13 +103,14 @@ def load(
     ``compile_cache``: where compiled programs (and a plain copy of the weights) are kept between processes,
     so that the next process's first registration loads them instead of compiling (:mod:`dit_jax.compile_cache`):
     True, the default directory (``$DIT_JAX_COMPILE_CACHE``, else ``~/.cache/dit-jax/xla``; the variable set
-    to ``off`` turns it off); a directory; or False, off. Where the process has already chosen (a
-    command-line tool's flags, an earlier ``load``), its choice stands."""
+    to ``off`` turns it off); a directory; or False, off. The process's first choice stands (a command-line
+    tool's flags, or the first ``load``)."""
     from dit_jax import checkpoint as ckpt_lib
     from dit_jax import compile_cache as cache_lib
 
-    if compile_cache is not False and not cache_lib.chosen():
-        cache_lib.enable(cache_lib.default_dir() if compile_cache is True else os.fspath(compile_cache))
+    if not cache_lib.chosen():
+        chosen = {True: cache_lib.default_dir(), False: None}.get(compile_cache, compile_cache)
+        cache_lib.enable(None if chosen is None else os.fspath(chosen))
 
     path = os.fspath(checkpoint) if checkpoint is not None else shipped_weights()
     if checkpoint is None and not os.path.isdir(path):

@@ -172,11 +172,10 @@ def test_load_turns_the_cache_on_unless_told_not_to_or_one_is_on(monkeypatch, tm
     turned_on = []
     monkeypatch.setattr(compile_cache, "enable", lambda directory: turned_on.append(directory))
     monkeypatch.setenv(compile_cache.ENV_VAR, str(tmp_path / "env"))
-    monkeypatch.setitem(compile_cache._enabled, "chosen", False)
-    registration.load(compile_cache=False)
-    registration.load(compile_cache=tmp_path / "mine")
-    registration.load()
-    assert turned_on == [str(tmp_path / "mine"), str(tmp_path / "env")]
-    monkeypatch.setitem(compile_cache._enabled, "chosen", True)  # a tool's --no-compile-cache, say
+    for argument in (False, tmp_path / "mine", True):  # each the process's first choice
+        monkeypatch.setitem(compile_cache._enabled, "chosen", False)
+        registration.load(compile_cache=argument)
+    assert turned_on == [None, str(tmp_path / "mine"), str(tmp_path / "env")]
+    monkeypatch.setitem(compile_cache._enabled, "chosen", True)  # a tool's --no-compile-cache, or a first load
     registration.load(compile_cache=tmp_path / "other")
-    assert len(turned_on) == 2
+    assert len(turned_on) == 3
