@@ -59,7 +59,7 @@ from dit_jax.io.common import (
 )
 from dit_jax.io.las import _moved_las, _read_las
 from dit_jax.io.mesh import (
-    _STL_RECORD,
+    _moved_binary_stl,
     _moved_text_mesh,
     _read_mesh_as_points,
     _stl_is_ascii,
@@ -265,12 +265,7 @@ def move_file(
         elif ext in (".las", ".laz"):
             content = _moved_las(source, rotation, translation)
         elif ext == ".stl" and not _stl_is_ascii(source):
-            read_mesh(source)
-            with open(source, "rb") as f:
-                head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
-            records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
-            records["normal"] = records["normal"].astype(np.float64) @ rotation.T
-            content = head + records.tobytes()
+            content = _moved_binary_stl(source, rotation, translation)
         else:
             read_mesh(source)
             content = _moved_text_mesh(source, ext, rotation, translation)

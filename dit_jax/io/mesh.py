@@ -290,3 +290,14 @@ def _mesh_coordinate_lines(path: str, ext: str, lines: list[str]) -> list[int]:
         line_starts = np.cumsum([0] + [len(line) for line in lines])
         return (np.searchsorted(line_starts, starts, side="right") - 1).tolist()
     return _off_layout(path, lines)[0]
+
+
+def _moved_binary_stl(path: str, rotation: np.ndarray, translation: np.ndarray) -> bytes:
+    """The bytes of binary STL file ``path`` with its facets' corners moved and their normals turned; its header
+    and attribute words kept."""
+    read_mesh(path)  # refuses a malformed file first
+    with open(path, "rb") as f:
+        head, records = f.read(84), np.frombuffer(f.read(), _STL_RECORD).copy()
+    records["corners"] = records["corners"].astype(np.float64) @ rotation.T + translation
+    records["normal"] = records["normal"].astype(np.float64) @ rotation.T
+    return head + records.tobytes()
