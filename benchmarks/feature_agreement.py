@@ -31,8 +31,8 @@ import numpy as np
 #: (degrees, point spacings, rival share, twin's share) bounds measured; inf is no bound.
 BOUNDS = (
     *((d, s, np.inf, np.inf) for d, s in ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))),
-    *((1.0, 2.0, r, np.inf) for r in (1.0, 0.6, 0.4, 0.3)),
-    *((1.0, 2.0, 0.4, t) for t in (1.0, 0.9, 0.8, 0.7)),
+    *((1.0, 2.0, r, np.inf) for r in (1.0, 0.6, 0.5, 0.4, 0.3)),
+    *((1.0, 2.0, r, t) for r in (0.5, 0.4) for t in (1.0, 0.9, 0.8, 0.7)),
 )
 #: The (rival, twin) bounds the calibration with a scene left out chooses from, and the share of trusted results
 #: that must be right on the scenes it calibrates on.

@@ -43,12 +43,6 @@ def registered(row: dict, criterion) -> bool:
     return bool(row["rot_err"] <= degrees and row["trans_err"] <= distance)
 
 
-def _settled_first(result) -> bool:
-    """Whether the pair's first candidate was trusted: the features alone, or the network where the features
-    did not run (not the network confirming the features after them)."""
-    return bool(result.verdict and np.isnan(result.candidate_agreement))
-
-
 def _finite(value: float) -> float | None:
     """A float for JSON: None for NaN or inf."""
     return float(value) if np.isfinite(value) else None
@@ -149,10 +143,9 @@ def main() -> None:
                     result = model.register(pair.source, pair.target)
                     seconds = time.perf_counter() - started
                     line = {"data": data, "set": set_name, "pair": pair.name, "level": result.level}
-                    line |= {"candidate": result.candidate, "confirmed": _settled_first(result)}
+                    line |= {"candidate": result.candidate, "confirmed": bool(result.verdict)}
                     line |= {"rival": _finite(result.rival), "twin": _finite(result.twin)}
                     line |= {"agreement": _finite(result.agreement), "offset": _finite(result.offset)}
-                    line["candidate_agreement"] = _finite(result.candidate_agreement)
                     line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
                     if not args.no_baseline:
                         line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))

@@ -37,7 +37,7 @@ from dit_jax import geometry
 
 #: The padded match counts: a pair's matches go into the smallest bucket that holds them (more are cut to the
 #: largest by the caller), so at most this many programs are compiled per option set.
-BUCKETS = (512, 1024, 2048, 4096)
+BUCKETS = (512, 1024, 2048)
 #: Seeds per pair, and matches in each seed's consistent set.
 N_SEEDS = 100
 SET_SIZE = 40

@@ -30,6 +30,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -232,8 +233,10 @@ class _Cloud:
         return cKDTree(np.asarray(self.thinned.points))
 
 
-#: Matches per direction are capped at the estimator's largest bucket; past it, the closest in feature space are
-#: kept.
+#: Matches per direction are capped at the estimator's largest bucket; past it, those whose nearest feature is
+#: the most distinctive (:func:`_matches`) are kept. On the shared rooms, the 2,048 most distinctive register
+#: as many pairs as the 4,096 closest did, and the estimator's second-order product, cubic in the count, takes
+#: a fraction of the time (docs/benchmarks.md).
 MAX_MATCHES = compatibility.BUCKETS[-1]
 #: Two matches are compatible where their lengths in the two clouds differ by less than this many voxels, and
 #: a motion brings a match within this many voxels (twice the 5 cm voxel on 3DMatch's fragments, as SC2-PCR
@@ -241,42 +244,63 @@ MAX_MATCHES = compatibility.BUCKETS[-1]
 MATCH_VOXELS = 2.0
 
 
-def _nearest(queries: np.ndarray, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each row of ``queries`` (Q, D), the index of the nearest row of ``pool`` (P, D) and the squared
-    Euclidean distance to it: (Q,) int, (Q,) float32. Distances come from products in blocks, in place on
-    contiguous float32 arrays: in FPFH's 33 dimensions a k-d tree gains nothing."""
+class Nearest(NamedTuple):
+    """Each query's two nearest neighbours in a pool: ``index`` (Q,) int64 of the nearest, and the Euclidean
+    distances to the ``nearest`` and the ``second`` (Q,) float32."""
+
+    index: np.ndarray
+    nearest: np.ndarray
+    second: np.ndarray
+
+    @property
+    def ratio(self) -> np.ndarray:
+        """(Q,) nearest over second-nearest distance (Lowe's ratio): low where the match is distinctive; 1 where
+        the two tie (and where both are 0)."""
+        return np.where(self.second > 0, self.nearest / np.maximum(self.second, 1e-30), 1.0)
+
+
+def _two_nearest(queries: np.ndarray, pool: np.ndarray, block: int = 512) -> Nearest:
+    """The two nearest rows of ``pool`` (P >= 2, D) for each row of ``queries`` (Q, D), from the squared
+    distances in blocks of rows: products on contiguous float32 arrays, in place, each block's reductions along
+    its rows (in FPFH's 33 dimensions a k-d tree gains nothing)."""
     queries = np.ascontiguousarray(queries, np.float32)
     pool = np.ascontiguousarray(pool, np.float32)
-    squared = np.einsum("pd,pd->p", pool, pool)
-    nearest, gaps = np.empty(len(queries), np.int64), np.empty(len(queries), np.float32)
-    for start in range(0, len(queries), 2048):
-        rows = slice(start, start + 2048)
-        scores = queries[rows] @ pool.T
-        scores *= -2.0
-        scores += squared[None, :]
-        nearest[rows] = np.argmin(scores, axis=1)
-        gaps[rows] = np.take_along_axis(scores, nearest[rows, None], axis=1)[:, 0]
-        gaps[rows] += np.einsum("qd,qd->q", queries[rows], queries[rows])
-    return nearest, gaps
+    pool_squares = np.einsum("pd,pd->p", pool, pool)
+    index = np.empty(len(queries), np.int64)
+    first, second = np.empty(len(queries), np.float32), np.empty(len(queries), np.float32)
+    for start in range(0, len(queries), block):
+        rows = slice(start, start + block)
+        squares = queries[rows] @ pool.T
+        squares *= -2.0
+        squares += pool_squares[None, :]  # each row lacks its query's own square, which ranks nothing
+        local = np.arange(len(squares))
+        index[rows] = np.argmin(squares, axis=1)
+        first[rows] = squares[local, index[rows]]
+        squares[local, index[rows]] = np.inf
+        second[rows] = np.min(squares, axis=1)
+    query_squares = np.einsum("qd,qd->q", queries, queries)
+    return Nearest(
+        index, np.sqrt(np.maximum(first + query_squares, 0.0)), np.sqrt(np.maximum(second + query_squares, 0.0))
+    )
 
 
 def _matches(src: _Cloud, tgt: _Cloud) -> tuple[np.ndarray, np.ndarray]:
     """Feature matches of each direction: (K, 2) index pairs (source, target), each thinned source point with
     its nearest target point in feature space, and (K', 2) pairs (target, source) the other way; each capped
-    at :data:`MAX_MATCHES`, the closest in feature space kept.
+    at :data:`MAX_MATCHES`, the most distinctive kept (the lowest :attr:`Nearest.ratio`), in row order.
 
     No mutual filter: at low overlap it discards most of the right matches, and the compatibility estimator
     needs no help telling them from the wrong ones. The two directions' sets differ, so each is some
     evidence for the other."""
     src_features = np.asarray(src.features.data, np.float32).T
     tgt_features = np.asarray(tgt.features.data, np.float32).T
-    (there, there_gap), (back, back_gap) = _nearest(src_features, tgt_features), _nearest(tgt_features, src_features)
+    there, back = _two_nearest(src_features, tgt_features), _two_nearest(tgt_features, src_features)
 
-    def capped(nearest, gaps):
-        rows = np.sort(np.argsort(gaps, kind="stable")[:MAX_MATCHES])
-        return np.ascontiguousarray(np.stack([rows, nearest[rows]], axis=1), np.int32)
+    def capped(found: Nearest):
+        rows = np.sort(np.argsort(found.ratio, kind="stable")[:MAX_MATCHES])
+        return np.ascontiguousarray(np.stack([rows, found.index[rows]], axis=1), np.int32)
 
-    return capped(there, there_gap), capped(back, back_gap)
+    return capped(there), capped(back)
 
 
 def _brought_within(

@@ -5,8 +5,10 @@ A batch of pairs goes through four stages, each a function of its own, after an 
 0. :func:`dit_jax.feature_match.register_both_ways` (where :attr:`InferenceSettings.feature_candidate` says
    so; dense scans by default): local features register the source onto the target and the target onto the
    source; where the two agree, with no rival motion among the estimator's hypotheses and no turned twin that
-   fits as well (:meth:`dit_jax.feature_match.FeatureEstimate.agrees`), the result is theirs
-   (:func:`features_result`) and the network does not run;
+   fits as well (:meth:`dit_jax.feature_match.FeatureEstimate.agrees`), the result is theirs, trusted; where
+   they do not, it is their better fitting motion, "probably wrong" (:func:`features_result`). Either way
+   the network does not run: on the shared room scans it registered no pair the features missed, and its
+   confirmations of their motions were right less often than the features' own agreement (docs/verdict.md);
 
 1. :func:`sample_and_normalise`: checks both clouds (:func:`check_cloud`), resamples each to the settings'
    point count by farthest-point sampling (:func:`farthest_point_sample`) and moves both into the unit
@@ -19,11 +21,6 @@ A batch of pairs goes through four stages, each a function of its own, after an 
    scans, :func:`refinement_for`), both directions side by side, keeping the better fitting direction where
    :attr:`InferenceSettings.best_direction` says so;
 4. :func:`judge`: the verdict, from the agreement of the two directions or from the fitness.
-
-Where the features did not settle the pair, the network runs one way only and stage 3 refines its motion
-(:func:`confirm_by_network`); :func:`combine` trusts the result where that motion lands on one of
-the features' two (two independent estimates agree) and no turned twin of it fits as well, and otherwise keeps
-the features' better fitting motion, "probably wrong".
 
 :meth:`dit_jax.registration.Registrar.register` is this pipeline on a batch of one; evaluate.py, the
 calibration of the verdict (`tools/calibrate.py`) and the benchmarks call it on many pairs.
@@ -82,12 +79,6 @@ MIN_BAND_PAIRS = 10
 #: A result found without the network counts a source point as landing on the target within this many
 #: point spacings of a target point (its ``confidence`` and ``inlier_ratio``).
 CANDIDATE_OVERLAP = 2.0
-#: The network's reach, in degrees: it trained on turns up to 45 and confirmed real pairs up to about 60 (on
-#: the shared 3DMatch scenes, one of 26 beyond, docs/verdict.md). Where neither of the features' motions
-#: turns by less, the network does not run (it cannot land on either); where it runs,
-#: :func:`confirm_by_network` refines its motion only where that lies within this many degrees of one of the
-#: features' two (further off, refinement rarely brings them together), and the refinement's time is saved.
-CONFIRM_REACH = 60.0
 
 
 # ------------------------------------------------------------------------------------------ stage 2: network
@@ -362,34 +353,27 @@ def register_pairs(
     for src, tgt in pairs:  # a loop, not a comprehension: the size warning names the caller's line
         clouds.append(check_pair(src, tgt, need))
     features = [features_first(src, tgt, settings) for src, tgt in clouds]
-    settled = [f is not None and _features_agree(f, settings) for f in features]
-    # Where the features did not settle the pair and both their motions turn further than the network was
-    # trained to, the network cannot confirm either: it does not run.
-    alone = [done or (f is not None and not _network_can_confirm(f)) for f, done in zip(features, settled)]
-    prepared = [None if skip else sample_and_normalise(*pair, settings) for pair, skip in zip(clouds, alone)]
+    # Pairs the features registered (settled or not) do not go through the network.
+    prepared = [sample_and_normalise(*pair, settings) if f is None else None for pair, f in zip(clouds, features)]
     both_ways = settings.verdict_rule == "agreement"
-    # Where the features ran but did not settle the pair, the network runs one way only: its motion is a third
-    # estimate to set beside the features' two (confirm_by_network), which are the evidence.
     groups: dict[tuple, list[int]] = {}
     for i, p in enumerate(prepared):
-        if not alone[i]:
-            both = both_ways and features[i] is None
-            groups.setdefault((len(p.src_n), len(p.tgt_n), both), []).append(i)
+        if p is not None:
+            groups.setdefault((len(p.src_n), len(p.tgt_n)), []).append(i)
     estimates: list[PairEstimate | None] = [None] * len(prepared)
-    for (_, _, both), rows in groups.items():
+    for rows in groups.values():
         src_n = np.stack([prepared[i].src_n for i in rows])
         tgt_n = np.stack([prepared[i].tgt_n for i in rows])
         options = dict(rotation_search=settings.rotation_search, seed=settings.seed, batch_size=batch_size)
         forward = network(params, config, src_n, tgt_n, **options)
-        backward = network(params, config, tgt_n, src_n, **options) if both else None
+        backward = network(params, config, tgt_n, src_n, **options) if both_ways else None
         for k, i in enumerate(rows):
             estimates[i] = _pair_estimate(prepared[i], forward, backward, k)
     results = []
-    for (src, tgt), p, e, found, done, skip in zip(clouds, prepared, estimates, features, settled, alone):
-        if skip:
-            results.append(features_result(src, tgt, found, settings, config, trusted=done))
-        elif found is not None:
-            results.append(combine(p, confirm_by_network(p, e, found, settings, config), found, settings, config))
+    for (src, tgt), p, e, found in zip(clouds, prepared, estimates, features):
+        if found is not None:
+            trusted = _features_agree(found, settings)
+            results.append(features_result(src, tgt, found, settings, config, trusted=trusted))
         else:
             results.append(_finish(p, e, settings, config))
         if on_pair is not None:
@@ -523,14 +507,6 @@ def features_first(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings
     return feature_match.register_both_ways(src, tgt, seed=settings.seed, viewpoint=viewpoint)
 
 
-def _network_can_confirm(found) -> bool:
-    """Whether one of the features' two motions turns by at most :data:`CONFIRM_REACH` degrees, where the
-    network, trained on such turns, can land on it."""
-    return (
-        min(geometry.rotation_angle_deg(rotation) for rotation, _ in (found.forward, found.backward)) <= CONFIRM_REACH
-    )
-
-
 def _features_agree(found, settings: InferenceSettings) -> bool:
     return found.agrees(
         settings.max_disagreement_features,
@@ -570,11 +546,11 @@ def _landing(
 
 
 def features_result(
-    src: np.ndarray, tgt: np.ndarray, found, settings: InferenceSettings, config: DITConfig, *, trusted: bool = True
+    src: np.ndarray, tgt: np.ndarray, found, settings: InferenceSettings, config: DITConfig, *, trusted: bool
 ) -> Result:
-    """The result of a pair of clouds src (N, 3), tgt (M, 3) that the network did not register: the features'
-    direction that lays more of the source onto the target, ``trusted`` where the features settled the pair
-    (stage 0), else "probably wrong" (the network could not confirm it, :func:`_network_can_confirm`)."""
+    """The result of a pair of clouds src (N, 3), tgt (M, 3) registered by local features (stage 0): the
+    direction that lays more of the source onto the target, ``trusted`` where the two directions settled the
+    pair (:func:`_features_agree`), else "probably wrong"."""
     rotation, translation = found.kept
     return _result(
         rotation,
@@ -599,121 +575,6 @@ def features_result(
         max_twin=settings.max_twin_features,
         min_right=settings.unconfirmed_min_right,
         **_landing(src, tgt, rotation, translation, found.spacing, settings, config),
-    )
-
-
-def confirm_by_network(p: Normalised, e: PairEstimate, found, settings: InferenceSettings, config: DITConfig) -> Result:
-    """Stage 3 for a pair the features did not settle: the network's estimate ``e`` (one direction) refined
-    as the settings refine (:func:`refine_pair`, one direction) and then by the features' own ICP
-    (:meth:`dit_jax.feature_match.FeatureEstimate.polish`), where it lies within :data:`CONFIRM_REACH`
-    degrees of one of the features' two motions; else the network's estimate as it is (``refinement``
-    None). Unjudged: :func:`combine` gives the verdict."""
-    common = _network_fields(p, e, settings)
-    unjudged = dict(
-        verdict=False,
-        threshold=float("nan"),
-        agreement=float("nan"),
-        direction="forward",
-        start_turn=e.forward.start_turn,
-        agreement_band=None,
-    )
-    raw = _result(
-        e.forward.rotation,
-        e.forward.translation,
-        fitness=float(e.extras["fitness"]),
-        refinement=None,
-        refine_seconds=0.0,
-        **unjudged,
-        **common,
-    )
-    raw = dataclasses.replace(raw, stages=(raw.as_stage("network"),))
-    reach = min(geometry.rotation_angle_deg(e.forward.rotation.T @ r) for r, _ in (found.forward, found.backward))
-    if reach > CONFIRM_REACH:
-        return raw
-    method = settings.refinement_for(len(p.src), len(p.tgt))
-    refined = refine_pair(
-        p,
-        (e.forward.rotation, e.forward.translation),
-        None,
-        best_direction=False,
-        seed=settings.seed,
-        method=method,
-        spacing=found.spacing,
-    )
-    # Polished by the features' own ICP, so that the network's motion and theirs are optima of one criterion.
-    started = time.perf_counter()
-    rotation, translation = found.polish((refined.rotation, refined.translation))
-    polished = _result(
-        rotation,
-        translation,
-        fitness=_fitness(p, rotation, translation, config),
-        refinement=method,
-        refine_seconds=refined.seconds + time.perf_counter() - started,
-        **unjudged,
-        **common,
-    )
-    return dataclasses.replace(polished, stages=(*raw.stages, polished.as_stage("refined")))
-
-
-def combine(p: Normalised, result: Result, found, settings: InferenceSettings, config: DITConfig) -> Result:
-    """The result of a pair the features did not settle, once the network has run (``result``, from
-    :func:`confirm_by_network`).
-
-    The network and the features are independent estimates (one learned on sampled points, one from local
-    geometry). Where the network's motion lies within ``max_disagreement_features`` degrees and
-    ``max_offset_features`` point spacings of either feature direction, and no turned twin of that direction
-    fits past ``max_twin_features`` (:func:`dit_jax.feature_match.twin_fit`), the result is trusted, and it
-    is the network's motion. Otherwise it is "probably wrong", and the motion is the features' better fitting
-    direction (:attr:`dit_jax.feature_match.FeatureEstimate.kept`): on the shared rooms, the network's
-    unconfirmed motions were mostly wrong where they laid more of the source onto the target.
-    """
-    candidates = [(result.rotation, result.translation), found.forward, found.backward]
-    gaps = [
-        (
-            geometry.rotation_angle_deg(result.rotation.T @ r),
-            float(np.linalg.norm(result.translation - t)) / found.spacing,
-        )
-        for r, t in candidates[1:]
-    ]
-    nearest = min(gaps)
-    twin = found.twin[gaps.index(nearest)]  # landing on that direction, the network's motion shares its twins
-    trusted = (
-        nearest[0] <= settings.max_disagreement_features
-        and nearest[1] <= settings.max_offset_features
-        and twin <= settings.max_twin_features
-    )
-    features_best = 2 if found.kept_direction == "backward" else 1
-    best = 0 if trusted else features_best
-    kept = {}
-    if best > 0:
-        rotation, translation = candidates[best]
-        matrix = np.eye(4)
-        matrix[:3, :3], matrix[:3, 3] = rotation, translation
-        kept = dict(
-            candidate="features",
-            refinement="icp",
-            rotation=rotation,
-            translation=translation,
-            matrix=matrix,
-            direction="forward" if best == 1 else "backward",
-            start_turn=0.0,
-            **_landing(p.src, p.tgt, rotation, translation, found.spacing, settings, config),
-        )
-    return dataclasses.replace(
-        result,
-        **kept,
-        verdict=trusted,
-        level="trusted" if trusted else "probably wrong",
-        threshold=settings.max_disagreement_features,
-        candidate_agreement=nearest[0],
-        offset=nearest[1],
-        max_offset=settings.max_offset_features,
-        features_disagreement=found.disagreement,
-        candidate_seconds=found.seconds,
-        rival=max(found.rival),
-        max_rival=settings.max_rival_features,
-        twin=twin,
-        max_twin=settings.max_twin_features,
     )
 
 

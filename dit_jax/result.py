@@ -26,8 +26,7 @@ class Stage:
       agreement: degrees between the two directions where they were compared; NaN otherwise.
       direction: "forward" or "backward" (which direction's motion this is).
       refinement: "icp" or "gicp" for "refined", else None.
-      verdict: whether this step's own evidence confirmed it (False where it was left for
-        :func:`dit_jax.pipeline.combine` to judge).
+      verdict: whether this step's own evidence confirmed it.
     """
 
     name: str
@@ -65,10 +64,7 @@ class Result:
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        registration by local features (:mod:`dit_jax.feature_match`): because they settled the pair (the
-        network did not run), or because the network did not confirm them (:func:`dit_jax.pipeline.combine`).
-      candidate_agreement: where the network ran after the features did not settle the pair, degrees
-        between the network's refined rotation and the nearer feature direction's; NaN otherwise.
+        registration by local features (:mod:`dit_jax.feature_match`; the network did not run).
       candidate_seconds: wall time of the registration by local features, both directions and their ICP (0
         where it did not run).
       verdict: True ("trusted") where the model's own evidence confirms the result, else False.
@@ -79,12 +75,9 @@ class Result:
       agreement: degrees between the rotation and the inverse of the one found registering the target onto
         the source (refined alike; by local features where ``candidate`` is "features" and ``first`` is
         None); NaN under the fitness verdict.
-      offset: where the verdict compared two independent motions found for the pair (the features' two
-        directions, or the network's and the nearer feature direction's), the distance between their
+      offset: where the verdict compared the features' two directions, the distance between their
         translations in point spacings; NaN otherwise.
       max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
-      features_disagreement: where the network ran after the features did not settle the pair, the degrees
-        between those two; NaN otherwise.
       rival, max_rival: where local features ran, the strongest rival motion among their hypotheses, as a
         share of the winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
         features do not settle the pair alone; NaN otherwise.
@@ -99,9 +92,8 @@ class Result:
         falls in, how many validation results fell in it and how many of those were within 5 degrees of the
         truth; None where the settings record no bands, no agreement was measured or the band is small.
       stages: the network's motion at each step it ran, in order: "network" and, where it was refined,
-        "refined" (:class:`Stage`; :meth:`stage` finds one by name). Empty where the features settled the pair
-        and the network did not run. Where it ran after the features, these are its motions before
-        :func:`dit_jax.pipeline.combine` judged them.
+        "refined" (:class:`Stage`; :meth:`stage` finds one by name). Empty where the features registered the
+        pair and the network did not run.
     """
 
     rotation: np.ndarray
@@ -125,11 +117,9 @@ class Result:
     agreement_band: tuple | None
     stages: tuple[Stage, ...] = ()
     candidate: str = "network"
-    candidate_agreement: float = float("nan")
     candidate_seconds: float = 0.0
     offset: float = float("nan")
     max_offset: float = float("nan")
-    features_disagreement: float = float("nan")
     rival: float = float("nan")
     max_rival: float = float("nan")
     twin: float = float("nan")
@@ -183,8 +173,6 @@ class Result:
             "direction": self.direction,
             "start_turn_deg": self.start_turn,
             "candidate": self.candidate,
-            "candidate_agreement_deg": _number(self.candidate_agreement),
-            "features_disagreement_deg": _number(self.features_disagreement),
             "rival_share": _number(self.rival),
             "twin_fit": _number(self.twin),
             "candidate_seconds": self.candidate_seconds,
@@ -195,18 +183,6 @@ class Result:
 
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
-        if not np.isnan(self.candidate_agreement):  # the network ran after the features
-            line = (
-                f"registering by local features both ways gave two motions {self.features_disagreement:.2f} deg "
-                f"apart; the network's motion lands {self.candidate_agreement:.2f} deg "
-                f"and {self.offset:.1f} point spacings from the nearer (trusted up to {self.threshold:g} deg and "
-                f"{self.max_offset:g} spacings)"
-            )
-            if self.twin > self.max_twin:
-                line += self._twin_clause()
-            if self.candidate == "features":
-                line += "; unconfirmed, the features' better fitting motion is the result"
-            return line
         if self.candidate == "features":
             line = (
                 f"registering by local features both ways gives motions {self.agreement:.2f} deg and "
@@ -220,8 +196,6 @@ class Result:
                 )
             if self.twin > self.max_twin:
                 line += self._twin_clause()
-            if not self.verdict:
-                line += "; both motions turn further than the network learned, so it cannot confirm them"
             return line
         if self.verdict_rule == "agreement":
             line = (

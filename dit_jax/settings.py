@@ -64,11 +64,10 @@ class InferenceSettings(Record):
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
       feature_candidate: with a refinement, register the pair by local features first, both ways
-        (:func:`dit_jax.feature_match.register_both_ways`): where the two directions agree (within
-        ``max_disagreement_features`` degrees and ``max_offset_features`` point spacings, neither with a rival
-        past ``max_rival_features``) the result is theirs and the network does not run; otherwise the network
-        runs one way, the features' ICP refines its motion, and the result is trusted where that lands on one
-        of the features' two (:func:`dit_jax.pipeline.combine`). "on", "off", or "auto": where both clouds have
+        (:func:`dit_jax.feature_match.register_both_ways`), and the network does not run: the result is their
+        better fitting direction, trusted where the two directions agree (within ``max_disagreement_features``
+        degrees and ``max_offset_features`` point spacings, neither with a rival past ``max_rival_features``
+        nor a turned twin past ``max_twin_features``), else "probably wrong". "on", "off", or "auto": where both clouds have
         at least :data:`SCAN_POINTS` points (scans; on sparse shapes it measured worse than the refined network
         alone, docs/refinement.md).
       viewpoint: "origin": before local features, each cloud's normals are turned to face its origin, where a
@@ -127,7 +126,7 @@ class InferenceSettings(Record):
     unconfirmed_min_right: float = 0.5
     max_disagreement_features: float = 1.0
     max_offset_features: float = 2.0
-    max_rival_features: float = 0.4
+    max_rival_features: float = 0.5
     max_twin_features: float = 0.8
 
     def __post_init__(self):

@@ -86,19 +86,28 @@ def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_spher
     assert spun is not None and np.isfinite(spun.disagreement) and np.isfinite(spun.offset)
 
 
-def test_the_estimate_repeats_exactly_and_each_feature_finds_its_nearest():
-    """No random draws: the same pair gives the same motion on every run. The blocked products find every
-    feature's nearest, as a search would, with its squared distance."""
+def test_the_estimate_repeats_exactly_and_each_feature_finds_its_two_nearest_both_ways():
+    """No random draws: the same pair gives the same motion on every run. The blocked products find, both
+    ways, every feature's nearest and second nearest with their distances, as a brute-force search does, across
+    blocks of rows too."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     tgt = other @ euler_zyx_to_matrix([150.0, -30.0, 20.0]).T
     runs = [feature_match.register(src, tgt) for _ in range(2)]
     np.testing.assert_array_equal(runs[0].rotation, runs[1].rotation)
     assert runs[0].inliers == runs[1].inliers > 0
     rng = np.random.default_rng(0)
-    features = rng.normal(size=(50, 33)).astype(np.float32)
-    nearest, gaps = feature_match._nearest(features[::-1] + 0.01, features)
-    np.testing.assert_array_equal(nearest, np.arange(50)[::-1])
-    np.testing.assert_allclose(gaps, np.full(50, 33 * 0.01**2), rtol=1e-2, atol=1e-4)
+    queries, pool = rng.normal(size=(70, 33)).astype(np.float32), rng.normal(size=(45, 33)).astype(np.float32)
+    distances = np.linalg.norm(queries[:, None].astype(np.float64) - pool[None], axis=2)
+    for found, table in (
+        (feature_match._two_nearest(queries, pool, block=16), distances),
+        (feature_match._two_nearest(pool, queries, block=16), distances.T),
+    ):
+        ranked = np.sort(table, axis=1)
+        np.testing.assert_array_equal(found.index, np.argmin(table, axis=1))
+        np.testing.assert_allclose(found.nearest, ranked[:, 0], rtol=1e-4)
+        np.testing.assert_allclose(found.second, ranked[:, 1], rtol=1e-4)
+        np.testing.assert_allclose(found.ratio, ranked[:, 0] / ranked[:, 1], rtol=1e-4)
+        assert np.all(found.ratio <= 1)
 
 
 def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():

@@ -18,8 +18,8 @@ if TYPE_CHECKING:
 METHOD_DIT = "DIT"
 #: The network refined by the settings' refinement (ICP on sparse clouds, GICP on scans: ``refine="auto"``).
 METHOD_DIT_ICP = "DIT+ICP"
-#: The default pipeline: on scans, registration by local features first and the network where it is not
-#: confirmed (:func:`dit_jax.pipeline.features_first`, :func:`dit_jax.pipeline.combine`); elsewhere DIT+ICP.
+#: The default pipeline: on scans, registration by local features (:func:`dit_jax.pipeline.features_first`);
+#: elsewhere DIT+ICP.
 METHOD_PIPELINE = "pipeline"
 #: The rows that come from the registration pipeline (the rest are baselines).
 PIPELINE_METHODS = (METHOD_DIT, METHOD_DIT_ICP, METHOD_PIPELINE)
