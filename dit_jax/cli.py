@@ -24,9 +24,9 @@ the source lands on the target, one registration instead of two). A result not t
 where validation results that agreed as closely were mostly right (exit status 0, a one-line note on
 stderr), else "probably wrong" (a one-line warning, exit status 3; ``--no-verdict-status`` keeps 0). Either
 way it is printed and written. How often each level was right: docs/verdict.md. Scans (2,000 points or more
-each) are registered by local features first, both ways (``--features off`` skips it): where the two agree
-and no rival motion explains the features' matches as well, that is the result, trusted; otherwise the
-network runs too, and the result is trusted only where it lands on one of them.
+each) are registered by local features instead, both ways (``--features off`` runs the network): where
+the two agree and no rival motion explains the features' matches as well, the result is trusted; otherwise
+it is probably wrong.
 
 The network handles rotations within its training range; --refine none is faster and less accurate, and
 --any-rotation starts the network from 24 turns of SRC for clouds turned further, at several times the time

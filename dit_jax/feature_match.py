@@ -3,9 +3,9 @@
 Both clouds are thinned on a voxel grid; each kept point gets a normal, turned to face the cloud's viewpoint
 (its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
 Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours. Each source point is matched
-to its nearest target point in feature space (:func:`_matches`), and the compatibility-graph estimator
-(:mod:`dit_jax.compatibility`: second-order spatial compatibility, seeds, a consistent set and a weighted
-Procrustes per seed) turns the matches into ranked motions; the one that lays the most thinned source points
+to its nearest target point in feature space, the most distinctive matches kept (:func:`_matches`), and the
+compatibility-graph estimator (:mod:`dit_jax.compatibility`: second-order spatial compatibility, seeds, a
+consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays the most thinned source points
 on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on about :data:`ICP_POINTS` of
 larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
 turned by anything, LiDAR, scans of any object.
@@ -105,7 +105,7 @@ class FeatureEstimate:
         the target, as a share of its own count (near 1: the two cannot be told apart).
       spacing: the pair's point spacing; voxel: the features' voxel (both in the caller's units).
       seconds: wall time, features to ICP.
-      clouds: the two clouds as ICP holds them, for :meth:`polish`.
+      clouds: the two clouds as Open3D holds them, for :meth:`twin_fit`.
     """
 
     forward: tuple[np.ndarray, np.ndarray]
@@ -120,16 +120,6 @@ class FeatureEstimate:
     voxel: float
     seconds: float
     clouds: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
-
-    def polish(self, motion: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """``motion`` (R (3, 3), t (3,)) of the source onto the target, refined by the ICP that refined the two
-        directions (pairs within 0.4 voxels) on the clouds already built, so that it can be set
-        beside them: (R, t). It corrects small errors only; start it near the answer."""
-        if self.clouds is None:
-            raise ValueError("this estimate keeps no clouds to refine on")
-        start = np.eye(4)
-        start[:3, :3], start[:3, 3] = motion
-        return _split(_icp(*self.clouds, start, self.voxel))
 
     def twin_fit(self, motion: tuple[np.ndarray, np.ndarray]) -> float:
         """:func:`twin_fit` of ``motion`` (R (3, 3), t (3,)) of the source onto the target, on this pair's

@@ -86,17 +86,15 @@ class InferenceSettings(Record):
       agreement_bands_network, agreement_bands_icp: how often validation results were right, band by band of
         agreement: ``((upper degrees or None, pairs, right), ...)``, increasing; quoted as
         :attr:`Result.agreement_band`.
-      max_disagreement_features, max_offset_features: how close (degrees, point spacings) two motions found
-        independently (the features' two directions, or the network's and a feature direction) must lie for
-        the result to be trusted on clouds the features register (calibrated on real scans,
+      max_disagreement_features, max_offset_features: how close (degrees, point spacings) the features' two
+        directions must lie for the result to be trusted on clouds the features register (calibrated on real scans,
         docs/verdict.md).
       max_rival_features: the features' two directions settle the pair only where neither's estimator kept a
         rival motion backed by more than this share of its own matches
         (:attr:`dit_jax.feature_match.FeatureEstimate.rival`): on rooms, the two directions share their
         matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,
         docs/verdict.md).
-      max_twin_features: a motion the features found (alone, or with the network landing on it) is trusted
-        only where none of its quarter- or half-turned twins lays more than this share of its own count of
+      max_twin_features: a motion the features found is trusted only where none of its quarter- or half-turned twins lays more than this share of its own count of
         points on the target (:func:`dit_jax.feature_match.twin_fit`): a box-shaped room fits itself turned,
         and no evidence from matches tells the two apart (calibrated on the 3DMatch scenes, docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
@@ -240,11 +238,10 @@ FLAGS = {
         Flag(
             "--features",
             ("feature_candidate",),
-            "register by local features (FPFH matches and a compatibility-graph estimator, both ways) first: "
-            "where the two directions agree on "
-            "a motion without a close rival the result is theirs, else the network runs too and the result is "
-            "trusted only where its motion lands on one of theirs; auto: where both clouds have "
-            f"{SCAN_POINTS:,} points or more",
+            "register by local features (FPFH matches and a compatibility-graph estimator, both ways) instead "
+            "of the network: the result is trusted where the two directions agree on a motion without a close "
+            f"rival or turned twin, else probably wrong; auto: where both clouds have {SCAN_POINTS:,} points "
+            "or more",
             choices=FEATURE_CANDIDATES,
         ),
         Flag(

@@ -110,6 +110,28 @@ def test_the_estimate_repeats_exactly_and_each_feature_finds_its_two_nearest_bot
         assert np.all(found.ratio <= 1)
 
 
+def test_matches_past_the_cap_keep_the_most_distinctive(monkeypatch):
+    """Where a direction has more matches than the cap, those whose nearest feature stands out from the second
+    nearest are kept, not the closest: a target feature repeated twice is an ambiguous match however close."""
+
+    class Features:
+        def __init__(self, rows):
+            self.data = np.asarray(rows, np.float64).T
+
+    class Cloud:
+        def __init__(self, rows):
+            self.features = Features(rows)
+
+    rng = np.random.default_rng(3)
+    pool = rng.normal(size=(40, 33))
+    pool[20:30] = pool[10:20]  # features 10-19 each have a twin: two nearest at one distance
+    queries = pool[:30] + 0.01 * rng.normal(size=(30, 33))
+    queries[10:20] = pool[10:20] + 0.001 * rng.normal(size=(10, 33))  # the closest matches, but ambiguous
+    monkeypatch.setattr(feature_match, "MAX_MATCHES", 10)
+    there, _ = feature_match._matches(Cloud(queries), Cloud(pool))
+    np.testing.assert_array_equal(there, np.stack([np.arange(10), np.arange(10)], axis=1))
+
+
 def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
     """twin_fit: in a bare box room the true motion turned a quarter about the floor's normal lays as many
     points on the target as the motion itself (share about 1); a blob with no symmetry (near a sphere, so its

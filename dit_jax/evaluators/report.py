@@ -42,8 +42,8 @@ def refinement_line(r: dict) -> str:
 def candidate_sentence(kept: int) -> str:
     """What the pipeline's registration by local features did, for a verdict line."""
     return (
-        f" The result is the registration by local features on {kept} pairs (they settled the pair, or the "
-        f"network did not confirm them)."
+        f" The result is the registration by local features on {kept} pairs (the network does not run where "
+        f"they register the pair)."
     )
 
 

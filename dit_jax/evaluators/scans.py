@@ -307,7 +307,7 @@ def _rule_text(method: str, settings) -> str:
     )
     if method == METHOD_PIPELINE:
         rule = (
-            "on scans, local features both ways agree, or the network lands on one of them, within "
+            "on scans, local features both ways agree within "
             f"{settings.max_disagreement_features:g} deg and "
             f"{settings.max_offset_features:g} point spacings; elsewhere {rule}"
         )
