@@ -11,7 +11,7 @@ one untimed call that compiles; and a baseline as evaluate.py runs it (through O
 Open3D's FPFH + RANSAC + ICP at its tuned options, ``--baseline open3d_room_5cm`` Open3D's room recipe.
 ``--max-pairs``: a seeded sample of a benchmark's list (the first pairs of a series), as evaluate.py takes.
 A pair is registered by its benchmark's criterion (dit_jax.data.scans.CRITERIA), else within 5 degrees. Prints
-one JSON record per pair set (``confirmed_max_s``: the slowest pair whose first candidate was trusted, the figure
+one JSON record per pair set (``confirmed_max_s``: the slowest pair whose result was trusted, the figure
 the 1.5 s target is about), then a Markdown table.
 
 ``--pairs-out FILE`` also writes one JSON line per pair (both methods' errors, the benchmark's RMSE where the
@@ -201,7 +201,7 @@ def main() -> None:
     print(f"\n{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs, shipped weights with their settings\n")
     print(
         f"| data | pairs | points a cloud | pipeline: registered, trusted (right) | pipeline s / pair: median, "
-        f"max, max where the first candidate was confirmed | {baseline}: registered | {baseline} s / pair: "
+        f"max, max where trusted | {baseline}: registered | {baseline} s / pair: "
         "median, max |\n|---|---|---|---|---|---|---|"
     )
     for r in records:
