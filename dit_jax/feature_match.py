@@ -5,9 +5,9 @@ Both clouds are thinned on a voxel grid; each kept point gets a normal, turned t
 Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours. Each source point is matched
 to its nearest target point in feature space, the most distinctive matches kept (:func:`_matches`), and the
 compatibility-graph estimator (:mod:`dit_jax.compatibility`: second-order spatial compatibility, seeds, a
-consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays the most thinned source points
-on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on about :data:`ICP_POINTS` of
-larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
+consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays
+the most thinned source points on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on
+about :data:`ICP_POINTS` of larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
 turned by anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
