@@ -7,7 +7,7 @@ test pairs) through the registration pipeline, and recorded in the checkpoint's
     python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
 
 Validation pairs come from the training split's held-out shapes (the ones training validates on). Every
-combination of the GMCCE grid (:data:`GRID`, and ``--n-iters``) registers them, the network alone; the one
+combination of the GMCCE grid (:data:`GRID`, and ``--iters``) registers them, the network alone; the one
 with most pairs within 5 degrees averaged over the settings (ties: the lower mean log error) wins, one setting
 for every input. The fitness verdict's threshold is then the lowest fitness at which at least
 :data:`PRECISION` of the results it trusts are right (within ``common.RIGHT_DEG``, 5 degrees).
@@ -39,7 +39,7 @@ SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_cle
 AGREEMENT_GRID = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 #: A verdict threshold must leave at least this share of the results it trusts right (``common.RIGHT_DEG``).
 PRECISION = 0.95
-#: The GMCCE options searched (with ``--n-iters``, the iteration count too).
+#: The GMCCE options searched (with ``--iters``, the iteration count too).
 GRID = {"gmcce_threshold": (0.9, 0.0), "gmcce_min_keep": (0.0, 0.3), "guard_iterations": (False, True)}
 
 
@@ -234,8 +234,8 @@ def main(argv: list[str] | None = None) -> int:
         metavar="JSON",
         help="choose the thresholds again from the evidence an earlier --out kept",
     )
-    parser.add_argument("--n-iters", type=int, nargs="+", default=None, help="iteration counts to try as well")
-    parser.add_argument("--keep-gmcce", action="store_true", help="search only --n-iters")
+    parser.add_argument("--iters", type=int, nargs="+", default=None, help="iteration counts to try as well")
+    parser.add_argument("--keep-gmcce", action="store_true", help="search only --iters")
     parser.add_argument("--record", action="store_true", help="write the choice into the checkpoint")
     args = parser.parse_args(argv)
 
@@ -260,8 +260,8 @@ def main(argv: list[str] | None = None) -> int:
             )
             config = registrar.settings.model_config(registrar.config)
             grid = {k: (getattr(config, k),) for k in GRID} if args.keep_gmcce else dict(GRID)
-            if args.n_iters:
-                grid["n_iters"] = tuple(args.n_iters)
+            if args.iters:
+                grid["n_iters"] = tuple(args.iters)
             report |= choose_inference(registrar, batches, grid)
             registrar = registration.Registrar(
                 registrar.params, registrar.config, registrar.settings, **report["chosen"]
