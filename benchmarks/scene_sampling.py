@@ -5,9 +5,9 @@ uniform random sample, the network alone, on real scans with known poses.
         ../shared/data/stanford_dragon_stand
 
 For each pair, each sampler picks the shipped settings' point count from each cloud (farthest-point sampling
-from a seeded random pool, as dit_jax.pipeline.sample_and_normalise does; or a seeded uniform random
-subset); the pipeline's own stages then normalise (pipeline.normalise) and run the network one way
-(pipeline.network). Prints one JSON record per pair set and sampler (median rotation error, pairs within
+from a seeded random pool, as dit_jax.sampling.sample_and_normalise does; or a seeded uniform random
+subset); the pipeline's own stages then normalise (normalise) and run the network one way
+(network). Prints one JSON record per pair set and sampler (median rotation error, pairs within
 5 degrees), then a Markdown table.
 """
 
@@ -24,13 +24,15 @@ def main() -> None:
     parser.add_argument("scans", nargs="+", help="folders of scans with known poses")
     args = parser.parse_args()
 
-    from dit_jax import geometry, pipeline, registration
+    from dit_jax import geometry, registration
     from dit_jax.data import scans as scans_lib
+    from dit_jax.network_stage import network
+    from dit_jax.sampling import farthest_point_sample, normalise
 
     model = registration.load()
     settings = model.settings
     samplers = {
-        "farthest-point": lambda cloud, seed: pipeline.farthest_point_sample(
+        "farthest-point": lambda cloud, seed: farthest_point_sample(
             cloud, settings.n_points, seed=seed, pool=settings.fps_pool
         ),
         "uniform random": lambda cloud, seed: np.sort(
@@ -45,8 +47,8 @@ def main() -> None:
                 for pair in found.pairs:
                     src = pair.source[pick(pair.source, settings.seed)]
                     tgt = pair.target[pick(pair.target, settings.seed + 1)]
-                    src_n, tgt_n, src_c, tgt_c, scale = pipeline.normalise(src, tgt, settings.centring)
-                    rotation = pipeline.network(
+                    src_n, tgt_n, src_c, tgt_c, scale = normalise(src, tgt, settings.centring)
+                    rotation = network(
                         model.params, model.config, src_n[None].astype(np.float32), tgt_n[None].astype(np.float32)
                     ).rotation
                     errors.append(geometry.rotation_angle_deg(rotation[0].T @ pair.rotation))

@@ -50,7 +50,7 @@ PROG = "dit-register"
 DEFAULT_MAX_POINTS = 5_000_000  # 120 MB of float64 coordinates per cloud; far more than sampling needs
 #: Exit status when the verdict finds the result probably wrong.
 EXIT_SUSPECT = 3
-#: --refine's choices: :data:`dit_jax.pipeline.REFINEMENTS`, spelt out so that parsing imports no JAX.
+#: --refine's choices: :data:`dit_jax.settings.REFINEMENTS`, spelt out so that parsing imports no JAX.
 
 
 def _add_reading_flags(parser: argparse.ArgumentParser) -> None:
@@ -230,7 +230,7 @@ def _plot_problem(path: str | None, inputs: tuple = ()) -> str | None:
 def _warning_lines(caught: list[warnings.WarningMessage], src: str, tgt: str) -> list[str]:
     """A registration's size-mismatch warnings as lines naming the files (``src``, ``tgt``) instead of "source"
     and "target"; any other warning is shown as Python shows it."""
-    from dit_jax.registration import SizeMismatchWarning
+    from dit_jax.sampling import SizeMismatchWarning
 
     lines = []
     for warning in caught:
@@ -329,13 +329,13 @@ def _open_results(args, pairs: list[tuple[str, str]], key: dict):
 
 def _register_pair(model, args, src_path: str, tgt_path: str) -> dict:
     """One pair of the list registered: the result's JSON fields (and its warnings), or ``{"error": ...}``."""
-    from dit_jax import registration
+    from dit_jax import sampling
 
     try:
         with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", registration.SizeMismatchWarning)
+            warnings.simplefilter("always", sampling.SizeMismatchWarning)
             result = model.register(_read(src_path, args), _read(tgt_path, args))
-    except registration.InputError as err:  # name the files, not "source"/"target"
+    except sampling.InputError as err:  # name the files, not "source"/"target"
         message = str(err).replace("source:", f"{src_path}:", 1).replace("target:", f"{tgt_path}:", 1)
         return {"error": " ".join(message.split())}
     except (io.CloudFileError, ValueError, OSError) as err:
@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(str(err))
 
     compile_cache.from_args(args)
-    from dit_jax import registration
+    from dit_jax import registration, sampling
 
     if args.pairs is not None:
         try:
@@ -504,9 +504,9 @@ def main(argv: list[str] | None = None) -> int:
         model = registration.load(args.checkpoint, **_model_kwargs(args))
         try:
             with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", registration.SizeMismatchWarning)
+                warnings.simplefilter("always", sampling.SizeMismatchWarning)
                 result = model.register(src, tgt, refine=args.refine)
-        except registration.InputError as err:  # name the files, not "source"/"target"
+        except sampling.InputError as err:  # name the files, not "source"/"target"
             message = str(err).replace("source:", f"{args.src}:", 1).replace("target:", f"{args.tgt}:", 1)
             return _fail(message)
         for line in _warning_lines(caught, args.src, args.tgt):
@@ -649,7 +649,7 @@ def series_main(argv: list[str] | None = None) -> int:
     compile_cache.from_args(args)
     from tqdm import tqdm
 
-    from dit_jax import registration, series
+    from dit_jax import registration, sampling, series
 
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
@@ -665,7 +665,7 @@ def series_main(argv: list[str] | None = None) -> int:
             ) as bar,
             warnings.catch_warnings(record=True) as caught,
         ):
-            warnings.simplefilter("always", registration.SizeMismatchWarning)
+            warnings.simplefilter("always", sampling.SizeMismatchWarning)
 
             def link_done(done: int, total: int) -> None:  # each link's warnings name its two scans
                 bar.update(1)
@@ -676,7 +676,7 @@ def series_main(argv: list[str] | None = None) -> int:
 
             try:
                 result = series.register_series(model, clouds, loop=args.loop, progress=link_done)
-            except registration.InputError as err:
+            except sampling.InputError as err:
                 return fail(str(err))
         _write_series(result, args, clouds)
     except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too

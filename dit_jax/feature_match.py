@@ -137,20 +137,6 @@ class FeatureEstimate:
     def kept_direction(self) -> str:
         return "backward" if self.overlap[1] > self.overlap[0] else "forward"
 
-    def agrees(
-        self, max_degrees: float, max_spacings: float, max_rival: float = np.inf, max_twin: float = np.inf
-    ) -> bool:
-        """Whether both directions found one motion, within ``max_degrees`` and ``max_spacings``, each with no
-        rival backed by more than ``max_rival`` of its matches (:attr:`rival`) and no turned twin laying more
-        than ``max_twin`` of its points (:attr:`twin`)."""
-        return bool(
-            self.disagreement <= max_degrees
-            and self.offset <= max_spacings
-            and min(self.inliers) > 0
-            and max(self.rival) <= max_rival
-            and max(self.twin) <= max_twin
-        )
-
 
 def feature_voxel(spacing: float, points: int, spacings: float = VOXEL_SPACINGS) -> float:
     """The voxel of the features for clouds of this point ``spacing`` (their units) and at most ``points``

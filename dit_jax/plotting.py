@@ -3,7 +3,7 @@
 * :func:`pyplot` -- matplotlib's pyplot on the Agg backend, for every figure the package writes.
 * :func:`plot_registration` -- two clouds before and after a registration, seen from two viewpoints, with the
   estimated motion (and its error, where the truth is known) in the title: what ``dit-register --plot``,
-  :meth:`dit_jax.registration.Result.plot` and evaluate.py's worst-pair pictures draw.
+  :meth:`dit_jax.result.Result.plot` and evaluate.py's worst-pair pictures draw.
 * :func:`plot_series` -- a series of scans in one frame, each in its own colour, from two sides, beside
   each link's verdict: what ``dit-register-series --plot`` and :meth:`dit_jax.series.SeriesResult.plot` draw.
 """

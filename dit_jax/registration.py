@@ -6,7 +6,7 @@
     moved = result.apply(src_points)                 # result.matrix is the 4x4 transform
 
 :meth:`Registrar.register` runs the pipeline of :mod:`dit_jax.pipeline` (sample and normalise, network,
-refine, verdict) on a batch of one pair, with the :class:`~dit_jax.pipeline.InferenceSettings` the checkpoint
+refine, verdict) on a batch of one pair, with the :class:`~dit_jax.settings.InferenceSettings` the checkpoint
 stores; keyword arguments of :func:`load` change any of them.
 """
 
@@ -19,17 +19,8 @@ import jax
 
 from dit_jax import pipeline
 from dit_jax.configs import DITConfig
-from dit_jax.pipeline import (  # noqa: F401
-    CENTRINGS,
-    REFINEMENTS,
-    VERDICTS,
-    InferenceSettings,
-    InputError,
-    Result,
-    SizeMismatchWarning,
-    check_cloud,
-    farthest_point_sample,
-)
+from dit_jax.result import Result
+from dit_jax.settings import InferenceSettings
 
 #: Where the weights that ship with the package live (their runs: MODEL_CARD.md).
 SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
@@ -42,7 +33,7 @@ class Registrar:
 
     Args:
       params, config: the model (see :func:`load` to read them from a checkpoint).
-      settings: the pipeline's settings (:class:`~dit_jax.pipeline.InferenceSettings`).
+      settings: the pipeline's settings (:class:`~dit_jax.settings.InferenceSettings`).
       **changes: fields of ``settings`` to change, e.g. ``refine="none"``.
 
     Attributes:
@@ -61,8 +52,8 @@ class Registrar:
     def register(self, src, tgt, *, refine: str | None = None, rotation_search: bool | None = None) -> Result:
         """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units.
 
-        ``refine`` (one of :data:`~dit_jax.pipeline.REFINEMENTS`) and ``rotation_search`` change the
-        Registrar's settings for this call (None: keep them). Raises :class:`InputError` naming the cloud DIT cannot register."""
+        ``refine`` (one of :data:`~dit_jax.settings.REFINEMENTS`) and ``rotation_search`` change the
+        Registrar's settings for this call (None: keep them). Raises :class:`~dit_jax.sampling.InputError` naming the cloud DIT cannot register."""
         return self.register_pairs([(src, tgt)], refine=refine, rotation_search=rotation_search, batch_size=1)[0]
 
     def register_pairs(

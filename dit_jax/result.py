@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-#: The verdict's levels (:func:`dit_jax.pipeline.verdict_level`), most confident first.
+#: The verdict's levels (:func:`dit_jax.verdict.level`), most confident first.
 VERDICT_LEVELS = ("trusted", "unconfirmed", "probably wrong")
 
 
@@ -60,7 +60,7 @@ class Result:
       seconds: wall time of the network (both directions under the agreement verdict, unless the features ran
         first; with
         ``rotation_search``, the starts' short ICPs too), excluding sampling; a first call's compilation is
-        included unless the call ran several batches (:func:`dit_jax.pipeline.network`).
+        included unless the call ran several batches (:func:`dit_jax.network_stage.network`).
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
@@ -69,7 +69,7 @@ class Result:
         where it did not run).
       verdict: True ("trusted") where the model's own evidence confirms the result, else False.
       level: "trusted", "unconfirmed" (not confirmed, but validation results that agreed as closely were mostly
-        right) or "probably wrong" (:func:`dit_jax.pipeline.verdict_level`).
+        right) or "probably wrong" (:func:`dit_jax.verdict.level`).
       verdict_rule: "agreement" or "fitness": which rule decided ``verdict``.
       threshold: that rule's threshold: degrees of disagreement, or a share of fitness.
       agreement: degrees between the rotation and the inverse of the one found registering the target onto

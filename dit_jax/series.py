@@ -31,7 +31,7 @@ class SeriesResult:
     Attributes:
       poses: (K, 4, 4) float64: scan k's points into scan 0's frame (``x0 = R_k x_k + t_k``; poses[0] = I),
         after loop closure where the series was registered as a loop.
-      links: the registrations, one :class:`dit_jax.registration.Result` per link: scan k + 1 onto scan k for
+      links: the registrations, one :class:`dit_jax.result.Result` per link: scan k + 1 onto scan k for
         k = 0..K-2, then (loop) scan 0 onto scan K-1.
       loop_gap_deg: the rotation (degrees) left after going once around the loop on the links' motions; 0
         for a perfect loop, NaN without one. Each link's share of the correction is this over the link count.

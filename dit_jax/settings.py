@@ -98,7 +98,7 @@ class InferenceSettings(Record):
         points on the target (:func:`dit_jax.feature_match.twin_fit`): a box-shaped room fits itself turned,
         and no evidence from matches tells the two apart (calibrated on the 3DMatch scenes, docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
-        the validation results in its agreement band were right, else "probably wrong" (:func:`verdict_level`).
+        the validation results in its agreement band were right, else "probably wrong" (:func:`dit_jax.verdict.level`).
     """
 
     n_points: int = 1000

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, cli, configs, io, model, pipeline
+from dit_jax import checkpoint, cli, configs, io, model, network_stage
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -71,13 +71,13 @@ def test_any_rotation_searches_the_turned_starts_and_says_which_it_kept(capsys, 
     the turn it went on from; the JSON report carries it too."""
     folder, _, _ = pair
     batches = []
-    original = pipeline._register
+    original = network_stage._register
 
     def counting(params, src, tgt, config):
         batches.append(src.shape[0])
         return original(params, src, tgt, config)
 
-    monkeypatch.setattr(pipeline, "_register", counting)
+    monkeypatch.setattr(network_stage, "_register", counting)
     code, out, err = run(
         capsys,
         folder / "src.ply",

@@ -5,7 +5,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, pipeline, registration
+from dit_jax import checkpoint, configs, model, registration, settings
 from dit_jax import evaluators as evaluation
 from dit_jax.data import scans as scans_lib
 from dit_jax.evaluators import common, report, synthetic
@@ -66,7 +66,7 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
     # Each pair's evidence is kept, so a later threshold can be scored on these pairs without rerunning them:
     # at the thresholds they were written with, re-scoring changes nothing; at a negative one it trusts nothing.
     assert clean["DIT"]["per_pair"]["pair"] == [0, 1, 2, 3] and len(clean["DIT+ICP"]["per_pair"]["agreement"]) == 4
-    defaults = pipeline.InferenceSettings()
+    defaults = settings.InferenceSettings()
     written = {"none": defaults.max_disagreement_network, "icp": defaults.max_disagreement_icp}
     unchanged = evaluation.rescore_agreement(json.loads(json.dumps(saved)), written)
     assert json.dumps(unchanged, sort_keys=True) == json.dumps(saved, sort_keys=True)  # (NaN != NaN as a dict value)

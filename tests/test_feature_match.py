@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from conftest import box_room
 
-from dit_jax import feature_match
+from dit_jax import feature_match, verdict
 from dit_jax.data.pairs import euler_zyx_to_matrix
 from dit_jax.geometry import rotation_angle_deg
 
@@ -74,7 +74,7 @@ def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_spher
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     found = feature_match.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
-    assert found.agrees(1.0, 2.0) and min(found.inliers) > 0 and found.seconds > 0
+    assert verdict.features_agree(found, 1.0, 2.0) and min(found.inliers) > 0 and found.seconds > 0
     rotation, translation = found.kept
     assert rotation_angle_deg(rotation.T @ truth) < 2.0 and np.linalg.norm(translation - t_truth) < 4 * found.spacing
     assert found.overlap.shape == (2,) and np.all((0 <= found.overlap) & (found.overlap <= 1))
@@ -143,7 +143,9 @@ def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     bumpy = feature_match.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
     assert bumpy.twin_fit((truth, t_truth)) < 0.75 and max(bumpy.twin) < 0.75
-    assert bumpy.agrees(1.0, 2.0, max_twin=0.8) and not room.agrees(1.0, 2.0, max_twin=0.8)
+    assert verdict.features_agree(bumpy, 1.0, 2.0, max_twin=0.8) and not verdict.features_agree(
+        room, 1.0, 2.0, max_twin=0.8
+    )
 
 
 def test_icp_on_tensor_clouds_gives_the_legacy_motion_and_large_clouds_are_thinned_for_it():

@@ -7,15 +7,16 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, pipeline, registration
+from dit_jax import checkpoint, configs, model, registration, verdict
+from dit_jax.result import VERDICT_LEVELS
+from dit_jax.sampling import normalise, to_caller_units
+from dit_jax.settings import DENSE_POINTS, SCAN_POINTS, InferenceSettings, refinement_for
 
 
 def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
-    settings = pipeline.InferenceSettings(
-        n_points=512, refine="none", agreement_bands_icp=[[1.0, 20, 19], [None, 5, 1]]
-    )
+    settings = InferenceSettings(n_points=512, refine="none", agreement_bands_icp=[[1.0, 20, 19], [None, 5, 1]])
     assert settings.agreement_bands_icp == ((1.0, 20, 19), (None, 5, 1)), "bands are stored immutable"
-    assert pipeline.InferenceSettings.from_dict(settings.to_dict()) == settings
+    assert InferenceSettings.from_dict(settings.to_dict()) == settings
     with pytest.raises(dataclasses.FrozenInstanceError):
         settings.n_points = 3
     for bad, fragment in (
@@ -27,15 +28,15 @@ def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
         ({"n_points": 0}, "positive"),
     ):
         with pytest.raises(ValueError, match=fragment):
-            pipeline.InferenceSettings(**bad)
+            InferenceSettings(**bad)
     with pytest.raises(ValueError, match="unknown InferenceSettings fields: bogus"):
-        pipeline.InferenceSettings.from_dict({"bogus": 1})
+        InferenceSettings.from_dict({"bogus": 1})
 
 
 def test_settings_override_only_the_model_options_they_set():
     config = configs.tiny()
-    assert pipeline.InferenceSettings().model_config(config) == config
-    changed = pipeline.InferenceSettings(n_iters=5, gmcce_threshold=0.5, precision="tf32").model_config(config)
+    assert InferenceSettings().model_config(config) == config
+    changed = InferenceSettings(n_iters=5, gmcce_threshold=0.5, precision="tf32").model_config(config)
     assert (changed.n_iters, changed.gmcce_threshold, changed.precision) == (5, 0.5, "tf32")
     assert (
         changed.replace(n_iters=config.n_iters, gmcce_threshold=config.gmcce_threshold, precision=config.precision)
@@ -45,7 +46,7 @@ def test_settings_override_only_the_model_options_they_set():
 
 def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
     config = configs.tiny()
-    stored = pipeline.InferenceSettings(n_points=128, max_disagreement_icp=2.0, min_fitness=0.8)
+    stored = InferenceSettings(n_points=128, max_disagreement_icp=2.0, min_fitness=0.8)
     path = checkpoint.save(
         tmp_path / "m",
         model.init(jax.random.key(0), config),
@@ -55,70 +56,68 @@ def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
     assert registration.load(path).settings == stored
     assert registration.load(path, refine="none").settings == stored.replace(refine="none")
     bare = checkpoint.save(tmp_path / "bare", model.init(jax.random.key(0), config), config)
-    assert registration.load(bare).settings == pipeline.InferenceSettings(), "defaults live in one place"
+    assert registration.load(bare).settings == InferenceSettings(), "defaults live in one place"
 
 
 def test_the_verdict_stage_judges_by_agreement_or_fitness():
     quarter_turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    settings = pipeline.InferenceSettings(
+    settings = InferenceSettings(
         max_disagreement_network=1.0, max_disagreement_icp=100.0, agreement_bands_icp=[[10.0, 50, 45], [None, 40, 2]]
     )
-    verdict, threshold, agreement, band = pipeline.judge(settings, "none", 0.0, quarter_turn, quarter_turn.T)
-    assert verdict and threshold == 1.0 and agreement == pytest.approx(0.0, abs=1e-6) and band is None
-    verdict, threshold, agreement, band = pipeline.judge(settings, "icp", 0.0, quarter_turn, quarter_turn)
-    assert not verdict and threshold == 100.0 and agreement == pytest.approx(180.0) and band == (10.0, None, 40, 2)
+    trusted, threshold, agreement, band = verdict.judge(settings, "none", 0.0, quarter_turn, quarter_turn.T)
+    assert trusted and threshold == 1.0 and agreement == pytest.approx(0.0, abs=1e-6) and band is None
+    trusted, threshold, agreement, band = verdict.judge(settings, "icp", 0.0, quarter_turn, quarter_turn)
+    assert not trusted and threshold == 100.0 and agreement == pytest.approx(180.0) and band == (10.0, None, 40, 2)
     fitness = settings.replace(verdict_rule="fitness", min_fitness=0.6)
-    assert pipeline.judge(fitness, "icp", 0.7, quarter_turn, None)[:2] == (True, 0.6)
-    assert not pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[0]
-    assert np.isnan(pipeline.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
+    assert verdict.judge(fitness, "icp", 0.7, quarter_turn, None)[:2] == (True, 0.6)
+    assert not verdict.judge(fitness, "icp", 0.5, quarter_turn, None)[0]
+    assert np.isnan(verdict.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
 
 
 def test_auto_refines_scans_by_gicp_and_sparse_clouds_by_icp():
-    dense = pipeline.DENSE_POINTS
-    assert pipeline.refinement_for("auto", dense, dense) == "gicp"
-    assert pipeline.refinement_for("auto", dense, dense - 1) == "icp"  # both clouds must be dense
+    dense = DENSE_POINTS
+    assert refinement_for("auto", dense, dense) == "gicp"
+    assert refinement_for("auto", dense, dense - 1) == "icp"  # both clouds must be dense
     for method in ("icp", "gicp", "none"):
-        assert pipeline.refinement_for(method, 10, 10 * dense) == method
-    assert pipeline.InferenceSettings(refine="auto").refinement_for(1024, 1024) == "icp"
+        assert refinement_for(method, 10, 10 * dense) == method
+    assert InferenceSettings(refine="auto").refinement_for(1024, 1024) == "icp"
 
 
 def test_the_features_run_first_on_scans_unless_told_otherwise():
     """Scans (3DMatch's smallest fragments included) run them; ModelNet's 1,024-point shapes do not."""
-    scan, dense = pipeline.SCAN_POINTS, pipeline.DENSE_POINTS
-    auto = pipeline.InferenceSettings(feature_candidate="auto")
+    scan, dense = SCAN_POINTS, DENSE_POINTS
+    auto = InferenceSettings(feature_candidate="auto")
     assert auto.runs_feature_candidate(2051, 2051) and auto.runs_feature_candidate(scan, scan)
     assert not auto.runs_feature_candidate(scan - 1, dense) and not auto.runs_feature_candidate(1024, 10 * dense)
-    assert pipeline.InferenceSettings(feature_candidate="on").runs_feature_candidate(100, 100)
-    assert not pipeline.InferenceSettings(feature_candidate="off").runs_feature_candidate(dense, dense)
+    assert InferenceSettings(feature_candidate="on").runs_feature_candidate(100, 100)
+    assert not InferenceSettings(feature_candidate="off").runs_feature_candidate(dense, dense)
     # Settings stored as a bool before "auto" read as "on" and "off".
-    assert pipeline.InferenceSettings(feature_candidate=True).feature_candidate == "on"
-    assert pipeline.InferenceSettings.from_dict({"feature_candidate": False}).feature_candidate == "off"
+    assert InferenceSettings(feature_candidate=True).feature_candidate == "on"
+    assert InferenceSettings.from_dict({"feature_candidate": False}).feature_candidate == "off"
     with pytest.raises(ValueError, match="feature_candidate"):
-        pipeline.InferenceSettings(feature_candidate="sometimes")
+        InferenceSettings(feature_candidate="sometimes")
 
 
 def test_a_result_not_trusted_is_unconfirmed_only_where_its_band_was_mostly_right():
     band = lambda pairs, right: (1.0, 2.0, pairs, right)
-    assert pipeline.verdict_level(True, None, 0.5) == "trusted"
-    assert pipeline.verdict_level(False, band(20, 10), 0.5) == "unconfirmed"  # half right: mostly enough
-    assert pipeline.verdict_level(False, band(20, 9), 0.5) == "probably wrong"
-    assert pipeline.verdict_level(False, None, 0.5) == "probably wrong"  # no evidence either way
-    assert pipeline.verdict_level(False, band(20, 19), 0.99) == "probably wrong"
-    assert pipeline.VERDICT_LEVELS == ("trusted", "unconfirmed", "probably wrong")
+    assert verdict.level(True, None, 0.5) == "trusted"
+    assert verdict.level(False, band(20, 10), 0.5) == "unconfirmed"  # half right: mostly enough
+    assert verdict.level(False, band(20, 9), 0.5) == "probably wrong"
+    assert verdict.level(False, None, 0.5) == "probably wrong"  # no evidence either way
+    assert verdict.level(False, band(20, 19), 0.99) == "probably wrong"
+    assert VERDICT_LEVELS == ("trusted", "unconfirmed", "probably wrong")
 
 
 def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(100, 3))
     near, far = src + 0.5, src + 1e4
-    src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, near, "auto")
+    src_n, tgt_n, src_centre, tgt_centre, scale = normalise(src, near, "auto")
     np.testing.assert_allclose(src_centre, tgt_centre)  # a few radii apart: one shared centre
     assert max(np.linalg.norm(src_n, axis=1).max(), np.linalg.norm(tgt_n, axis=1).max()) == pytest.approx(1.0)
-    _, tgt_n, src_centre, tgt_centre, _ = pipeline.normalise(src, far, "auto")
+    _, tgt_n, src_centre, tgt_centre, _ = normalise(src, far, "auto")
     np.testing.assert_allclose(tgt_centre - src_centre, [1e4] * 3, atol=1e-6)
     assert np.abs(tgt_n.mean(axis=0)).max() < 1e-9
     rotation = np.eye(3)
     # A motion found between the normalised clouds maps back into the caller's frame.
-    assert np.allclose(
-        pipeline.to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0), tgt_centre - src_centre
-    )
+    assert np.allclose(to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0), tgt_centre - src_centre)

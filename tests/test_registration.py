@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from conftest import box_room
 
-from dit_jax import checkpoint, configs, model, pipeline, registration, sampling
+from dit_jax import checkpoint, configs, icp, model, network_stage, registration, sampling, verdict
+from dit_jax import settings as settings_lib
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -34,12 +35,12 @@ def test_farthest_point_sample_spreads_points():
     dense = rng.normal(size=(5000, 3)) * 0.01  # a tight blob ...
     far = np.array([[5.0, 0, 0], [-5.0, 0, 0], [0, 5.0, 0], [0, 0, -5.0]])  # ... and four outliers
     points = np.concatenate([dense, far])
-    idx = registration.farthest_point_sample(points, 10, seed=1)
+    idx = sampling.farthest_point_sample(points, 10, seed=1)
     assert len(set(idx.tolist())) == 10
     assert set(range(5000, 5004)) <= set(idx.tolist())  # FPS reaches every extreme point
-    np.testing.assert_array_equal(idx, registration.farthest_point_sample(points, 10, seed=1))
-    np.testing.assert_array_equal(registration.farthest_point_sample(points[:7], 10), np.arange(7))
-    pooled = registration.farthest_point_sample(points, 10, seed=1, pool=1000)
+    np.testing.assert_array_equal(idx, sampling.farthest_point_sample(points, 10, seed=1))
+    np.testing.assert_array_equal(sampling.farthest_point_sample(points[:7], 10), np.arange(7))
+    pooled = sampling.farthest_point_sample(points, 10, seed=1, pool=1000)
     assert len(set(pooled.tolist())) == 10 and pooled.max() < len(points)
 
 
@@ -61,14 +62,14 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
 
     scan = io.read(dragon_dir / "dragonStandRight_0.ply") + np.array([1000.0, -200.0, 50.0])
     np.testing.assert_array_equal(
-        registration.farthest_point_sample(scan, 1000, seed=3), _farthest_point_sample_float64(scan, 1000, 3)
+        sampling.farthest_point_sample(scan, 1000, seed=3), _farthest_point_sample_float64(scan, 1000, 3)
     )
     cloud = np.random.default_rng(1).uniform(size=(3001, 3))
     np.testing.assert_array_equal(
-        registration.farthest_point_sample(cloud, 200, seed=0), _farthest_point_sample_float64(cloud, 200, 0)
+        sampling.farthest_point_sample(cloud, 200, seed=0), _farthest_point_sample_float64(cloud, 200, 0)
     )
     before = sampling._farthest_points._cache_size()
-    registration.farthest_point_sample(cloud[:2990], 200, seed=0)
+    sampling.farthest_point_sample(cloud[:2990], 200, seed=0)
     assert sampling._farthest_points._cache_size() == before
 
 
@@ -88,10 +89,10 @@ def test_jitted_farthest_point_sample_takes_the_float64_loops_points(dragon_dir)
 )
 def test_bad_clouds_are_refused_with_their_name(tiny_registrar, bad, fragment):
     good = np.random.default_rng(1).normal(size=(100, 3))
-    with pytest.raises(registration.InputError, match=fragment) as info:
+    with pytest.raises(sampling.InputError, match=fragment) as info:
         tiny_registrar.register(bad, good)
     assert str(info.value).startswith("source:")
-    with pytest.raises(registration.InputError, match="^target:"):
+    with pytest.raises(sampling.InputError, match="^target:"):
         tiny_registrar.register(good, bad)
 
 
@@ -113,12 +114,12 @@ def test_clouds_whose_sizes_differ_tenfold_warn(tiny_registrar):
 
     rng = np.random.default_rng(4)
     cloud = rng.normal(size=(300, 3))
-    with pytest.warns(registration.SizeMismatchWarning, match=r"^source is 1,000 times the size of target"):
+    with pytest.warns(sampling.SizeMismatchWarning, match=r"^source is 1,000 times the size of target"):
         tiny_registrar.register(cloud * 1000.0, cloud)
-    with pytest.warns(registration.SizeMismatchWarning, match=r"^target is 25 times the size of source"):
+    with pytest.warns(sampling.SizeMismatchWarning, match=r"^target is 25 times the size of source"):
         tiny_registrar.register(cloud, cloud * 25.0)
     with warnings.catch_warnings():
-        warnings.simplefilter("error", registration.SizeMismatchWarning)
+        warnings.simplefilter("error", sampling.SizeMismatchWarning)
         tiny_registrar.register(cloud, cloud[:100] * 3.0)
 
 
@@ -273,7 +274,7 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
             return icp.ICPResult(off, offset, 1.0, 0.0, 1)
         return icp.ICPResult(truth.T, -truth.T @ offset, 1.0, 0.0, 1)  # backward: exact
 
-    monkeypatch.setattr(pipeline.icp_lib, "refine", fake_refine)
+    monkeypatch.setattr(icp, "refine", fake_refine)
     results = {}
     bands = [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]  # how often right, by agreement
     for best in (False, True):
@@ -304,10 +305,10 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
         "validation_pairs": 20,
         "within_5_deg": 6,
     }
-    assert pipeline.agreement_band(bands, 5.0) is None  # a band of 5 results: not quoted
-    assert pipeline.agreement_band(bands, 90.0) == (30.0, None, 40, 2)
+    assert verdict.agreement_band(bands, 5.0) is None  # a band of 5 results: not quoted
+    assert verdict.agreement_band(bands, 90.0) == (30.0, None, 40, 2)
     shipped = registration.load(refine="none")
-    assert shipped.settings.best_direction is pipeline.InferenceSettings().best_direction
+    assert shipped.settings.best_direction is settings_lib.InferenceSettings().best_direction
     # the shipped record's bands hold every validation result of the pool they were chosen on
     evidence = checkpoint.read_extra(registration.shipped_weights())["calibration"]
     assert sum(pairs for _, pairs, _ in shipped.settings.agreement_bands_icp) == (
@@ -324,10 +325,7 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
 
     def exact_network(params, src, tgt, config):
         rotations, translations = zip(
-            *(
-                pipeline.icp_lib.procrustes(np.asarray(s, np.float64), np.asarray(t, np.float64))
-                for s, t in zip(src, tgt)
-            )
+            *(icp.procrustes(np.asarray(s, np.float64), np.asarray(t, np.float64)) for s, t in zip(src, tgt))
         )
         b, n = src.shape[:2]
         extras = {
@@ -342,13 +340,13 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3] + [3.0, -2.0, 1.0]
     truth = euler_zyx_to_matrix([150.0, -40.0, 70.0])
     tgt = src @ truth.T + [0.5, 0.2, -0.1]
-    monkeypatch.setattr(pipeline, "_register", exact_network)
+    monkeypatch.setattr(network_stage, "_register", exact_network)
     turns = []
     for kept in (0, 5, 23):
-        monkeypatch.setattr(pipeline.icp_lib, "best_start", lambda scores, kept=kept: kept)
+        monkeypatch.setattr(icp, "best_start", lambda scores, kept=kept: kept)
         result = tiny_registrar.register(src, tgt, rotation_search=True)
         np.testing.assert_allclose(result.apply(src), tgt, atol=1e-6)
-        assert result.start_turn == pytest.approx(geometry.rotation_angle_deg(pipeline.SEARCH_TURNS[kept]))
+        assert result.start_turn == pytest.approx(geometry.rotation_angle_deg(network_stage.SEARCH_TURNS[kept]))
         turns.append(result.start_turn)
     assert turns[0] == 0.0 and turns[1] > 0.0
 
@@ -444,7 +442,7 @@ def test_a_room_the_walls_let_turn_a_half_is_not_trusted(rooms_dir):
     model = registration.load()
     s = model.settings
     assert min(found.rival) > s.max_rival_features and min(found.twin) > s.max_twin_features
-    assert not found.agrees(s.max_disagreement_features, s.max_offset_features, s.max_rival_features)
+    assert not verdict.features_agree(found, s.max_disagreement_features, s.max_offset_features, s.max_rival_features)
     assert model.register(src, tgt).level == "probably wrong"
 
 
@@ -458,7 +456,7 @@ def test_a_room_that_fits_itself_turned_a_quarter_is_not_trusted(rooms_dir):
     src, tgt = (io.read(rooms_dir / "hotel3" / f"cloud_bin_{k}.ply") for k in (33, 30))
     found = feature_match.register_both_ways(src, tgt)
     s = registration.load().settings
-    assert found.agrees(s.max_disagreement_features, s.max_offset_features)
+    assert verdict.features_agree(found, s.max_disagreement_features, s.max_offset_features)
     assert min(found.twin) > s.max_twin_features
     result = registration.load().register(src, tgt)
     assert result.level == "probably wrong" and result.twin > result.max_twin

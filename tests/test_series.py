@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from dit_jax import cli, geometry, io, series
+from dit_jax import result as result_lib
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -82,13 +83,12 @@ class _ExactRegistrar:
         self.poses, self.calls = poses, []
 
     def register(self, src, tgt, refine=None):
-        from dit_jax import registration
 
         a = next(i for i, c in enumerate(self.clouds) if c is src)
         b = next(i for i, c in enumerate(self.clouds) if c is tgt)
         self.calls.append((a, b, refine))
         motion = np.linalg.inv(self.poses[b]) @ self.poses[a]
-        return registration.Result(
+        return result_lib.Result(
             motion[:3, :3],
             motion[:3, 3],
             motion,

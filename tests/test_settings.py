@@ -6,7 +6,7 @@ import dataclasses
 import pytest
 
 import evaluate
-from dit_jax import cli, pipeline, settings
+from dit_jax import cli, settings
 
 PARSERS = {
     "dit-register": cli._parser,
@@ -19,9 +19,9 @@ RETIRED = ("--n-points", "--no-verdict")
 
 #: What each choice-taking field accepts, from the settings' own constants.
 FIELD_CHOICES = {
-    "refine": pipeline.REFINEMENTS,
-    "feature_candidate": pipeline.FEATURE_CANDIDATES,
-    "verdict_rule": pipeline.VERDICTS,
+    "refine": settings.REFINEMENTS,
+    "feature_candidate": settings.FEATURE_CANDIDATES,
+    "verdict_rule": settings.VERDICTS,
     "best_direction": settings.ON_OFF,
     "viewpoint": settings.VIEWPOINTS,
 }

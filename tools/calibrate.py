@@ -1,6 +1,6 @@
 """Calibration: a checkpoint's inference settings and verdict thresholds, chosen on validation pairs (never
 test pairs) through the registration pipeline, and recorded in the checkpoint's
-:class:`~dit_jax.pipeline.InferenceSettings`.
+:class:`~dit_jax.settings.InferenceSettings`.
 
     python tools/calibrate.py runs/mix/model --data-dir /data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
     python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
@@ -29,9 +29,11 @@ import os
 
 import numpy as np
 
-from dit_jax import checkpoint, geometry, pipeline, registration, training
+from dit_jax import checkpoint, geometry, registration, training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
+from dit_jax.settings import REFINEMENTS, InferenceSettings
+from dit_jax.verdict import MIN_BAND_PAIRS
 
 #: The settings the inference options are chosen on.
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
@@ -57,12 +59,12 @@ def largest_threshold(errors: np.ndarray, agreement: np.ndarray) -> float | None
 def fallback_threshold(curve: list[dict]) -> float:
     """The :data:`AGREEMENT_GRID` threshold whose trusted results are most often right on ``curve`` (one
     :func:`dit_jax.evaluators.common.verdict_summary` per grid value), the smaller on a tie. One that trusts
-    none counts as always right; one that trusts fewer than :data:`dit_jax.pipeline.MIN_BAND_PAIRS` is not
+    none counts as always right; one that trusts fewer than :data:`dit_jax.verdict.MIN_BAND_PAIRS` is not
     taken (too few to say how often they are right), unless every threshold is such, when the smallest is."""
     candidates = [
         (1.0 if row["passed"] == 0 else row["passed_right"], -t)
         for t, row in zip(AGREEMENT_GRID, curve)
-        if row["passed"] == 0 or row["passed"] >= pipeline.MIN_BAND_PAIRS
+        if row["passed"] == 0 or row["passed"] >= MIN_BAND_PAIRS
     ]
     return -max(candidates)[1] if candidates else AGREEMENT_GRID[0]
 
@@ -71,7 +73,7 @@ def gather_agreement(registrar: registration.Registrar, batches: dict) -> dict:
     """Each validation pair of ``batches`` ({setting: batch}) through the pipeline as users run it: per
     refinement ("none": the network's result, "icp": the refined one), ``{"setting", "rot_err",
     "agreement"}``, each a list over all pairs."""
-    per_pair = {refine: {"setting": [], "rot_err": [], "agreement": []} for refine in pipeline.REFINEMENTS}
+    per_pair = {refine: {"setting": [], "rot_err": [], "agreement": []} for refine in REFINEMENTS}
     agreement_registrar = registration.Registrar(
         registrar.params, registrar.config, registrar.settings, verdict_rule="agreement", refine="icp"
     )
@@ -179,7 +181,7 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
     return report
 
 
-def record(path: str, report: dict) -> pipeline.InferenceSettings:
+def record(path: str, report: dict) -> InferenceSettings:
     """Writes a choice into the checkpoint's inference settings (its params untouched), with the evidence it
     rests on under ``calibration``. Returns the new settings."""
     extra = checkpoint.read_extra(path)

@@ -24,7 +24,7 @@ Tables:
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
-* ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict_level`)
+* ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.verdict.level`)
   was right, per setting and pair set, for DIT alone and DIT+ICP.
 """
 
@@ -39,9 +39,12 @@ import sys
 import numpy as np
 
 from dit_jax import baselines as baselines_lib
-from dit_jax import pipeline
+from dit_jax import verdict
 from dit_jax.evaluators import common
 from dit_jax.evaluators import scans as scans_evaluator
+from dit_jax.result import VERDICT_LEVELS
+from dit_jax.settings import InferenceSettings
+from dit_jax.verdict import MIN_BAND_PAIRS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -207,24 +210,24 @@ def results_tables() -> list[str]:
     return lines[:-1]
 
 
-def _settings_of(results: dict) -> pipeline.InferenceSettings:
+def _settings_of(results: dict) -> InferenceSettings:
     recorded = results.get("inference_settings") or results.get("dit", {}).get("inference_settings")
     if recorded is None:
         from dit_jax import registration
 
         return registration.load().settings
-    return pipeline.InferenceSettings(**recorded)
+    return InferenceSettings(**recorded)
 
 
-def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine: str, confirmed=None) -> dict:
+def level_counts(agreement, right, settings: InferenceSettings, refine: str, confirmed=None) -> dict:
     """{level: (results, right)} of results with these agreements (degrees), right or not. ``confirmed``: per
     result, whether the pipeline's second candidate confirmed it (trusted whatever the agreement)."""
-    counts = {level: [0, 0] for level in pipeline.VERDICT_LEVELS}
+    counts = {level: [0, 0] for level in VERDICT_LEVELS}
     threshold, bands = settings.max_disagreement(refine), settings.agreement_bands(refine)
     confirmed = [False] * len(agreement) if confirmed is None else confirmed
     for a, ok, sure in zip(agreement, right, confirmed):
-        level = pipeline.verdict_level(
-            bool(sure) or a <= threshold, pipeline.agreement_band(bands, a), settings.unconfirmed_min_right
+        level = verdict.level(
+            bool(sure) or a <= threshold, verdict.agreement_band(bands, a), settings.unconfirmed_min_right
         )
         counts[level][0] += 1
         counts[level][1] += int(ok)
@@ -232,8 +235,8 @@ def level_counts(agreement, right, settings: pipeline.InferenceSettings, refine:
 
 
 def levels_table() -> list[str]:
-    header = " | ".join(f"{level}: results, right" for level in pipeline.VERDICT_LEVELS)
-    lines = [f"| data | method | {header} |", "|---|---|" + "---|" * len(pipeline.VERDICT_LEVELS)]
+    header = " | ".join(f"{level}: results, right" for level in VERDICT_LEVELS)
+    lines = [f"| data | method | {header} |", "|---|---|" + "---|" * len(VERDICT_LEVELS)]
     for name, title in SOURCES:
         results = _load(name)
         if results is None:
@@ -303,7 +306,7 @@ def levels_table() -> list[str]:
                         sum(a == level for a in agreement),
                         sum(a == level and ok for a, ok in zip(agreement, right)),
                     )
-                    for level in pipeline.VERDICT_LEVELS
+                    for level in VERDICT_LEVELS
                 }
             else:
                 counts = level_counts(np.asarray(agreement, float), right, settings, refine, confirmed)
@@ -377,7 +380,7 @@ def rival_table() -> list[str]:
     criterion, wrong flagged."""
     if not FEATURE_AGREEMENT.exists():
         return ["(no measurement in docs/feature_agreement.jsonl yet)"]
-    settings = pipeline.InferenceSettings()
+    settings = InferenceSettings()
     records = [json.loads(line) for line in FEATURE_AGREEMENT.read_text().splitlines() if line.strip()]
     lines = [
         "| data | pairs | rival bound | twin bound | trusted | right | right by 15 deg and 0.3 m | wrong flagged |",
@@ -447,9 +450,7 @@ def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
         lines.append(f"| {method}: validation results | " + " | ".join(str(p) for _, p, _ in edges) + " |")
         lines.append(
             f"| {method}: within 5 deg | "
-            + " | ".join(
-                f"{100 * r / p:.0f} %" if p >= pipeline.MIN_BAND_PAIRS else f"({r} of {p})" for _, p, r in edges
-            )
+            + " | ".join(f"{100 * r / p:.0f} %" if p >= MIN_BAND_PAIRS else f"({r} of {p})" for _, p, r in edges)
             + " |"
         )
     return lines

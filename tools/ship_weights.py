@@ -6,7 +6,7 @@
 Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and its inference settings
-(:class:`dit_jax.pipeline.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
+(:class:`dit_jax.settings.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
 ``--choice`` (the output of ``python tools/calibrate.py``) is then recorded into those settings as ``python tools/calibrate.py
 --record`` records one.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
@@ -20,7 +20,8 @@ import shutil
 
 import calibrate
 
-from dit_jax import checkpoint, pipeline, registration, training
+from dit_jax import checkpoint, registration, training
+from dit_jax.settings import InferenceSettings
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> None:
             "steps_run": max(per_step) if per_step else 0,
             "train_seconds": round(sum(per_step.values()) * log_every),
             "last_validation": val[-1] if val else None,
-            registration.SETTINGS_KEY: pipeline.InferenceSettings(n_points=args.inference_points).to_dict(),
+            registration.SETTINGS_KEY: InferenceSettings(n_points=args.inference_points).to_dict(),
             "note": args.note,
         }
     )

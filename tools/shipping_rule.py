@@ -22,9 +22,10 @@ import os
 
 import numpy as np
 
-from dit_jax import geometry, pipeline, registration, training
+from dit_jax import geometry, registration, training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
+from dit_jax.settings import MODEL_OVERRIDES, InferenceSettings
 
 #: The settings whose gains the rule sums.
 HARD = ("high_noise_partial", "independent_clean", "independent_high_noise_partial", "scan_high_noise")
@@ -34,12 +35,12 @@ SAMPLINGS = ("own", "varied")
 GAIN, LOSS = 0.15, 0.1
 
 
-def inference_settings(shipped: registration.Registrar) -> pipeline.InferenceSettings:
+def inference_settings(shipped: registration.Registrar) -> InferenceSettings:
     """The shipped weights' inference settings, unrefined, with every model option they run under (GMCCE
     threshold, kept share, guard, iterations, precision) written out: a checkpoint stores some of them in its
     model config, so without this a candidate exported from training would run its own (the authors'
     defaults) instead."""
-    options = {name: getattr(shipped.config, name) for name in pipeline.MODEL_OVERRIDES}
+    options = {name: getattr(shipped.config, name) for name in MODEL_OVERRIDES}
     return shipped.settings.replace(refine="none", rotation_search=False, **options)
 
 

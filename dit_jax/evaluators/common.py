@@ -146,7 +146,7 @@ def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg:
     agreement (P,) in degrees; ``edges`` the bands' upper ends, increasing. Returns one ``[upper, pairs,
     right]`` per band (previous edge, edge], then ``[None, pairs, right]`` for those beyond the last edge:
     how many results fell in it and how many of them were within ``right_deg``. What
-    :class:`dit_jax.registration.Result` quotes beside a verdict (``verdict_agreement_bands``)."""
+    :class:`dit_jax.result.Result` quotes beside a verdict (``verdict_agreement_bands``)."""
     errors, agreement = np.asarray(errors, np.float64), np.asarray(agreement, np.float64)
     bands, low = [], -np.inf
     for high in [*edges, np.inf]:

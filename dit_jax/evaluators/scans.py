@@ -11,7 +11,7 @@ import numpy as np
 
 from dit_jax import baselines as baselines_lib
 from dit_jax import icp as icp_lib
-from dit_jax import pipeline
+from dit_jax import sampling
 from dit_jax.evaluators import report
 from dit_jax.evaluators.common import (
     METHOD_DIT,
@@ -28,12 +28,13 @@ from dit_jax.evaluators.common import (
     run_dit,
     verdict_summary,
 )
+from dit_jax.result import VERDICT_LEVELS
 
 
 def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.baselines.SCAN_BASELINES`) on one pair of scans
     in their own units (``tgt ~ src @ R.T + t``): every point, in the unit sphere a tuned baseline is tuned for
-    (:func:`dit_jax.pipeline.normalise`), in the data's units for a recipe and the feature candidate."""
+    (:func:`dit_jax.sampling.normalise`), in the data's units for a recipe and the feature candidate."""
     started = time.perf_counter()
     if name == baselines_lib.FEATURE_CANDIDATE:
         from dit_jax import feature_match
@@ -44,10 +45,10 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     if name in baselines_lib.RECIPES:
         rotation, translation = baselines_lib.RECIPES[name](src, tgt)
         return rotation, translation, time.perf_counter() - started
-    src_n, tgt_n, src_centre, tgt_centre, scale = pipeline.normalise(src, tgt, "shared")
+    src_n, tgt_n, src_centre, tgt_centre, scale = sampling.normalise(src, tgt, "shared")
     rotation, translation = baselines_lib.get(name)(src_n, tgt_n)
     rotation = np.asarray(rotation, np.float64)
-    translation = pipeline.to_caller_units(rotation, np.asarray(translation, np.float64), src_centre, tgt_centre, scale)
+    translation = sampling.to_caller_units(rotation, np.asarray(translation, np.float64), src_centre, tgt_centre, scale)
     return rotation, translation, time.perf_counter() - started
 
 
@@ -114,7 +115,7 @@ def summarise_scans(rows: list[dict], criterion: tuple[float, float] | None = No
                 "pairs": sum(r["level"] == level for r in rows),
                 "right": sum(r["level"] == level and is_right(r, criterion) for r in rows),
             }
-            for level in pipeline.VERDICT_LEVELS
+            for level in VERDICT_LEVELS
         }
     return out
 

@@ -196,7 +196,7 @@ def evaluate(
     Args:
       checkpoint_dir: a model checkpoint (:mod:`dit_jax.checkpoint`); None evaluates the baselines alone.
       max_pairs: evaluate only the first pairs of each setting (all by default).
-      inference: changes to the checkpoint's :class:`~dit_jax.pipeline.InferenceSettings` (e.g.
+      inference: changes to the checkpoint's :class:`~dit_jax.settings.InferenceSettings` (e.g.
         ``{"refine": "none"}`` drops the DIT+ICP row, ``{"verdict_rule": "fitness"}`` the second direction).
       gmcce_threshold: None runs the model as it ships; "authors" uses the authors' threshold for each
         setting (:data:`GMCCE_THRESHOLDS`); a number uses that threshold everywhere.
