@@ -8,6 +8,7 @@ import math
 import os
 import time
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import jax
 import jax.flatten_util
@@ -80,12 +81,77 @@ def train(
     """
     workdir = os.path.abspath(workdir)  # orbax needs absolute paths
     os.makedirs(workdir, exist_ok=True)
-    model_config = config.model_config()
-    mesh = step_lib.make_mesh()
-    n_dev = mesh.devices.size
-    if config.batch_size % n_dev:
-        raise ValueError(f"batch_size {config.batch_size} is not divisible by the {n_dev} devices")
+    plan = _plan(config, prepared_dir, progress)
+    config = plan.config
+    last_mgr, best_mgr = _managers(workdir, config.keep)
+    primary = step_lib.is_primary()
+    log_path = os.path.join(workdir, "metrics.jsonl")
+    log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
+    state, best_val = _starting_state(config, plan.optimizer, workdir, last_mgr, resume=resume, primary=primary)
+    state = step_lib.replicate(state, mesh := plan.mesh)
+    step_fn = step_lib.make_train_step(config, plan.optimizer, mesh)
+    start = int(state.step)
+    bar = _progress_bar(plan.total_steps, start) if progress and primary else None
+    validation = _Validation(plan, best_mgr, log, bar, primary, best_val)
+    if start == 0 and config.validate_at_start:
+        validation.run(state, 0, 0)  # where training starts from: the first point of every curve
+    t_last = time.time()
+    step = start
+    for epoch, batch in _batches_from(plan, start):
+        state, out = step_fn(state, step_lib.shard_batch(batch, mesh))
+        step += 1
+        if step % config.log_every == 0 or step == plan.total_steps:
+            out = {k: float(v) for k, v in jax.device_get(out).items()}
+            now = time.time()
+            log(_train_record(plan, state, out, step, epoch, (now - t_last) / config.log_every))
+            t_last = now
+            if bar is not None:
+                _show(bar, out)
+        if bar is not None:
+            bar.update(1)
+        if step % config.eval_every == 0 or step == plan.total_steps:
+            validation.run(state, step, epoch)
+        if step % config.ckpt_every == 0 or step == plan.total_steps:
+            _save(last_mgr, state, validation.meta(step))
+    if bar is not None:
+        bar.close()
+    last_mgr.close()
+    best_mgr.close()
+    result = {
+        "step": step,
+        "total_steps": plan.total_steps,
+        "skipped": int(state.skipped),
+        "val": validation.metrics,
+        "best_val_network_rotation_error": validation.best,
+        "workdir": os.path.abspath(workdir),
+        "processes": jax.process_count(),
+        "devices": mesh.devices.size,
+    }
+    if step >= plan.total_steps:
+        # Every process: orbax's managers synchronise the processes (process 0 writes).
+        result["model"] = export_params(workdir, os.path.join(workdir, "model"))
+    return result
 
+
+class _Plan(NamedTuple):
+    """What a run fixes before its first step: its config (``train_precision`` resolved), the devices' mesh,
+    the data, the optimiser and the step counts."""
+
+    config: TrainConfig
+    mesh: jax.sharding.Mesh
+    train_ds: object
+    val_ds: object
+    optimizer: optax.GradientTransformation
+    steps_per_epoch: int
+    total_steps: int
+
+
+def _plan(config: TrainConfig, prepared_dir: str | None, progress: bool) -> _Plan:
+    """The :class:`_Plan` of a run of ``config``; raises ValueError where the batch does not fit the devices
+    or the data."""
+    mesh = step_lib.make_mesh()
+    if config.batch_size % mesh.devices.size:
+        raise ValueError(f"batch_size {config.batch_size} is not divisible by the {mesh.devices.size} devices")
     train_ds, val_ds = make_datasets(config, prepared_dir, progress and step_lib.is_primary())
     steps_per_epoch = len(train_ds) // config.batch_size
     if steps_per_epoch == 0:
@@ -99,113 +165,77 @@ def train(
         config = dataclasses.replace(config, train_precision=choice.precision)  # what train_config.json records
         if step_lib.is_primary():
             print(choice.describe(), flush=True)
-    last_mgr, best_mgr = _managers(workdir, config.keep)
-    log_path = os.path.join(workdir, "metrics.jsonl")
-    primary = step_lib.is_primary()
-    log = (lambda record: _append_jsonl(log_path, record)) if primary else (lambda record: None)
+    return _Plan(config, mesh, train_ds, val_ds, optimizer, steps_per_epoch, total_steps)
 
-    state, best_val = _starting_state(config, optimizer, workdir, last_mgr, resume=resume, primary=primary)
-    state = step_lib.replicate(state, mesh)
-    step_fn = step_lib.make_train_step(config, optimizer, mesh)
 
-    def meta(step):
-        return {
-            "train_config": config.to_json(),
-            "step": step,
-            "best_val": best_val,
-            "steps_per_epoch": steps_per_epoch,
-        }
+def _batches_from(plan: _Plan, step: int) -> Iterator[tuple[int, dict]]:
+    """(epoch, batch) from training step ``step`` on, to the run's last step, in the data's exact order."""
+    epoch, offset = divmod(step, plan.steps_per_epoch)
+    while step < plan.total_steps:
+        for b in prefetch.batches(plan.train_ds, plan.config.batch_size, epoch=epoch, start_batch=offset):
+            yield epoch, b
+            step += 1
+            if step >= plan.total_steps:
+                return
+        epoch, offset = epoch + 1, 0
 
-    start = int(state.step)
-    bar = None
-    if progress and primary:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=total_steps, initial=start, desc="train", unit="step", dynamic_ncols=True)
+class _Validation:
+    """The run's validations: each logs its metrics, shows its line and saves the best network so far."""
 
-    def batches_from(step: int) -> Iterator[tuple[int, dict]]:
-        epoch, offset = divmod(step, steps_per_epoch)
-        while step < total_steps:
-            for b in prefetch.batches(train_ds, config.batch_size, epoch=epoch, start_batch=offset):
-                yield epoch, b
-                step += 1
-                if step >= total_steps:
-                    return
-            epoch, offset = epoch + 1, 0
+    def __init__(self, plan: _Plan, best_mgr, log, bar, primary: bool, best: float):
+        self.plan, self.best_mgr, self.log, self.bar, self.primary = plan, best_mgr, log, bar, primary
+        self.best = best
+        self.metrics: dict = {}
+        self.model_config = plan.config.model_config()
 
-    val_metrics = {}
+    def meta(self, step: int) -> dict:
+        """What a checkpoint at ``step`` records beside the state."""
+        config = self.plan.config
+        return {"train_config": config.to_json(), "step": step, "best_val": self.best,
+                "steps_per_epoch": self.plan.steps_per_epoch}  # fmt: skip
 
-    def run_validation(step: int, epoch: int) -> None:
-        nonlocal val_metrics, best_val
+    def run(self, state: step_lib.TrainState, step: int, epoch: int) -> None:
         # Through the host onto this process's first device, once per validation (not per batch): the
         # registration program is the one a single-device run compiles (and finds in the compilation cache),
         # whatever the mesh.
         params = jax.device_put(jax.device_get(state.params), jax.local_devices()[0])
-        val_metrics = validate(params, val_ds, model_config, config.val_pairs)
-        log({"step": step, "epoch": epoch, "split": "val", **val_metrics})
-        line = _validation_line(step, val_metrics)
-        if bar is not None:
-            bar.write(line)
-        elif primary:
+        self.metrics = validate(params, self.plan.val_ds, self.model_config, self.plan.config.val_pairs)
+        self.log({"step": step, "epoch": epoch, "split": "val", **self.metrics})
+        line = _validation_line(step, self.metrics)
+        if self.bar is not None:
+            self.bar.write(line)
+        elif self.primary:
             print(line, flush=True)
-        if val_metrics["network_rotation_error"] < best_val:
-            best_val = val_metrics["network_rotation_error"]
-            _save(best_mgr, state, meta(step))
+        if self.metrics["network_rotation_error"] < self.best:
+            self.best = self.metrics["network_rotation_error"]
+            _save(self.best_mgr, state, self.meta(step))
 
-    if start == 0 and config.validate_at_start:
-        run_validation(0, 0)  # where training starts from: the first point of every curve
-    t_last = time.time()
-    step = start
-    for epoch, batch in batches_from(start):
-        state, out = step_fn(state, step_lib.shard_batch(batch, mesh))
-        step += 1
-        if step % config.log_every == 0 or step == total_steps:
-            out = {k: float(v) for k, v in jax.device_get(out).items()}
-            now = time.time()
-            record = {
-                "step": step,
-                "epoch": epoch,
-                "split": "train",
-                "skipped": int(state.skipped),
-                "lr": float(step_lib.lr_schedule(config, total_steps)(step - 1)),
-                **out,
-                "seconds_per_step": (now - t_last) / config.log_every,
-            }
-            t_last = now
-            log(record)
-            if bar is not None:
-                bar.set_postfix(
-                    loss=f"{out['loss']:.3f}",
-                    disc=f"{out['discrimination']:.3f}",
-                    acc=f"{out['match_accuracy']:.2f}",
-                    rot=f"{out['rotation_error']:.1f}",
-                    trans=f"{out['translation_error']:.3f}",
-                    refresh=False,
-                )
-        if bar is not None:
-            bar.update(1)
-        if step % config.eval_every == 0 or step == total_steps:
-            run_validation(step, epoch)
-        if step % config.ckpt_every == 0 or step == total_steps:
-            _save(last_mgr, state, meta(step))
-    if bar is not None:
-        bar.close()
-    last_mgr.close()
-    best_mgr.close()
-    result = {
-        "step": step,
-        "total_steps": total_steps,
-        "skipped": int(state.skipped),
-        "val": val_metrics,
-        "best_val_network_rotation_error": best_val,
-        "workdir": os.path.abspath(workdir),
-        "processes": jax.process_count(),
-        "devices": n_dev,
-    }
-    if step >= total_steps:
-        # Every process: orbax's managers synchronise the processes (process 0 writes).
-        result["model"] = export_params(workdir, os.path.join(workdir, "model"))
-    return result
+
+def _progress_bar(total_steps: int, start: int):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total_steps, initial=start, desc="train", unit="step", dynamic_ncols=True)
+
+
+def _train_record(plan: _Plan, state: step_lib.TrainState, out: dict, step: int, epoch: int, seconds: float) -> dict:
+    """The log's line for a training step: the step's losses and metrics (``out``), the learning rate and the
+    mean ``seconds`` per step since the last line."""
+    lr = float(step_lib.lr_schedule(plan.config, plan.total_steps)(step - 1))
+    return {"step": step, "epoch": epoch, "split": "train", "skipped": int(state.skipped), "lr": lr, **out,
+            "seconds_per_step": seconds}  # fmt: skip
+
+
+def _show(bar, out: dict) -> None:
+    """The progress bar's figures after a logged step."""
+    bar.set_postfix(
+        loss=f"{out['loss']:.3f}",
+        disc=f"{out['discrimination']:.3f}",
+        acc=f"{out['match_accuracy']:.2f}",
+        rot=f"{out['rotation_error']:.1f}",
+        trans=f"{out['translation_error']:.3f}",
+        refresh=False,
+    )
 
 
 def _starting_state(
