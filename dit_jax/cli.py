@@ -505,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", sampling.SizeMismatchWarning)
-                result = model.register(src, tgt, refine=args.refine)
+                result = model.register(src, tgt)
         except sampling.InputError as err:  # name the files, not "source"/"target"
             message = str(err).replace("source:", f"{args.src}:", 1).replace("target:", f"{args.tgt}:", 1)
             return _fail(message)

@@ -20,7 +20,7 @@ import jax
 from dit_jax import pipeline
 from dit_jax.configs import DITConfig
 from dit_jax.result import Result
-from dit_jax.settings import InferenceSettings
+from dit_jax.settings import MODEL_OVERRIDES, InferenceSettings
 
 #: Where the weights that ship with the package live (their runs: MODEL_CARD.md).
 SHIPPED_WEIGHTS = "weights/dit-cpu-modelnet40"
@@ -37,41 +37,50 @@ class Registrar:
       **changes: fields of ``settings`` to change, e.g. ``refine="none"``.
 
     Attributes:
-      settings: the settings in force; config: the model config the network runs (``config`` with the
-        settings' overrides applied); params: the network's parameters.
+      settings: the settings in force; config: the model config the network runs (``checkpoint_config`` with
+        the settings' overrides applied, once); checkpoint_config: the model config as the checkpoint stores
+        it; params: the network's parameters.
+
+    Settings change in one of two ways: for the registrar (:func:`load`'s changes, or :meth:`replace`), or for
+    one call (:meth:`register`'s and :meth:`register_pairs`' changes), which cannot touch the network's own
+    settings (:data:`~dit_jax.settings.MODEL_OVERRIDES`).
     """
 
     def __init__(self, params, config: DITConfig, settings: InferenceSettings | None = None, **changes):
         self.settings = (settings or InferenceSettings()).replace(**changes)
+        self.checkpoint_config = config
         self.config = self.settings.model_config(config)  # what the network runs
         self.params = jax.device_put(params)  # one transfer for the tree, where jnp.asarray runs a program a leaf
         need = self.config.min_points
         if self.settings.n_points < need:
             raise ValueError(f"n_points={self.settings.n_points} is below the model's minimum {need}")
 
-    def register(self, src, tgt, *, refine: str | None = None, rotation_search: bool | None = None) -> Result:
+    def register(self, src, tgt, **changes) -> Result:
         """Registers ``src`` (N, 3) onto ``tgt`` (M, 3), both in the caller's units.
 
-        ``refine`` (one of :data:`~dit_jax.settings.REFINEMENTS`) and ``rotation_search`` change the
-        Registrar's settings for this call (None: keep them). Raises :class:`~dit_jax.sampling.InputError` naming the cloud DIT cannot register."""
-        return self.register_pairs([(src, tgt)], refine=refine, rotation_search=rotation_search, batch_size=1)[0]
+        ``changes``: settings for this call only, e.g. ``refine="none"`` (one of
+        :data:`~dit_jax.settings.REFINEMENTS`) or ``rotation_search=True``; None keeps the registrar's. Raises
+        :class:`~dit_jax.sampling.InputError` naming the cloud DIT cannot register."""
+        return self.register_pairs([(src, tgt)], batch_size=1, **changes)[0]
 
-    def register_pairs(
-        self,
-        pairs,
-        *,
-        refine: str | None = None,
-        rotation_search: bool | None = None,
-        batch_size: int = 8,
-        on_pair=None,
-    ) -> list[Result]:
+    def register_pairs(self, pairs, *, batch_size: int = 8, on_pair=None, **changes) -> list[Result]:
         """:meth:`register` for many ``(src, tgt)`` pairs, batched through the network
-        (:func:`dit_jax.pipeline.register_pairs`)."""
-        changes = {k: v for k, v in (("refine", refine), ("rotation_search", rotation_search)) if v is not None}
+        (:func:`dit_jax.pipeline.register_pairs`); ``on_pair(count)`` as pairs finish."""
+        changes = {name: value for name, value in changes.items() if value is not None}
+        network_changes = sorted(set(changes) & set(MODEL_OVERRIDES))
+        if network_changes:
+            raise ValueError(
+                f"{', '.join(network_changes)} change the network itself: set them with load(...) or replace(...)"
+            )
         settings = self.settings.replace(**changes) if changes else self.settings
         return pipeline.register_pairs(
             self.params, self.config, settings, pairs, batch_size=batch_size, on_pair=on_pair
         )
+
+    def replace(self, *, config: DITConfig | None = None, **changes) -> Registrar:
+        """A registrar of the same weights with ``changes`` to the settings (and ``config`` in place of the
+        checkpoint's model config, e.g. another ``compute_dtype``); the overrides apply once, to the checkpoint's."""
+        return Registrar(self.params, config or self.checkpoint_config, self.settings, **changes)
 
 
 def shipped_weights() -> str:

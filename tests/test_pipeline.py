@@ -1,14 +1,14 @@
 """The registration pipeline's settings and stages that need no network: one typed record of every inference
-setting, its round trip through a checkpoint, and the verdict's stage."""
+setting, its round trip through a checkpoint, and the stages' typed records."""
 
 import dataclasses
+import re
 
 import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, registration, verdict
-from dit_jax.result import VERDICT_LEVELS
+from dit_jax import checkpoint, configs, model, network_stage, pipeline, refinement, registration, verdict
 from dit_jax.sampling import normalise, to_caller_units
 from dit_jax.settings import DENSE_POINTS, SCAN_POINTS, InferenceSettings, refinement_for
 
@@ -59,21 +59,6 @@ def test_a_checkpoint_stores_its_settings_and_load_changes_them(tmp_path):
     assert registration.load(bare).settings == InferenceSettings(), "defaults live in one place"
 
 
-def test_the_verdict_stage_judges_by_agreement_or_fitness():
-    quarter_turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    settings = InferenceSettings(
-        max_disagreement_network=1.0, max_disagreement_icp=100.0, agreement_bands_icp=[[10.0, 50, 45], [None, 40, 2]]
-    )
-    trusted, threshold, agreement, band = verdict.judge(settings, "none", 0.0, quarter_turn, quarter_turn.T)
-    assert trusted and threshold == 1.0 and agreement == pytest.approx(0.0, abs=1e-6) and band is None
-    trusted, threshold, agreement, band = verdict.judge(settings, "icp", 0.0, quarter_turn, quarter_turn)
-    assert not trusted and threshold == 100.0 and agreement == pytest.approx(180.0) and band == (10.0, None, 40, 2)
-    fitness = settings.replace(verdict_rule="fitness", min_fitness=0.6)
-    assert verdict.judge(fitness, "icp", 0.7, quarter_turn, None)[:2] == (True, 0.6)
-    assert not verdict.judge(fitness, "icp", 0.5, quarter_turn, None)[0]
-    assert np.isnan(verdict.judge(fitness, "icp", 0.5, quarter_turn, None)[2])
-
-
 def test_auto_refines_scans_by_gicp_and_sparse_clouds_by_icp():
     dense = DENSE_POINTS
     assert refinement_for("auto", dense, dense) == "gicp"
@@ -98,16 +83,6 @@ def test_the_features_run_first_on_scans_unless_told_otherwise():
         InferenceSettings(feature_candidate="sometimes")
 
 
-def test_a_result_not_trusted_is_unconfirmed_only_where_its_band_was_mostly_right():
-    band = lambda pairs, right: (1.0, 2.0, pairs, right)
-    assert verdict.level(True, None, 0.5) == "trusted"
-    assert verdict.level(False, band(20, 10), 0.5) == "unconfirmed"  # half right: mostly enough
-    assert verdict.level(False, band(20, 9), 0.5) == "probably wrong"
-    assert verdict.level(False, None, 0.5) == "probably wrong"  # no evidence either way
-    assert verdict.level(False, band(20, 19), 0.99) == "probably wrong"
-    assert VERDICT_LEVELS == ("trusted", "unconfirmed", "probably wrong")
-
-
 def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(100, 3))
@@ -121,3 +96,43 @@ def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
     rotation = np.eye(3)
     # A motion found between the normalised clouds maps back into the caller's frame.
     assert np.allclose(to_caller_units(rotation, np.zeros(3), src_centre, tgt_centre, 2.0), tgt_centre - src_centre)
+
+
+def test_the_stages_pass_typed_records_not_dicts_or_tuples():
+    """Every stage function takes and returns records (:class:`pipeline.Pair`, ``PairEstimate``, ``Motion``,
+    ``Refined``, ``Verdict``, ``Result``) or arrays; a dict or a bare tuple between them would hide what flows."""
+    import inspect
+
+    stages = [
+        pipeline.by_features,
+        pipeline.sampled,
+        pipeline.estimated,
+        pipeline.network_result,
+        pipeline.features_result,
+        pipeline.landing,
+        network_stage.estimate_pairs,
+        refinement.refine_pair,
+        refinement.fitness,
+        verdict.judge,
+        verdict.judge_features,
+    ]
+    for stage in stages:
+        signature = inspect.signature(stage)
+        # ``params`` is the network's weights (Flax's pytree), handed through untouched
+        parameters = [p for name, p in signature.parameters.items() if name != "params"]
+        annotations = [p.annotation for p in parameters] + [signature.return_annotation]
+        for annotation in annotations:
+            assert annotation is not inspect.Parameter.empty, f"{stage.__name__}: every parameter is annotated"
+            words = re.findall(r"[A-Za-z_]+", str(annotation))
+            assert "dict" not in words and "tuple" not in words, f"{stage.__name__}: {annotation}"
+
+
+def test_register_pairs_reads_as_its_stages():
+    import inspect
+
+    source = inspect.getsource(pipeline.register_pairs)
+    assert len(source.splitlines()) <= 40
+    positions = [
+        source.index(f"{name}(") for name in ("check_pair", "by_features", "sampled", "estimated", "network_result")
+    ]
+    assert positions == sorted(positions), "the stages run in their order"

@@ -473,3 +473,15 @@ def test_a_symmetric_room_whose_hypotheses_tie_is_probably_wrong():
     result = registration.load().register(box_room(30000, 1), box_room(30000, 2) @ truth.T + t_truth)
     assert result.level == "probably wrong" and not result.verdict
     assert result.twin > result.max_twin
+
+
+def test_settings_change_for_the_registrar_or_for_one_call_and_the_network_once(tiny_registrar):
+    """Per call: any setting but the network's own; those go through load(...) or replace(...), whose overrides
+    apply once, to the checkpoint's config (not on top of the registrar's)."""
+    with pytest.raises(ValueError, match="n_iters change the network itself"):
+        tiny_registrar.register_pairs([], n_iters=2)
+    five = tiny_registrar.replace(n_iters=5)
+    assert five.config.n_iters == 5 and five.checkpoint_config == tiny_registrar.checkpoint_config
+    back = five.replace(n_iters=None)
+    assert back.config == tiny_registrar.config, "an override set back to None reads the checkpoint's value again"
+    assert tiny_registrar.register_pairs([], refine="icp", rotation_search=None) == []

@@ -74,9 +74,7 @@ def gather_agreement(registrar: registration.Registrar, batches: dict) -> dict:
     refinement ("none": the network's result, "icp": the refined one), ``{"setting", "rot_err",
     "agreement"}``, each a list over all pairs."""
     per_pair = {refine: {"setting": [], "rot_err": [], "agreement": []} for refine in REFINEMENTS}
-    agreement_registrar = registration.Registrar(
-        registrar.params, registrar.config, registrar.settings, verdict_rule="agreement", refine="icp"
-    )
+    agreement_registrar = registrar.replace(verdict_rule="agreement", refine="icp")
     for setting, b in batches.items():
         found = common.run_dit(agreement_registrar, list(zip(b["src"], b["tgt"])))
         for refine, method in (("none", common.METHOD_DIT), ("icp", common.METHOD_DIT_ICP)):
@@ -147,9 +145,7 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
         variants.append(changes)
     report = {"grid": {k: list(v) for k, v in grid.items()}, "variants": []}
     for changes in variants:
-        run = registration.Registrar(
-            registrar.params, registrar.config, registrar.settings, refine="none", verdict_rule="fitness", **changes
-        )
+        run = registrar.replace(refine="none", verdict_rule="fitness", **changes)
         row = {"changes": changes, "settings": {}}
         for setting, b in batches.items():
             est = common.run_dit(run, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
@@ -260,14 +256,12 @@ def main(argv: list[str] | None = None) -> int:
             batches = training.validation_batches(
                 args.data_dir, SETTINGS, count=args.pairs, n_points=n_points, unseen=args.unseen
             )
-            config = registrar.settings.model_config(registrar.config)
+            config = registrar.config
             grid = {k: (getattr(config, k),) for k in GRID} if args.keep_gmcce else dict(GRID)
             if args.iters:
                 grid["n_iters"] = tuple(args.iters)
             report |= choose_inference(registrar, batches, grid)
-            registrar = registration.Registrar(
-                registrar.params, registrar.config, registrar.settings, **report["chosen"]
-            )
+            registrar = registrar.replace(**report["chosen"])
         batches = training.validation_batches(
             args.data_dir, args.verdict_settings, count=args.pairs, n_points=n_points, unseen=args.unseen
         )

@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> None:
     }
     report = {}
     for name, loaded in (("shipped", shipped), ("candidate", registration.load(args.candidate))):
-        registrar = registration.Registrar(loaded.params, loaded.config, settings)
+        registrar = registration.Registrar(loaded.params, loaded.checkpoint_config, settings)
         report[name] = {}
         for label, (pairs, rotations, batch_size) in sets.items():
             errors = errors_deg(registrar, pairs, rotations, batch_size)

@@ -111,8 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     candidate = registration.load(args.candidate)
     settings = inference_settings(shipped)
     registrars = {
-        "shipped": registration.Registrar(shipped.params, shipped.config, settings),
-        "candidate": registration.Registrar(candidate.params, candidate.config, settings),
+        "shipped": registration.Registrar(shipped.params, shipped.checkpoint_config, settings),
+        "candidate": registration.Registrar(candidate.params, candidate.checkpoint_config, settings),
     }
     batches = training.validation_batches(args.data_dir, SETTINGS, count=args.pairs)
     copies = {"own": batches, "varied": {s: resampled(b, args.varied_points) for s, b in batches.items()}}

@@ -89,13 +89,12 @@ def run_dit(registrar, pairs: Sequence[tuple], *, batch_size: int = 8, bar=None)
     result}`` (the second where the registrar's settings refine, the third where they also register by local
     features). Each result keeps the network's stages before it, so one run gives all three, unless the
     features settle some pairs before the network runs (dense scans): then the network's rows come from a
-    second run without the features."""
+    second run of the pipeline with the features off."""
     settings = registrar.settings
     results = registrar.register_pairs(pairs, batch_size=batch_size, on_pair=bar.update if bar else None)
     network_results = results
     if any(not r.stages for r in results):
-        without = type(registrar)(registrar.params, registrar.config, settings, feature_candidate="off")
-        network_results = without.register_pairs(pairs, batch_size=batch_size)
+        network_results = registrar.register_pairs(pairs, batch_size=batch_size, feature_candidate="off")
     out = {METHOD_DIT: Estimates.from_stages([r.stage("network") for r in network_results])}
     if settings.refine != "none":
         # Where the network ran after the features and landed out of their reach, it was not refined.

@@ -298,7 +298,7 @@ def _registrar(checkpoint_dir: str | None, inference: dict | None, compute_dtype
     from dit_jax import registration
 
     loaded = registration.load(checkpoint_dir, **(inference or {}))
-    return registration.Registrar(loaded.params, loaded.config.replace(compute_dtype=compute_dtype), loaded.settings)
+    return loaded.replace(config=loaded.checkpoint_config.replace(compute_dtype=compute_dtype))
 
 
 def _setting_threshold(setting: str, gmcce_threshold: float | str) -> float:
@@ -393,6 +393,4 @@ def _write_outputs(results: dict, first_dit: tuple | None, out_dir: str) -> None
 
 def _with_settings(registrar, **changes):
     """A registrar sharing ``registrar``'s model, with changed inference settings."""
-    from dit_jax import registration
-
-    return registration.Registrar(registrar.params, registrar.config, registrar.settings, **changes)
+    return registrar.replace(**changes)
