@@ -485,3 +485,38 @@ def test_settings_change_for_the_registrar_or_for_one_call_and_the_network_once(
     back = five.replace(n_iters=None)
     assert back.config == tiny_registrar.config, "an override set back to None reads the checkpoint's value again"
     assert tiny_registrar.register_pairs([], refine="icp", rotation_search=None) == []
+
+
+def test_the_shipped_weights_record_names_no_machine_path_and_its_commands_parse(monkeypatch):
+    """Every path in the weights' record is relative to the repository (or a named data folder such as
+    ``$MODELNET40``), and each stage's command is one ``train.py`` reads today, with its recipe in configs/."""
+    import os
+    import shlex
+
+    import train
+    from conftest import ROOT
+
+    record = checkpoint.read_extra(registration.shipped_weights())
+    commands, strings = [], []
+
+    def walk(value, key=""):
+        if isinstance(value, dict):
+            for name, inner in value.items():
+                walk(inner, name)
+        elif isinstance(value, list):
+            for inner in value:
+                walk(inner, key)
+        elif isinstance(value, str):
+            (commands if key == "command" else strings).append(value)
+
+    walk(record)
+    assert commands, "the record says how each stage was trained"
+    for text in strings + commands:
+        for word in text.split():
+            assert not os.path.isabs(word), f"a machine's path in the weights' record: {word}"
+    monkeypatch.chdir(ROOT)
+    for command in commands:
+        program, script, *argv = shlex.split(command)
+        assert (program, script) == ("python", "train.py"), command
+        options, config, workdir = train.parse(argv)
+        assert workdir.startswith("runs/") and config.init_from is None or not os.path.isabs(config.init_from)
