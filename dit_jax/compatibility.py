@@ -39,8 +39,7 @@ from dit_jax import geometry
 #: largest by the caller), so at most this many programs are compiled per option set.
 BUCKETS = (512, 1024, 2048)
 #: Seeds per pair, and matches in each seed's consistent set.
-N_SEEDS = 100
-SET_SIZE = 40
+N_SEEDS, SET_SIZE = 100, 40
 #: Power-iteration steps for the leading eigenvectors (they converge in a few on such positive matrices).
 POWER_STEPS = 15
 #: Re-fits of each hypothesis on the matches it brings within the distance.

@@ -493,8 +493,9 @@ def test_the_shipped_weights_record_names_no_machine_path_and_its_commands_parse
     import os
     import shlex
 
-    import train
     from conftest import ROOT
+
+    import train
 
     record = checkpoint.read_extra(registration.shipped_weights())
     commands, strings = [], []
