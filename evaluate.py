@@ -37,9 +37,8 @@ _IGNORED_BY = {
         "settings",
         "unseen",
         "variant",
-        "gmcce_threshold",
+        "authors_thresholds",
         "batch_size",
-        "bfloat16",
         "reuse",
         "verdict",
     ),
@@ -49,6 +48,7 @@ _IGNORED_BY = {
         "variant",
         "iters",
         "gmcce_threshold",
+        "authors_thresholds",
         "baselines",
         "batch_size",
         "bfloat16",
@@ -97,19 +97,28 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--unseen", action="store_true", help="test on categories 20-39")
     parser.add_argument("--variant", default="authors", choices=["authors", "peers"])
     inference_settings.add_flags(
-        parser, ("points", "iters", "refine", "features", "viewpoint", "verdict", "best_direction")
+        parser,
+        (
+            "points",
+            "iters",
+            "gmcce_threshold",
+            "bfloat16",
+            "refine",
+            "features",
+            "viewpoint",
+            "verdict",
+            "best_direction",
+        ),
     )
     parser.add_argument("--max-pairs", type=int, default=None, help="only the first pairs of each setting")
     parser.add_argument(
-        "--gmcce-threshold",
-        default=None,
-        metavar="TAU|authors",
-        help="default: the model's own inference settings, the same for every input; 'authors': "
-        "the authors' threshold per setting; or a number",
+        "--authors-thresholds",
+        action="store_true",
+        help="run each setting at the authors' GMCCE threshold for it (their paper's table) instead of the "
+        "model's own, the same for every input",
     )
     parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
     parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--bfloat16", action="store_true", help="PFT's products in bfloat16")
     parser.add_argument("--out", default="eval")
     parser.add_argument(
         "--reuse",
@@ -143,11 +152,6 @@ def main(argv=None) -> int:
     for name in args.settings:
         chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]
     settings = tuple(dict.fromkeys(chosen))
-    if args.gmcce_threshold not in (None, "authors"):
-        try:
-            float(args.gmcce_threshold)
-        except ValueError:
-            parser.error(f"--gmcce-threshold: expected a number or 'authors', got {args.gmcce_threshold!r}")
 
     compile_cache.from_args(args)
     from dit_jax import evaluators, registration
@@ -197,9 +201,8 @@ def main(argv=None) -> int:
             max_pairs=args.max_pairs,
             baselines=args.baselines,
             inference=inference,
-            gmcce_threshold=args.gmcce_threshold,
+            authors_thresholds=args.authors_thresholds,
             batch_size=args.batch_size,
-            compute_dtype="bfloat16" if args.bfloat16 else "float32",
             progress=not args.no_progress,
             reuse=args.reuse,
         )

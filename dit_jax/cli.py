@@ -135,7 +135,6 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     settings.add_flags(parser)
     _add_reading_flags(parser)
-    parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument(
         "--plot",
         default=None,
@@ -160,7 +159,7 @@ def _read(path: str, args, prog: str = PROG) -> np.ndarray:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", io.NonFiniteWarning)
         points, total = io.read(
-            path, max_points=args.max_points, seed=args.seed, return_count=True, drop_nonfinite=args.drop_nonfinite
+            path, max_points=args.max_points, seed=args.seed or 0, return_count=True, drop_nonfinite=args.drop_nonfinite
         )
     for warning in caught:
         if issubclass(warning.category, io.NonFiniteWarning):
@@ -445,7 +444,7 @@ def _list_status(args, records: list[dict]) -> int:
 
 def _model_kwargs(args) -> dict:
     """The inference settings the flags change."""
-    return {"seed": args.seed, **settings.changes(args)}
+    return settings.changes(args)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -593,9 +592,8 @@ def _series_parser() -> argparse.ArgumentParser:
         help="draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
     )
     parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
-    settings.add_flags(parser, ("refine", "viewpoint"))
+    settings.add_flags(parser, ("refine", "viewpoint", "seed"))
     _add_reading_flags(parser)
-    parser.add_argument("--seed", type=int, default=0, help="seed of all sampling")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--no-verdict-status",
@@ -653,7 +651,7 @@ def series_main(argv: list[str] | None = None) -> int:
 
     try:
         clouds = [_read(path, args, SERIES_PROG) for path in args.scans]
-        model = registration.load(args.checkpoint, seed=args.seed, **settings.changes(args))
+        model = registration.load(args.checkpoint, **settings.changes(args))
         pairs = series.link_pairs(len(clouds), args.loop)
         with (
             tqdm(

@@ -138,7 +138,8 @@ def network_result(p: Normalised, e: PairEstimate, settings: InferenceSettings, 
     back = e.backward
     judged = verdict.judge(settings, "none", landing.fitness, e.forward.rotation, back and back.rotation)
     forward = Motion(e.forward.rotation, e.forward.translation)
-    unrefined = _network_record(forward, landing, judged, e, settings, None, 0.0, "forward", e.forward.start_turn)
+    origin = Origin(e.seconds, None, 0.0, "forward", e.forward.start_turn)
+    unrefined = _result(forward, landing, judged, origin, settings.verdict_rule, settings.unconfirmed_min_right)
     first = unrefined.as_stage("network")
     method = settings.refinement_for(len(p.src), len(p.tgt))
     if method == "none":
@@ -151,41 +152,46 @@ def network_result(p: Normalised, e: PairEstimate, settings: InferenceSettings, 
     landing = landing._replace(fitness=refinement.fitness(p, motion, config))
     judged = verdict.judge(settings, method, landing.fitness, refined.forward_rotation, refined.backward_rotation)
     turn = e.forward.start_turn if refined.direction == "forward" else back.start_turn
-    result = _network_record(motion, landing, judged, e, settings, method, refined.seconds, refined.direction, turn)
+    origin = Origin(e.seconds, method, refined.seconds, refined.direction, turn)
+    result = _result(motion, landing, judged, origin, settings.verdict_rule, settings.unconfirmed_min_right)
     return dataclasses.replace(result, stages=(first, result.as_stage("refined")))
 
 
-def _network_record(
-    motion: Motion,
-    landing: Landing,
-    judged: verdict.Verdict,
-    e: PairEstimate,
-    settings: InferenceSettings,
-    method: str | None,
-    refine_seconds: float,
-    direction: str,
-    start_turn: float,
+class Origin(NamedTuple):
+    """How a result was reached, beside its motion and evidence: the network's ``seconds`` (0 where it did not
+    run), the ``refinement`` and its ``refine_seconds``, the ``direction`` kept and the rotation search's
+    ``start_turn`` (:class:`~dit_jax.result.Result`'s fields of the same names)."""
+
+    seconds: float
+    refinement: str | None
+    refine_seconds: float
+    direction: str
+    start_turn: float
+
+
+def _result(
+    motion: Motion, landed: Landing, judged: verdict.Verdict, origin: Origin, verdict_rule: str, min_right: float
 ) -> Result:
-    """The :class:`~dit_jax.result.Result` of the network's ``motion`` (refined by ``method``, or None)."""
+    """The :class:`~dit_jax.result.Result` of ``motion``, with its evidence, verdict and origin."""
     return Result(
         rotation=np.asarray(motion.rotation, np.float64),
         translation=np.asarray(motion.translation, np.float64),
         matrix=_matrix(motion),
-        source_indices=landing.source_indices,
-        correspondences=landing.correspondences,
-        confidence=landing.confidence,
-        inlier_ratio=landing.inlier_ratio,
-        fitness=landing.fitness,
-        seconds=e.seconds,
-        refinement=method,
-        refine_seconds=refine_seconds,
+        source_indices=landed.source_indices,
+        correspondences=landed.correspondences,
+        confidence=landed.confidence,
+        inlier_ratio=landed.inlier_ratio,
+        fitness=landed.fitness,
+        seconds=origin.seconds,
+        refinement=origin.refinement,
+        refine_seconds=origin.refine_seconds,
         verdict=judged.trusted,
-        level=verdict.level(judged.trusted, judged.band, settings.unconfirmed_min_right),
-        verdict_rule=settings.verdict_rule,
+        level=verdict.level(judged.trusted, judged.band, min_right),
+        verdict_rule=verdict_rule,
         threshold=judged.threshold,
         agreement=judged.agreement,
-        direction=direction,
-        start_turn=start_turn,
+        direction=origin.direction,
+        start_turn=origin.start_turn,
         agreement_band=judged.band,
     )
 
@@ -222,30 +228,14 @@ def features_result(pair: Pair, settings: InferenceSettings, config: DITConfig) 
     motion = Motion(*found.kept)
     judged = verdict.judge_features(found, settings)
     landed = landing(pair.src, pair.tgt, motion, found.spacing, settings, config)
-    return Result(
-        rotation=np.asarray(motion.rotation, np.float64),
-        translation=np.asarray(motion.translation, np.float64),
-        matrix=_matrix(motion),
-        source_indices=landed.source_indices,
-        correspondences=landed.correspondences,
-        confidence=landed.confidence,
-        inlier_ratio=landed.inlier_ratio,
-        fitness=landed.fitness,
-        seconds=0.0,
-        refinement="icp",
-        refine_seconds=0.0,
-        verdict=judged.trusted,
-        level=verdict.level(judged.trusted, judged.band, settings.unconfirmed_min_right),
-        verdict_rule="agreement",
-        threshold=judged.threshold,
-        agreement=judged.agreement,
-        offset=found.offset,
-        max_offset=settings.max_offset_features,
-        direction=found.kept_direction,
-        start_turn=0.0,
-        agreement_band=judged.band,
+    origin = Origin(0.0, "icp", 0.0, found.kept_direction, 0.0)
+    result = _result(motion, landed, judged, origin, "agreement", settings.unconfirmed_min_right)
+    return dataclasses.replace(
+        result,
         candidate="features",
         candidate_seconds=found.seconds,
+        offset=found.offset,
+        max_offset=settings.max_offset_features,
         rival=max(found.rival),
         max_rival=settings.max_rival_features,
         twin=max(found.twin),

@@ -40,7 +40,9 @@ VERDICTS = ("agreement", "fitness")
 FAR_APART = 10.0
 
 #: The fields of :class:`InferenceSettings` that override the model config's inference options.
-MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterations", "precision")
+MODEL_OVERRIDES = ("n_iters", "gmcce_threshold", "gmcce_min_keep", "guard_iterations", "precision", "compute_dtype")
+#: What :attr:`InferenceSettings.compute_dtype` takes (:class:`dit_jax.configs.DITConfig`'s own choices).
+COMPUTE_DTYPES = ("float32", "bfloat16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +59,7 @@ class InferenceSettings(Record):
       centring: "shared": both clouds on the centroid of the two together, as in training; "separate": each on
         its own, for clouds far apart in the caller's frame; "auto": "separate" where the sampled clouds lie
         more than :data:`FAR_APART` radii apart, else "shared".
-      n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision: override the model config's
+      n_iters, gmcce_threshold, gmcce_min_keep, guard_iterations, precision, compute_dtype: override the model config's
         (:class:`dit_jax.configs.DITConfig`) where set; None keeps the config's.
       refine: "icp" refines the network's estimate on the full clouds (stage 3, :func:`dit_jax.icp.refine`);
         "gicp" does so with small_gicp's generalized ICP at the clouds' own point spacing
@@ -74,7 +76,8 @@ class InferenceSettings(Record):
         scan in its own frame has its sensor (range scans, RGB-D fragments, LiDAR sweeps), so that one wall gets
         one description in two scans; "none": as estimated, each normal's sign arbitrary (for clouds moved out
         of their sensor's frame). Measured on rooms, the dragon, the kitchen and LiDAR (docs/refinement.md).
-      rotation_search: start the network from the 24 turns of :data:`SEARCH_TURNS` (clouds at any rotation).
+      rotation_search: start the network from the 24 turns of :data:`dit_jax.network_stage.SEARCH_TURNS` (clouds at
+        any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
         agree within ``max_disagreement_*`` degrees; "fitness": trust it where at least ``min_fitness`` of
         the sampled source points land on the target (one registration).
@@ -110,6 +113,7 @@ class InferenceSettings(Record):
     gmcce_min_keep: float | None = None
     guard_iterations: bool | None = None
     precision: str | None = None
+    compute_dtype: str | None = None
     refine: str = "auto"
     feature_candidate: str = "auto"
     viewpoint: str = "origin"
@@ -142,6 +146,8 @@ class InferenceSettings(Record):
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
         if self.precision is not None and self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {self.precision!r}")
+        if self.compute_dtype is not None and self.compute_dtype not in COMPUTE_DTYPES:
+            raise ValueError(f"compute_dtype must be one of {', '.join(COMPUTE_DTYPES)}, got {self.compute_dtype!r}")
         if self.n_points < 1 or self.fps_pool < 1:
             raise ValueError(f"n_points and fps_pool must be positive, got {self.n_points} and {self.fps_pool}")
         if self.n_iters is not None and self.n_iters < 1:
@@ -206,6 +212,7 @@ class Flag:
     type: Callable | None = str
     choices: tuple[str, ...] | None = None
     metavar: str | None = None
+    on_value: object = True
 
     @property
     def dest(self) -> str:
@@ -213,7 +220,9 @@ class Flag:
 
     def value(self, text):
         """The settings' value of the parsed ``text``: "on" / "off" (a switch's "on") become True / False."""
-        if self.choices == ON_OFF or self.type is None:
+        if self.type is None:
+            return self.on_value if text == "on" else None
+        if self.choices == ON_OFF:
             return text == "on"
         return text
 
@@ -227,6 +236,30 @@ FLAGS = {
     for flag in (
         Flag("--points", ("n_points",), "points per cloud the network sees", int, metavar="N"),
         Flag("--iters", ("n_iters",), "registration iterations of the network", int, metavar="N"),
+        Flag(
+            "--gmcce-threshold",
+            ("gmcce_threshold",),
+            "GMCCE's threshold: a correspondence is an inlier of the network's Procrustes step where its "
+            "triangle-descriptor confidence exceeds TAU",
+            float,
+            metavar="TAU",
+        ),
+        Flag(
+            "--bfloat16",
+            ("compute_dtype",),
+            "PFT's matrix products in bfloat16, parameters, softmax and norms in float32 (accuracy and speed: "
+            "docs/benchmarks.md)",
+            None,
+            on_value="bfloat16",
+        ),
+        Flag(
+            "--seed",
+            ("seed",),
+            "seed of all sampling (the clouds' points, ICP's subsets, the point spacing's sample): results are "
+            "the same for a seed",
+            int,
+            metavar="N",
+        ),
         Flag(
             "--refine",
             ("refine",),
@@ -284,11 +317,23 @@ FLAGS = {
 }
 
 
-def add_flags(parser: argparse.ArgumentParser, names: tuple[str, ...] | None = None) -> None:
+def add_flags(parser: argparse.ArgumentParser, names: tuple[str, ...] | None = None, *, grid: bool = False) -> None:
     """Adds the flags of :data:`FLAGS` named in ``names`` (their ``dest``, e.g. ``"points"``; all by
-    default) to ``parser``, each defaulting to None: "as the checkpoint says"."""
+    default) to ``parser``, each defaulting to None: "as the checkpoint says". ``grid``: each takes one value
+    or more, the values a calibration tries (a list, or None)."""
     for dest in names or tuple(FLAGS):
         flag = FLAGS[dest]
+        if grid:
+            parser.add_argument(
+                flag.name,
+                type=flag.type,
+                choices=flag.choices,
+                nargs="+",
+                default=None,
+                metavar=flag.metavar,
+                help=f"values to try of: {flag.help}",
+            )
+            continue
         if flag.type is None:  # a switch: given, the setting is on
             parser.add_argument(
                 flag.name,

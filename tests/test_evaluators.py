@@ -33,7 +33,7 @@ def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_p
         baselines=names,
         prepared_dir=prepared_dir,
         progress=False,
-        gmcce_threshold="authors",
+        authors_thresholds=True,
     )
     assert sorted(os.listdir(out)) == [
         "registrations.png",

@@ -5,14 +5,20 @@ import dataclasses
 
 import pytest
 
+import calibrate
 import evaluate
+import train
+import tune_baselines
 from dit_jax import cli, settings
 
 PARSERS = {
     "dit-register": cli._parser,
     "dit-register-series": cli._series_parser,
     "evaluate.py": evaluate.build_parser,
+    "tools/tune_baselines.py": tune_baselines.build_parser,
 }
+#: Programs that try several values of a setting (a grid) under the setting's own flag.
+GRID_PARSERS = {"tools/calibrate.py": calibrate.build_parser}
 
 #: Names a setting had before it had one: none of them may come back.
 RETIRED = ("--n-points", "--no-verdict")
@@ -65,6 +71,24 @@ def test_the_same_flag_is_the_same_in_every_program():
                 shape = (action.choices and tuple(action.choices), action.help, action.metavar, action.const)
                 assert seen.setdefault(option, shape) == shape, f"{option} differs in {program}"
     assert set(seen) == {flag.name for flag in settings.FLAGS.values()}
+
+
+@pytest.mark.parametrize("program", GRID_PARSERS)
+def test_a_grid_of_a_setting_takes_the_settings_own_flag_and_values(program):
+    actions = _actions(GRID_PARSERS[program]())
+    given = [flag for flag in settings.FLAGS.values() if flag.name in actions]
+    assert given, f"{program} has none of the settings' flags"
+    for flag in given:
+        action = actions[flag.name]
+        assert action.nargs == "+" and action.default is None and action.type is flag.type, flag.name
+        assert action.metavar == flag.metavar and action.help == f"values to try of: {flag.help}"
+    assert not set(RETIRED) & set(actions)
+
+
+def test_train_py_defines_no_flag_of_the_settings_under_another_meaning():
+    """train.py's own flags and its ``--config.FIELD`` overrides name training's fields, none of the table's."""
+    names = {name for name in train._define_flags()}
+    assert not {flag.name.lstrip("-") for flag in settings.FLAGS.values()} & names
 
 
 def test_parsed_flags_become_settings_changes_and_unset_ones_none():

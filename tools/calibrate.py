@@ -30,6 +30,7 @@ import os
 import numpy as np
 
 from dit_jax import checkpoint, geometry, registration, training
+from dit_jax import settings as settings_lib
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
 from dit_jax.settings import REFINEMENTS, InferenceSettings
@@ -206,7 +207,8 @@ def _pooled(settings, pool: str) -> list[str]:
     return [s for s in settings if pool == "all" or pairs_lib.SETTINGS[s].independent] or list(settings)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """calibrate's command line."""
     parser = argparse.ArgumentParser(prog="python tools/calibrate.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoint")
     parser.add_argument("--data-dir", default=None)
@@ -232,9 +234,14 @@ def main(argv: list[str] | None = None) -> int:
         metavar="JSON",
         help="choose the thresholds again from the evidence an earlier --out kept",
     )
-    parser.add_argument("--iters", type=int, nargs="+", default=None, help="iteration counts to try as well")
+    settings_lib.add_flags(parser, ("iters",), grid=True)
     parser.add_argument("--keep-gmcce", action="store_true", help="search only --iters")
     parser.add_argument("--record", action="store_true", help="write the choice into the checkpoint")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     if args.rechoose:

@@ -33,8 +33,9 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import baselines, metrics, training
+from dit_jax import baselines, metrics, registration, training
 from dit_jax import icp as icp_lib
+from dit_jax import settings as settings_lib
 from dit_jax.data.pairs import SETTINGS
 from dit_jax.evaluators import common
 
@@ -129,12 +130,13 @@ def _feature_grid(batches: dict, log) -> tuple[dict, dict]:
     return estimates, options
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """tune_baselines' command line."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data-dir", default=None)
     parser.add_argument("--unseen", action="store_true", help="validation shapes of categories 0-19 only")
     parser.add_argument("--pairs", type=int, default=24, help="validation pairs per setting")
-    parser.add_argument("--points", type=int, default=1000, help="points per cloud of the validation pairs")
+    settings_lib.add_flags(parser, ("points",))  # the validation pairs' clouds are the network's size
     parser.add_argument(
         "--checkpoint",
         default=None,
@@ -143,7 +145,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS))
     parser.add_argument("--out-json", default="dit_jax/baselines_tuned.json")
     parser.add_argument("--report", default="docs/baselines_tuning")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    if args.points is None:  # the checkpoint's own, or the pipeline's default without one
+        no_dit = args.checkpoint == "none"
+        args.points = (
+            settings_lib.InferenceSettings().n_points
+            if no_dit
+            else registration.load(args.checkpoint).settings.n_points
+        )
     started = time.time()
     batches = training.validation_batches(
         args.data_dir, args.settings, count=args.pairs, n_points=args.points, unseen=args.unseen
@@ -198,7 +211,6 @@ def main(argv: list[str] | None = None) -> None:
 
     # Stage 3: refinement after each chosen global estimate, after DIT's, and the plain ICP.
     if args.checkpoint != "none":
-        from dit_jax import registration
         from dit_jax.evaluators import common
 
         # The network's estimates through the pipeline, one direction: what the refinements start from.

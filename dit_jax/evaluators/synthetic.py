@@ -183,8 +183,7 @@ def evaluate(
     max_pairs: int | None = None,
     baselines: Sequence[str] = (),
     inference: dict | None = None,
-    gmcce_threshold: float | str | None = None,
-    compute_dtype: str = "float32",
+    authors_thresholds: bool = False,
     batch_size: int = 8,
     prepared_dir: str | None = None,
     progress: bool = True,
@@ -198,16 +197,15 @@ def evaluate(
       max_pairs: evaluate only the first pairs of each setting (all by default).
       inference: changes to the checkpoint's :class:`~dit_jax.settings.InferenceSettings` (e.g.
         ``{"refine": "none"}`` drops the DIT+ICP row, ``{"verdict_rule": "fitness"}`` the second direction).
-      gmcce_threshold: None runs the model as it ships; "authors" uses the authors' threshold for each
-        setting (:data:`GMCCE_THRESHOLDS`); a number uses that threshold everywhere.
-      compute_dtype: "bfloat16" runs PFT's products in bfloat16 (see :class:`dit_jax.configs.DITConfig`).
+      authors_thresholds: run each setting at the authors' GMCCE threshold for it (:data:`GMCCE_THRESHOLDS`);
+        else at the model's own, or ``inference``'s ``gmcce_threshold``, the same for every setting.
       reuse: an earlier output directory of this function: baselines it scored on the same pairs with the
         same options are taken from its ``results.json`` instead of rerun.
       worst_pairs: draw each method's worst pair of each setting (``worst_<setting>.png``).
     """
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")
-    registrar = _registrar(checkpoint_dir, inference, compute_dtype)
+    registrar = _registrar(checkpoint_dir, inference)
     n_points = registrar.settings.n_points if registrar else (inference or {}).get("n_points", 1000)
     shape_points = pairs_lib.shape_points(data_dir, n_points, settings)
     test_shapes = shapes_lib.load_shapes(
@@ -220,7 +218,7 @@ def evaluate(
         "n_points": n_points,
         "model_config": registrar and registrar.config.to_dict(),
         "inference_settings": registrar and registrar.settings.to_dict(),
-        "compute_dtype": compute_dtype,
+        "compute_dtype": registrar.config.compute_dtype if registrar else None,
         "settings": {},
         "setting_info": {},
     }
@@ -232,8 +230,8 @@ def evaluate(
     first_dit = None
     for setting, (ds, indices) in datasets.items():
         run = registrar
-        if registrar is not None and gmcce_threshold is not None:
-            run = _with_settings(registrar, gmcce_threshold=_setting_threshold(setting, gmcce_threshold))
+        if registrar is not None and authors_thresholds:
+            run = registrar.replace(gmcce_threshold=GMCCE_THRESHOLDS[setting])
         preds = _dit_estimates(run, ds, indices, batch_size, bar, setting)
         reused = _run_baselines(baselines, setting, ds, indices, earlier.get(setting, {}), preds, bar)
         scored = _score_methods(preds, ds, indices, test_shapes.shape_names, registrar and registrar.settings)
@@ -290,20 +288,14 @@ def _run_baselines(baselines: Sequence[str], setting: str, ds, indices: np.ndarr
     return reused
 
 
-def _registrar(checkpoint_dir: str | None, inference: dict | None, compute_dtype: str):
+def _registrar(checkpoint_dir: str | None, inference: dict | None):
     """The :class:`~dit_jax.registration.Registrar` of a checkpoint with ``inference``'s changes to its
     settings; None without a checkpoint."""
     if checkpoint_dir is None:
         return None
     from dit_jax import registration
 
-    loaded = registration.load(checkpoint_dir, **(inference or {}))
-    return loaded.replace(config=loaded.checkpoint_config.replace(compute_dtype=compute_dtype))
-
-
-def _setting_threshold(setting: str, gmcce_threshold: float | str) -> float:
-    """GMCCE's threshold for ``setting``: the authors' for it ("authors") or the number given."""
-    return GMCCE_THRESHOLDS[setting] if gmcce_threshold == "authors" else float(gmcce_threshold)
+    return registration.load(checkpoint_dir, **(inference or {}))
 
 
 def _options(name: str, setting: str) -> dict:
