@@ -38,7 +38,7 @@ def main() -> None:
                 result = model.register(pair.source, pair.target)
                 method = result.refinement or "icp"
                 spacing = max(icp.point_spacing(pair.source), icp.point_spacing(pair.target))
-                match = feature_match.register(pair.source, pair.target, spacing=spacing)
+                match = feature_match.match_one_way(pair.source, pair.target, spacing=spacing)
                 if method == "gicp":
                     own = icp.refine_gicp(pair.source, pair.target, match.rotation, match.translation, spacing=spacing)
                 else:

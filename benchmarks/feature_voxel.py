@@ -3,7 +3,7 @@
     python benchmarks/feature_voxel.py ../shared/data/stanford_dragon_stand ../shared/data/3dmatch_redkitchen \\
         ../shared/data/lidar_pair --voxels 2 2.5 3 4 6 8
 
-For each folder of scans with known poses and each pair set: dit_jax.feature_match.register at a voxel of V
+For each folder of scans with known poses and each pair set: dit_jax.feature_match.match_one_way at a voxel of V
 point spacings (instead of its own choice, dit_jax.feature_match.feature_voxel), for each V. A pair counts
 where the estimate is within the set's benchmark criterion, else within 5 degrees. One JSON record per pair
 set and voxel, then a Markdown table.
@@ -38,7 +38,7 @@ def main() -> None:
                 right, seconds = 0, []
                 for pair, spacing in zip(found.pairs, spacings):
                     started = time.perf_counter()
-                    match = feature_match.register(pair.source, pair.target, spacing=spacing, voxel_spacings=voxel)
+                    match = feature_match.match_one_way(pair.source, pair.target, spacing=spacing, voxel_spacings=voxel)
                     seconds.append(time.perf_counter() - started)
                     right += (
                         geometry.rotation_angle_deg(match.rotation.T @ pair.rotation) <= degrees

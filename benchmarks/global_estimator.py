@@ -5,7 +5,7 @@
 For each pair set of a folder of scans with known poses (a seeded sample of --max-pairs per benchmark list),
 one direction per pair (source onto target), each step of dit_jax.feature_match timed on its own: both clouds'
 normals and FPFH features (``features``), the nearest-feature matches (``matching``), the compatibility
-estimator (``compatibility``: dit_jax.compatibility.register, its tables, seeds and hypotheses), the choice
+estimator (``compatibility``: dit_jax.compatibility.estimate_motions, its tables, seeds and hypotheses), the choice
 among its hypotheses on the thinned clouds with the rival (``scoring``), ICP, and the turned twins (``twin``).
 Beside it, on the same features, Open3D's ``registration_ransac_based_on_feature_matching`` (mutual filter,
 1,000,000 draws, confidence 0.999, edge check 0.9, distance 1.5 voxels: the tutorial's RANSAC). A motion counts
@@ -71,7 +71,7 @@ def timed_steps(pair) -> tuple[dict, np.ndarray, np.ndarray] | None:
     lap("matching")
     src_matched = np.asarray(source.thinned.points)[matches[:, 0]]
     tgt_matched = np.asarray(target.thinned.points)[matches[:, 1]]
-    found = compatibility.register(src_matched, tgt_matched, fm.MATCH_VOXELS * voxel)
+    found = compatibility.estimate_motions(src_matched, tgt_matched, fm.MATCH_VOXELS * voxel)
     lap("compatibility")
     motion, _, _ = fm._choose(source, target, src_matched, tgt_matched, found, voxel)
     lap("scoring")

@@ -218,7 +218,7 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
             t0 = time.perf_counter()
             jax.block_until_ready(compatibility.estimate(*args))
             times.append(time.perf_counter() - t0)
-        found = compatibility.register(src, tgt, 0.05)
+        found = compatibility.estimate_motions(src, tgt, 0.05)
         error = geometry.rotation_angle_deg(found.rotation[0].T @ rotation)
         buckets.append(
             {"matches": size, "compile_s": compile_s, "seconds": statistics.median(times), "error_deg": error}

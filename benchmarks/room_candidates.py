@@ -1,6 +1,6 @@
 """Which global candidate, and which way of choosing among candidates, registers rooms: on a seeded sample of
 3DMatch pairs, the refined network (the pipeline without local features), the pipeline's registration by
-local features (dit_jax.feature_match.register, one direction) and Open3D's room recipe (FPFH + RANSAC at 5 cm, dit_jax.baselines.room_recipe's global stage), each refined by GICP as
+local features (dit_jax.feature_match.match_one_way, one direction) and Open3D's room recipe (FPFH + RANSAC at 5 cm, dit_jax.baselines.room_recipe's global stage), each refined by GICP as
 the pipeline refines scans; then what each choice rule keeps.
 
     python benchmarks/room_candidates.py ../shared/data/3dmatch --max-pairs 40
@@ -47,7 +47,7 @@ def main() -> None:
             for name in ("features", "open3d"):
                 started = time.perf_counter()
                 if name == "features":
-                    match = feature_match.register(pair.source, pair.target, spacing=spacing)
+                    match = feature_match.match_one_way(pair.source, pair.target, spacing=spacing)
                     start = (match.rotation, match.translation)
                 else:
                     options = baselines.room_options()

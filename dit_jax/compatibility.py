@@ -177,7 +177,7 @@ def estimate(src, tgt, valid, distance, n_seeds: int = N_SEEDS, set_size: int = 
     return rotations, translations, score(src, tgt, valid, distance, rotations, translations)
 
 
-def register(src: np.ndarray, tgt: np.ndarray, distance: float) -> Hypotheses:
+def estimate_motions(src: np.ndarray, tgt: np.ndarray, distance: float) -> Hypotheses:
     """The estimator on K matches src (K, 3) <-> tgt (K, 3) in any units (at most ``BUCKETS[-1]``; the caller
     chooses which to keep), lengths compared within ``distance``: every seed's motion, best first.
 

@@ -289,13 +289,13 @@ def _brought_within(
 
 def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tuple[np.ndarray, int, float]:
     """The global motion from (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival
-    share). :func:`dit_jax.compatibility.register` gives one motion per seed, ranked by the matches each brings
+    share). :func:`dit_jax.compatibility.estimate_motions` gives one motion per seed, ranked by the matches each brings
     within :data:`MATCH_VOXELS` voxels; :func:`_choose` picks one."""
     if len(matches) < 3:
         return np.eye(4), 0, np.inf
     src_matched = np.asarray(src.thinned.points)[matches[:, 0]]
     tgt_matched = np.asarray(tgt.thinned.points)[matches[:, 1]]
-    found = compatibility.register(src_matched, tgt_matched, MATCH_VOXELS * voxel)
+    found = compatibility.estimate_motions(src_matched, tgt_matched, MATCH_VOXELS * voxel)
     if found.matches[0] < 3:
         return np.eye(4), 0, np.inf
     return _choose(src, tgt, src_matched, tgt_matched, found, voxel)
@@ -403,7 +403,7 @@ def _split(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array(motion[:3, :3], np.float64), np.array(motion[:3, 3], np.float64)
 
 
-def register(
+def match_one_way(
     src: np.ndarray,
     tgt: np.ndarray,
     *,

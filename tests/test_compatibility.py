@@ -25,7 +25,7 @@ def test_a_known_motion_is_found_among_95_percent_outlier_matches():
     """2,000 matches, 5 % right: the best hypothesis is the motion to a tenth of a degree and a centimetre, and it
     brings about every right match (and few wrong ones) within the distance."""
     src, tgt, rotation, translation, right = _outlier_matches(2000, 0.05, seed=0)
-    found = compatibility.register(src, tgt, distance=0.05)
+    found = compatibility.estimate_motions(src, tgt, distance=0.05)
     assert rotation_angle_deg(found.rotation[0].T @ rotation) < 0.1
     assert np.linalg.norm(found.translation[0] - translation) < 0.01
     assert right.sum() - 5 <= found.matches[0] <= right.sum() + 10
@@ -36,8 +36,8 @@ def test_far_from_the_origin_and_padded_the_motion_is_the_same():
     """Coordinates a kilometre from the origin (centred before the float32 work), and a count between buckets
     (padded, the padding masked out): the same motion."""
     src, tgt, rotation, translation, _ = _outlier_matches(700, 0.2, seed=1)
-    near = compatibility.register(src, tgt, distance=0.05)
-    far = compatibility.register(src + 1000.0, tgt + 1000.0, distance=0.05)
+    near = compatibility.estimate_motions(src, tgt, distance=0.05)
+    far = compatibility.estimate_motions(src + 1000.0, tgt + 1000.0, distance=0.05)
     assert compatibility.bucket(700) == 1024
     assert rotation_angle_deg(far.rotation[0].T @ near.rotation[0]) < 0.01
     far_translation = far.translation[0] + far.rotation[0] @ np.full(3, 1000.0) - 1000.0  # back to the near frame
@@ -64,12 +64,12 @@ def test_the_compatibility_tables_count_what_they_say():
 def test_too_few_matches_give_the_identity_and_no_nan():
     """Under three matches nothing can be estimated: one identity hypothesis with no matches. Matches that all
     sit on one point give finite motions."""
-    few = compatibility.register(np.zeros((2, 3)), np.ones((2, 3)), distance=0.1)
+    few = compatibility.estimate_motions(np.zeros((2, 3)), np.ones((2, 3)), distance=0.1)
     np.testing.assert_array_equal(few.rotation[0], np.eye(3))
     assert few.matches[0] == 0
-    same = compatibility.register(np.zeros((50, 3)), np.ones((50, 3)), distance=0.1)
+    same = compatibility.estimate_motions(np.zeros((50, 3)), np.ones((50, 3)), distance=0.1)
     assert np.all(np.isfinite(same.rotation)) and np.all(np.isfinite(same.translation))
     with pytest.raises(ValueError, match="at most"):
-        compatibility.register(
+        compatibility.estimate_motions(
             np.zeros((compatibility.BUCKETS[-1] + 1, 3)), np.zeros((compatibility.BUCKETS[-1] + 1, 3)), 0.1
         )

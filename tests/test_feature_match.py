@@ -27,7 +27,7 @@ def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_u
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     tgt = other @ truth.T + t_truth
-    coarse = feature_match.register(src, tgt, viewpoint=None)
+    coarse = feature_match.match_one_way(src, tgt, viewpoint=None)
     assert coarse.inliers > 0
     assert rotation_angle_deg(coarse.rotation.T @ truth) < 10.0
     assert np.linalg.norm(coarse.translation - t_truth) < 5 * coarse.voxel
@@ -50,7 +50,7 @@ def test_a_cloud_without_features_gives_the_identity_and_no_nan():
     failure reads as no inliers and the identity."""
     rng = np.random.default_rng(0)
     plane = np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)]
-    found = feature_match.register(plane, plane + [0.1, 0.0, 0.0])
+    found = feature_match.match_one_way(plane, plane + [0.1, 0.0, 0.0])
     assert np.all(np.isfinite(found.rotation)) and np.all(np.isfinite(found.translation))
     np.testing.assert_allclose(found.rotation @ found.rotation.T, np.eye(3), atol=1e-5)
     if found.inliers == 0:
@@ -61,7 +61,7 @@ def test_a_few_points_give_no_estimate_instead_of_a_crash():
     """Clouds that occupy fewer than MIN_VOXELS voxels have too few features to match: no estimate."""
     rng = np.random.default_rng(0)
     few = rng.normal(size=(3, 3))
-    found = feature_match.register(few, few + 0.1)
+    found = feature_match.match_one_way(few, few + 0.1)
     assert found.inliers == 0 and np.array_equal(found.rotation, np.eye(3))
     assert feature_match.register_both_ways(few, few + 0.1) is None
     assert feature_match.occupied_voxels(few, 10.0) == 1
@@ -92,7 +92,7 @@ def test_the_estimate_repeats_exactly_and_each_feature_finds_its_two_nearest_bot
     blocks of rows too."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     tgt = other @ euler_zyx_to_matrix([150.0, -30.0, 20.0]).T
-    runs = [feature_match.register(src, tgt) for _ in range(2)]
+    runs = [feature_match.match_one_way(src, tgt) for _ in range(2)]
     np.testing.assert_array_equal(runs[0].rotation, runs[1].rotation)
     assert runs[0].inliers == runs[1].inliers > 0
     rng = np.random.default_rng(0)

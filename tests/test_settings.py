@@ -3,12 +3,12 @@
 import argparse
 import dataclasses
 
-import pytest
-
 import calibrate
+import pytest
+import tune_baselines
+
 import evaluate
 import train
-import tune_baselines
 from dit_jax import cli, settings
 
 PARSERS = {
