@@ -1,8 +1,14 @@
 """Iterative closest point: the local refinement that follows a global estimate (DIT's or a baseline's).
 
-Plain NumPy and scipy (which JAX already depends on), in float64, so refinement needs no extra package and
-runs on clouds of any size: the target's k-d tree is built once, and each iteration pairs every source point
-with its nearest target point within a distance, then solves for the whole motion again from those pairs.
+Written here, in NumPy and scipy's k-d tree, float64, because DIT's refinement (:func:`refine`) is a choice
+among ICP runs that the libraries do not offer: trimmed runs (the closest share of the pairs, Chetverikov et
+al.), point-to-point and point-to-plane runs from one start, each stopped at a tolerance on the motion's step
+and judged by a trimmed fit. small_gicp's ICP has neither trimming nor that stopping rule, Open3D's offers
+robust kernels instead of trimming; both are faster per iteration, and replacing the candidates by theirs
+would change the refinement that the validation chose (docs/refinement.md, "One ICP per job"). small_gicp's
+GICP serves dense scans (:func:`refine_gicp`). The target's k-d tree is built once, and each iteration pairs
+every source point with its nearest target point within a distance, then solves for the whole motion again
+from those pairs.
 
 * :func:`icp` -- point-to-point (Besl and McKay 1992): each iteration is a Procrustes (Kabsch) solve.
 * ``method="point_to_plane"`` (Chen and Medioni 1992): each iteration minimises the distances along the
