@@ -1,0 +1,132 @@
+"""A scene from its scans (:mod:`dit_jax.scene`): candidate pairs, edges by the verdict, the spanning tree's
+first poses, the pose graph's optimisation that switches a wrong loop edge off, and scans that join nothing."""
+
+import numpy as np
+import pytest
+
+from dit_jax import result as result_lib
+from dit_jax import scene
+from dit_jax.data.pairs import euler_zyx_to_matrix
+
+pytest.importorskip("open3d", reason="the pose graph is Open3D's")
+
+
+def _room(seed: int = 0) -> np.ndarray:
+    """(N, 3) points on the floor and three walls of a 4 x 3 x 2.5 room, 2 cm apart on average."""
+    rng = np.random.default_rng(seed)
+    faces = []
+    for axis, value, extent in ((2, 0.0, (4, 3)), (0, 0.0, (3, 2.5)), (0, 4.0, (3, 2.5)), (1, 3.0, (4, 2.5))):
+        uv = rng.uniform(0, 1, size=(8000, 2)) * extent
+        point = np.insert(uv, axis, value, axis=1)
+        faces.append(point)
+    return np.concatenate(faces) + rng.normal(scale=0.002, size=(32000, 3))
+
+
+def _pose(k: int) -> np.ndarray:
+    """Scan k's pose (its points into the room's frame): a camera walking along the room, turning."""
+    pose = np.eye(4)
+    pose[:3, :3] = euler_zyx_to_matrix([25.0 * k, 5.0 * (k % 3), -3.0 * k])
+    pose[:3, 3] = [0.5 * k, 0.3 * np.sin(k), 0.1 * k]
+    return pose
+
+
+def _views(n: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """n overlapping views of the room (slabs along its length), each in its own frame; (clouds, poses)."""
+    room = _room()
+    poses = np.stack([_pose(k) for k in range(n)])
+    clouds = []
+    for k in range(n):
+        inside = (room[:, 0] >= 0.5 * k) & (room[:, 0] <= 0.5 * k + 2.0)
+        part = room[inside]
+        inverse = np.linalg.inv(poses[k])
+        clouds.append(part @ inverse[:3, :3].T + inverse[:3, 3])
+    # Poses into scan 0's frame, as the scene reports them.
+    return clouds, np.linalg.inv(poses[0]) @ poses
+
+
+def _result(motion: np.ndarray, level: str, fitness: float = 0.9) -> result_lib.Result:
+    return result_lib.Result(
+        motion[:3, :3],
+        motion[:3, 3],
+        motion,
+        np.arange(3),
+        np.arange(3),
+        np.ones(3),
+        1.0,
+        fitness,
+        0.0,
+        refinement=None,
+        refine_seconds=0.0,
+        verdict=level == "trusted",
+        level=level,
+        verdict_rule="agreement",
+        threshold=1.0,
+        agreement=0.5,
+        direction="forward",
+        start_turn=0.0,
+        agreement_band=None,
+    )
+
+
+class _Registrar:
+    """Registers by the truth, but for the pairs it is told to get wrong (with the level it is told)."""
+
+    def __init__(self, clouds, poses, wrong=None):
+        self.clouds, self.poses, self.wrong, self.asked = clouds, poses, wrong or {}, []
+
+    def register_pairs(self, pairs, batch_size=8, on_pair=None):
+        results = []
+        for src, tgt in pairs:
+            s = next(i for i, c in enumerate(self.clouds) if c is src)
+            t = next(i for i, c in enumerate(self.clouds) if c is tgt)
+            self.asked.append((s, t))
+            truth = np.linalg.inv(self.poses[t]) @ self.poses[s]
+            if (s, t) in self.wrong:
+                turn, level = self.wrong[(s, t)]
+                wrong = np.eye(4)
+                wrong[:3, :3] = euler_zyx_to_matrix([turn, 0.0, 0.0])
+                results.append(_result(truth @ wrong, level))
+            else:
+                results.append(_result(truth, "trusted" if s == t + 1 else "unconfirmed"))
+            if on_pair is not None:
+                on_pair(1)
+        return results
+
+
+def test_candidates_are_every_pair_for_few_scans_and_neighbours_and_overlaps_for_many(monkeypatch):
+    clouds = [0.3 * np.random.default_rng(k).normal(size=(20, 3)) + [3.0 * k, 0, 0] for k in range(5)]
+    assert scene.candidate_pairs(clouds) == [(s, t) for s in range(5) for t in range(s)]
+    monkeypatch.setattr(scene, "ALL_PAIRS_SCANS", 3)
+    assert scene.candidate_pairs(clouds) == [(1, 0), (2, 1), (3, 2), (4, 3)]
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    poses[4, :3, 3] = [-12.0, 0, 0]  # placed where scan 0 is
+    assert scene.candidate_pairs(clouds, poses) == [(1, 0), (2, 1), (3, 2), (4, 0), (4, 3)]
+
+
+def test_a_scene_is_placed_by_its_edges_and_a_wrong_loop_edge_is_switched_off():
+    clouds, truth = _views(6)
+    registrar = _Registrar(clouds, np.stack([_pose(k) for k in range(6)]), wrong={(4, 1): (30.0, "unconfirmed")})
+    done = []
+    built = scene.register_scene(registrar, clouds, on_pair=done.append)
+    assert len(registrar.asked) == sum(done) == 15 and built.placed.all() and built.components == (tuple(range(6)),)
+    np.testing.assert_allclose(built.poses, truth, atol=1e-6)
+    wrong = next(e for e in built.edges if (e.source, e.target) == (4, 1))
+    assert not wrong.kept and not wrong.certain, "the line process switches the wrong loop edge off"
+    assert all(e.kept for e in built.edges if (e.source, e.target) != (4, 1))
+    assert all(e.certain == (e.source == e.target + 1) for e in built.edges)
+    merged = built.merged(clouds)
+    assert merged.shape == (sum(len(c) for c in clouds), 3)
+
+
+def test_a_scan_that_joins_nothing_is_reported_not_forced_in():
+    clouds, truth = _views(4)
+    wrong = {(3, t): (90.0, "probably wrong") for t in range(3)}
+    registrar = _Registrar(clouds, np.stack([_pose(k) for k in range(4)]), wrong=wrong)
+    built = scene.register_scene(registrar, clouds)
+    assert built.components == ((0, 1, 2), (3,)) and built.placed.tolist() == [True, True, True, False]
+    assert {(e.source, e.target) for e in built.rejected} == set(wrong) and not any(e.kept for e in built.rejected)
+    np.testing.assert_allclose(built.poses[:3], truth[:3], atol=1e-6)
+    np.testing.assert_array_equal(built.poses[3], np.eye(4))
+    assert len(built.merged(clouds)) == sum(len(c) for c in clouds[:3])
+    with pytest.raises(ValueError, match="at least 2 scans"):
+        scene.register_scene(registrar, clouds[:1])
