@@ -214,3 +214,16 @@ def test_the_shared_3dmatch_scenes_hold_the_benchmarks_pairs():
         "home_md/cloud_bin_25->cloud_bin_23"
     ]
     assert np.nanmax(errors) < 1e-6
+
+
+def test_a_scenes_fragments_chain_into_one_frame_through_both_lists():
+    """Every pair of both lists is read back from the chained poses; a fragment in no pair is said so."""
+    if not THREEDMATCH.is_dir():
+        pytest.skip(f"the 3DMatch scenes are not here ({THREEDMATCH}); they ship with ../shared")
+    for scene, fragments, unjoined in (("hotel3", 37, []), ("mit_lab", 38, [12])):
+        poses, known = scans.scene_poses(THREEDMATCH / scene)
+        assert poses.shape == (fragments, 4, 4) and np.flatnonzero(~known).tolist() == unjoined
+        np.testing.assert_array_equal(poses[0], np.eye(4))
+        for log in sorted((THREEDMATCH / scene).glob("*/gt.log")):
+            for i, j, motion in scans.read_gt_log(log):
+                np.testing.assert_allclose(np.linalg.inv(poses[i]) @ poses[j], motion, atol=1e-6)

@@ -180,6 +180,33 @@ def read_gt_info(path: str | os.PathLike) -> dict[tuple[int, int], np.ndarray]:
     return {(i, j): matrix for i, j, matrix in _read_pair_matrices(path, 6, "an information matrix")}
 
 
+def scene_poses(scene_dir: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The true pose of every fragment of a 3DMatch scene folder, chained from the ``gt.log`` of both its lists
+    (3DMatch and 3DLoMatch; either alone leaves some fragments of some scenes unconnected): ((K, 4, 4) fragment
+    k's points into fragment 0's frame, (K,) bool whether the lists join fragment k to fragment 0 at all; the
+    identity where they do not, as mit_lab's fragment 12, in no pair of either list)."""
+    directory = pathlib.Path(scene_dir)
+    links: dict[int, list[tuple[int, np.ndarray]]] = {}
+    count = 0
+    for log in sorted(directory.glob("*/gt.log")):
+        for i, j, motion in read_gt_log(log):  # motion: fragment j into fragment i's frame
+            links.setdefault(i, []).append((j, motion))
+            links.setdefault(j, []).append((i, np.linalg.inv(motion)))
+            count = max(count, i + 1, j + 1)
+    count = max(count, len(list(directory.glob("cloud_bin_*.*"))))
+    poses = np.full((count, 4, 4), np.nan)
+    poses[0], stack = np.eye(4), [0]
+    while stack:
+        here = stack.pop()
+        for there, motion in links.get(here, []):
+            if np.isnan(poses[there, 0, 0]):
+                poses[there] = poses[here] @ motion
+                stack.append(there)
+    known = ~np.isnan(poses[:, 0, 0])
+    poses[~known] = np.eye(4)
+    return poses, known
+
+
 #: The 3DMatch benchmark's registration threshold: an RMSE of the true correspondences of 0.2 m.
 BENCHMARK_RMSE = 0.2
 
