@@ -758,5 +758,142 @@ def _print_series(result, args: argparse.Namespace, pairs: list[tuple[int, int]]
             print(f"wrote {args.plot}")
 
 
+SCENE_PROG = "dit-register-scene"
+#: dit-register-scene's pose files, by flag: the form :func:`dit_jax.scene.pose_lines` writes.
+POSE_FORMS = {"kitti": "kitti", "tum": "tum"}
+
+
+def _scene_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=SCENE_PROG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Register the scans of one scene (fragments of a room, views of an object) into the first "
+        "one's frame by a pose graph over their pairwise registrations (dit_jax.scene).",
+        epilog="Registers every pair where the scans are few (else neighbours in the list and the pairs their "
+        "first placement overlaps), keeps each result the verdict does not find probably wrong as an edge, and "
+        "optimises the scans' poses over the edges, switching off the uncertain edges that disagree with the "
+        "rest. Prints each scan's pose (x_first = R x_scan + t) and the edges kept and left out. A scan that "
+        "joins nothing is reported and left out. Exit status 3 where a scan is left out; 2 on bad input.",
+    )
+    parser.add_argument("scans", nargs="+", help="the scans (or meshes) of the scene, at least 2")
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
+    )
+    parser.add_argument("--out", default=None, help="write the placed scans in the first one's frame, as one cloud")
+    parser.add_argument(
+        "--voxel", type=float, default=None, metavar="SIZE", help="--out keeps one point per cell of this size"
+    )
+    parser.add_argument("--poses", default=None, metavar="FILE.json", help="write poses, edges and components as JSON")
+    for form in POSE_FORMS:
+        parser.add_argument(
+            f"--{form}",
+            default=None,
+            metavar="FILE.txt",
+            help=f"write the placed scans' poses in {form.upper()}'s text form",
+        )
+    parser.add_argument("--json", action="store_true", help="print the scene as JSON")
+    settings.add_flags(parser, ("refine", "viewpoint", "seed"))
+    _add_reading_flags(parser)
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-verdict-status", action="store_true", help=f"exit 0 even where a scan joins nothing (else {EXIT_SUSPECT})"
+    )
+    compile_cache.add_arguments(parser)
+    return parser
+
+
+def _text_output_problem(path: str | None, flag: str, inputs: tuple) -> str | None:
+    """What is wrong with a text output's path (its folder missing, one of the ``inputs``), or None."""
+    if path is None:
+        return None
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        return f"{flag} {path}: its folder does not exist"
+    if any(os.path.realpath(path) == os.path.realpath(p) for p in inputs):
+        return f"{flag} {path}: it is one of the scans"
+    return None
+
+
+def scene_main(argv: list[str] | None = None) -> int:
+    """``dit-register-scene SCAN SCAN [SCAN ...]``: see :func:`_scene_parser`."""
+    args = _scene_parser().parse_args(argv)
+    fail = lambda message: _fail(message, SCENE_PROG)  # noqa: E731
+    if len(args.scans) < 2:
+        return fail(f"a scene needs at least 2 scans, got {len(args.scans)}")
+    scans = tuple(args.scans)
+    texts = [(args.poses, "--poses")] + [(getattr(args, form), f"--{form}") for form in POSE_FORMS]
+    problem = _output_problem(args.out, inputs=scans) or next(
+        (p for p in (_text_output_problem(path, flag, scans) for path, flag in texts) if p), None
+    )
+    if args.voxel is not None and not args.voxel > 0:
+        problem = problem or f"--voxel must be positive, got {args.voxel}"
+    if problem:
+        return fail(problem)
+    compile_cache.from_args(args)
+    from tqdm import tqdm
+
+    from dit_jax import registration, sampling, scene
+
+    try:
+        clouds = [_read(path, args, SCENE_PROG) for path in scans]
+        model = registration.load(args.checkpoint, **settings.changes(args))
+        bar = tqdm(desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty())
+        with bar, warnings.catch_warnings():
+            warnings.simplefilter("ignore", sampling.SizeMismatchWarning)  # a scene's scans differ in extent
+            built = scene.register_scene(model, clouds, on_pair=bar.update)
+        _write_scene(built, args, clouds)
+    except sampling.InputError as err:
+        return fail(str(err))
+    except (io.CloudFileError, ValueError, OSError) as err:  # bad checkpoints too
+        return fail(str(err))
+    _print_scene(built, args)
+    left_out = [scans[k] for k in range(len(scans)) if not built.placed[k]]
+    for name in left_out:
+        print(f"{SCENE_PROG}: warning: {name} joins no scan of the scene: left out", file=sys.stderr)
+    return EXIT_SUSPECT if left_out and not args.no_verdict_status else 0
+
+
+def _write_scene(built, args: argparse.Namespace, clouds: list[np.ndarray]) -> None:
+    from dit_jax import scene
+
+    if args.out is not None:
+        io.write(args.out, built.merged(clouds, args.voxel))
+    if args.poses is not None:
+        io.write_text(args.poses, json.dumps(built.to_json(args.scans), indent=2) + "\n")
+    for form in POSE_FORMS:
+        if getattr(args, form) is not None:
+            io.write_text(getattr(args, form), scene.pose_lines(built.poses, built.placed, POSE_FORMS[form]))
+
+
+def _print_scene(built, args: argparse.Namespace) -> None:
+    """dit-register-scene's report on stdout: the scene as JSON with ``--json``, else each scan's pose, the
+    edges' counts and the files written."""
+    from dit_jax.geometry import rotation_angle_deg
+
+    names = args.scans
+    if args.json:
+        print(json.dumps(built.to_json(names), indent=2))
+        return
+    with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
+        for name, pose, placed in zip(names, built.poses, built.placed):
+            if not placed:
+                print(f"{name}: left out (it joins no scan of the scene)")
+                continue
+            print(
+                f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
+                f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame"
+            )
+            print(pose)
+    kept = sum(e.kept for e in built.edges)
+    print(
+        f"edges: {len(built.edges) + len(built.rejected)} pairs registered, {kept} kept, "
+        f"{len(built.edges) - kept} switched off by the optimisation, {len(built.rejected)} probably wrong"
+    )
+    for path in (args.out, args.poses, *(getattr(args, form) for form in POSE_FORMS)):
+        if path is not None:
+            print(f"wrote {path}")
+
+
 if __name__ == "__main__":
     sys.exit(main())

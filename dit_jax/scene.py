@@ -72,10 +72,49 @@ class Scene:
     rejected: tuple[Edge, ...]
     components: tuple[tuple[int, ...], ...]
 
-    def merged(self, clouds: Sequence[np.ndarray]) -> np.ndarray:
-        """(sum N_k, 3) the placed scans' points in scan 0's frame."""
+    def merged(self, clouds: Sequence[np.ndarray], voxel: float | None = None) -> np.ndarray:
+        """(N, 3) the placed scans' points in scan 0's frame; with ``voxel``, one point per occupied cell of a
+        grid of that size (the first, in the scans' order)."""
         moved = [c @ p[:3, :3].T + p[:3, 3] for c, p, ok in zip(clouds, self.poses, self.placed) if ok]
-        return np.concatenate(moved) if moved else np.zeros((0, 3))
+        points = np.concatenate(moved) if moved else np.zeros((0, 3))
+        if voxel is None or len(points) == 0:
+            return points
+        cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        return points[np.sort(first)]
+
+    def to_json(self, names: Sequence[str]) -> dict:
+        """The scene as JSON, each scan by its name: poses, placement, components and every edge's verdict."""
+        edge = lambda e: {"source": names[e.source], "target": names[e.target], "level": e.result.level,
+                          "certain": e.certain, "kept": e.kept, "fitness": e.result.fitness}  # fmt: skip
+        return {
+            "scans": list(names),
+            "poses": self.poses.tolist(),
+            "placed": self.placed.tolist(),
+            "components": [[names[k] for k in component] for component in self.components],
+            "edges": [edge(e) for e in self.edges],
+            "rejected": [edge(e) for e in self.rejected],
+        }
+
+
+def pose_lines(poses: np.ndarray, placed: np.ndarray, form: str) -> str:
+    """The placed scans' poses (K, 4, 4) as text, a line each: "kitti", the 3 x 4 matrix row by row (KITTI's
+    poses.txt); "tum", ``k tx ty tz qx qy qz qw`` with the scan's index k for the time stamp (TUM RGB-D's
+    trajectory form)."""
+    from scipy.spatial.transform import Rotation
+
+    if form not in ("kitti", "tum"):
+        raise ValueError(f"form must be kitti or tum, got {form!r}")
+    lines = []
+    for k, (pose, ok) in enumerate(zip(poses, placed)):
+        if not ok:
+            continue
+        if form == "kitti":
+            lines.append(" ".join(f"{v:.9e}" for v in pose[:3].ravel()))
+        else:
+            quaternion = Rotation.from_matrix(pose[:3, :3]).as_quat()  # x, y, z, w
+            lines.append(" ".join([str(k)] + [f"{v:.9f}" for v in (*pose[:3, 3], *quaternion)]))
+    return "\n".join(lines) + "\n"
 
 
 def candidate_pairs(clouds: Sequence[np.ndarray], poses: np.ndarray | None = None) -> list[tuple[int, int]]:

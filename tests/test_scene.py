@@ -130,3 +130,58 @@ def test_a_scan_that_joins_nothing_is_reported_not_forced_in():
     assert len(built.merged(clouds)) == sum(len(c) for c in clouds[:3])
     with pytest.raises(ValueError, match="at least 2 scans"):
         scene.register_scene(registrar, clouds[:1])
+
+
+class _ByContent(_Registrar):
+    """:class:`_Registrar` for clouds read back from files: each known by its first point."""
+
+    def register_pairs(self, pairs, batch_size=8, on_pair=None):
+        index = lambda cloud: int(np.argmin([np.abs(c[0] - cloud[0]).sum() for c in self.clouds]))
+        originals = [(self.clouds[index(s)], self.clouds[index(t)]) for s, t in pairs]
+        return super().register_pairs(originals, batch_size, on_pair)
+
+
+def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path, monkeypatch, capsys):
+    import json
+
+    from dit_jax import cli, io, registration
+
+    clouds, truth = _views(4)
+    paths = []
+    for k, cloud in enumerate(clouds):
+        paths.append(str(tmp_path / f"scan{k}.ply"))
+        io.write(paths[-1], cloud)
+    read_back = [io.read(p) for p in paths]
+    wrong = {}
+    monkeypatch.setattr(
+        registration, "load", lambda *a, **k: _ByContent(read_back, np.stack([_pose(k) for k in range(4)]), wrong)
+    )
+    out, poses, kitti, tum = (str(tmp_path / name) for name in ("scene.ply", "poses.json", "kitti.txt", "tum.txt"))
+    args = [*paths, "--out", out, "--voxel", "0.05", "--poses", poses, "--kitti", kitti, "--tum", tum, "--no-progress"]
+    assert cli.scene_main(args) == 0
+    report = json.loads(open(poses).read())
+    assert report["scans"] == paths and report["placed"] == [True] * 4 and len(report["edges"]) == 6
+    np.testing.assert_allclose(report["poses"], truth, atol=1e-5)
+    rows = np.loadtxt(kitti)
+    assert rows.shape == (4, 12)
+    np.testing.assert_allclose(rows.reshape(4, 3, 4), truth[:, :3], atol=1e-5)
+    assert np.loadtxt(tum).shape == (4, 8)
+    merged = io.read(out)
+    assert 0 < len(merged) < sum(len(c) for c in clouds), "thinned to one point per 5-cm cell"
+    assert "edges: 6 pairs registered, 6 kept, 0 switched off by the optimisation, 0 probably wrong" in capsys.readouterr().out
+
+    wrong.update({(3, t): (90.0, "probably wrong") for t in range(3)})
+    assert cli.scene_main([*paths, "--no-progress"]) == cli.EXIT_SUSPECT
+    assert f"{paths[3]} joins no scan of the scene: left out" in capsys.readouterr().err
+    assert cli.scene_main([*paths, "--no-progress", "--no-verdict-status"]) == 0
+
+    for bad, message in (
+        ([paths[0]], "a scene needs at least 2 scans"),
+        ([*paths, "--out", paths[1]], paths[1]),
+        ([*paths, "--kitti", str(tmp_path / "no" / "k.txt")], "its folder does not exist"),
+        ([*paths, "--voxel", "0"], "--voxel must be positive"),
+    ):
+        capsys.readouterr()
+        assert cli.scene_main(bad) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("dit-register-scene: error:") and message in err, err

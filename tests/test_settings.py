@@ -14,6 +14,7 @@ from dit_jax import cli, settings
 PARSERS = {
     "dit-register": cli._parser,
     "dit-register-series": cli._series_parser,
+    "dit-register-scene": cli._scene_parser,
     "evaluate.py": evaluate.build_parser,
     "tools/tune_baselines.py": tune_baselines.build_parser,
 }

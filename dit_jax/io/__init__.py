@@ -225,6 +225,12 @@ def write(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -
             )
 
 
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Writes ``text`` (UTF-8) to ``path`` atomically: a failed write leaves what was there."""
+    with _atomic_file(os.fspath(path)) as f:
+        f.write(text.encode("utf-8"))
+
+
 def move_file(
     source: str | os.PathLike, destination: str | os.PathLike, rotation: np.ndarray, translation: np.ndarray
 ) -> None:
