@@ -138,8 +138,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--plot",
         default=None,
-        metavar="FILE.png",
-        help="draw both clouds before and after the registration, from two viewpoints",
+        metavar="FILE.png|FILE.html",
+        help="draw both clouds before and after the registration, from two viewpoints (.png), or write one page "
+        "a browser turns (.html)",
     )
     parser.add_argument(
         "--no-verdict-status",
@@ -217,12 +218,12 @@ def _writable_problem(path: str, inputs: tuple = ()) -> str | None:
     return None
 
 
-def _plot_problem(path: str | None, inputs: tuple = ()) -> str | None:
-    """What is wrong with a --plot path (not a .png, see :func:`_writable_problem`), or None."""
+def _plot_problem(path: str | None, inputs: tuple = (), suffixes: tuple[str, ...] = (".png", ".html")) -> str | None:
+    """What is wrong with a --plot path (not one of ``suffixes``, see :func:`_writable_problem`), or None."""
     if path is None:
         return None
-    if not path.lower().endswith(".png"):
-        return f"--plot {path}: expected a .png file name"
+    if not path.lower().endswith(suffixes):
+        return f"--plot {path}: expected a {' or '.join(suffixes)} file name"
     return _writable_problem(path, inputs)
 
 
@@ -638,7 +639,7 @@ def series_main(argv: list[str] | None = None) -> int:
     problem = (
         _output_problem(args.out, inputs=scans)
         or _out_dir_problem(args.out_dir, args.scans)
-        or _plot_problem(args.plot, scans)
+        or _plot_problem(args.plot, scans, (".png",))
     )
     if problem:
         return fail(problem)
@@ -793,6 +794,12 @@ def _scene_parser() -> argparse.ArgumentParser:
             metavar="FILE.txt",
             help=f"write the placed scans' poses in {form.upper()}'s text form",
         )
+    parser.add_argument(
+        "--plot",
+        default=None,
+        metavar="FILE.html",
+        help="write one page a browser turns: the placed scans in the first one's frame, each in its colour, and the edges",
+    )
     parser.add_argument("--json", action="store_true", help="print the scene as JSON")
     settings.add_flags(parser, ("refine", "viewpoint", "seed"))
     _add_reading_flags(parser)
@@ -823,8 +830,10 @@ def scene_main(argv: list[str] | None = None) -> int:
         return fail(f"a scene needs at least 2 scans, got {len(args.scans)}")
     scans = tuple(args.scans)
     texts = [(args.poses, "--poses")] + [(getattr(args, form), f"--{form}") for form in POSE_FORMS]
-    problem = _output_problem(args.out, inputs=scans) or next(
-        (p for p in (_text_output_problem(path, flag, scans) for path, flag in texts) if p), None
+    problem = (
+        _output_problem(args.out, inputs=scans)
+        or next((p for p in (_text_output_problem(path, flag, scans) for path, flag in texts) if p), None)
+        or _plot_problem(args.plot, scans, (".html",))
     )
     if args.voxel is not None and not args.voxel > 0:
         problem = problem or f"--voxel must be positive, got {args.voxel}"
@@ -864,6 +873,8 @@ def _write_scene(built, args: argparse.Namespace, clouds: list[np.ndarray]) -> N
     for form in POSE_FORMS:
         if getattr(args, form) is not None:
             io.write_text(getattr(args, form), scene.pose_lines(built.poses, built.placed, POSE_FORMS[form]))
+    if args.plot is not None:
+        built.plot(args.plot, clouds, [os.path.basename(path) for path in args.scans])
 
 
 def _print_scene(built, args: argparse.Namespace) -> None:
@@ -890,7 +901,7 @@ def _print_scene(built, args: argparse.Namespace) -> None:
         f"edges: {len(built.edges) + len(built.rejected)} pairs registered, {kept} kept, "
         f"{len(built.edges) - kept} switched off by the optimisation, {len(built.rejected)} probably wrong"
     )
-    for path in (args.out, args.poses, *(getattr(args, form) for form in POSE_FORMS)):
+    for path in (args.out, args.poses, *(getattr(args, form) for form in POSE_FORMS), args.plot):
         if path is not None:
             print(f"wrote {path}")
 

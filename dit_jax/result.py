@@ -226,8 +226,17 @@ class Result:
     def plot(self, path: str | os.PathLike, src, tgt, *, truth: tuple | None = None, title: str | None = None) -> str:
         """Writes a PNG of ``src`` (N, 3) and ``tgt`` (M, 3), the clouds this result registered, before and
         after the motion from two viewpoints, with the motion, inlier ratio and fitness in the title (and the
-        error where ``truth`` = (R (3, 3), t (3,)) is given). Returns ``path``."""
+        error where ``truth`` = (R (3, 3), t (3,)) is given); where ``path`` ends in ``.html``, one page a user
+        can turn (:mod:`dit_jax.view`): the target, the source as given and the source moved. Returns ``path``."""
         from dit_jax import plotting
+
+        if os.fspath(path).lower().endswith(".html"):
+            from dit_jax import view
+
+            src, tgt = np.asarray(src, np.float64), np.asarray(tgt, np.float64)
+            moved = src @ self.rotation.T + self.translation
+            heading = title or f"{self.label}: {self.level}, fitness {self.fitness:.2f}"
+            return view.write(path, view.page([tgt, src, moved], ["target", "source", "source moved"], title=heading))
 
         return plotting.plot_registration(
             path,

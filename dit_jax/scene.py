@@ -83,6 +83,25 @@ class Scene:
         _, first = np.unique(cells, axis=0, return_index=True)
         return points[np.sort(first)]
 
+    def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str], title: str | None = None) -> str:
+        """Writes one self-contained HTML page (:mod:`dit_jax.view`) of the placed scans in scan 0's frame, each
+        in its own colour, and the edges between their centres: kept solid, switched off dashed. Returns the
+        path."""
+        from dit_jax import view
+
+        placed = [k for k in range(len(clouds)) if self.placed[k]]
+        moved = [clouds[k] @ self.poses[k][:3, :3].T + self.poses[k][:3, 3] for k in placed]
+        centres = {k: m.mean(axis=0) for k, m in zip(placed, moved)}
+        lines = []
+        for name, kept, dash in (("edges kept", True, "solid"), ("edges switched off", False, "dash")):
+            ends = [(centres[e.source], centres[e.target]) for e in self.edges if e.kept == kept and e.source in centres
+                    and e.target in centres]  # fmt: skip
+            if ends:
+                lines.append(view.Lines(name, np.array(ends), dash))
+        left_out = len(clouds) - len(placed)
+        heading = title or f"{len(placed)} scans placed" + (f", {left_out} left out" if left_out else "")
+        return view.write(path, view.page(moved, [names[k] for k in placed], title=heading, lines=lines))
+
     def to_json(self, names: Sequence[str]) -> dict:
         """The scene as JSON, each scan by its name: poses, placement, components and every edge's verdict."""
         edge = lambda e: {"source": names[e.source], "target": names[e.target], "level": e.result.level,

@@ -312,3 +312,24 @@ def box_room(n: int, seed: int) -> np.ndarray:
     shares = rng.uniform(0, 1, (len(sides), n // len(sides), 2))
     points = [o + s[:, :1] * np.array(u) + s[:, 1:] * np.array(v) for (o, u, v), s in zip(sides, shares)]
     return np.concatenate(points)
+
+
+def rendered_legend(path) -> list[str]:
+    """The legend entries of an HTML page (dit_jax.view) as headless Chromium renders it, after its script ran;
+    skips where no Chromium is installed (Debian: apt-get install chromium)."""
+    import re
+    import shutil
+    import subprocess
+
+    import pytest
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if browser is None:
+        pytest.skip("no Chromium to render the page (apt-get install chromium)")
+    dom = subprocess.run(
+        [browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000", "--dump-dom",
+         pathlib.Path(path).resolve().as_uri()],
+        capture_output=True, text=True, timeout=120,
+    ).stdout  # fmt: skip
+    assert "<canvas" in dom and 'class="gl-container"' in dom, "the 3D scene did not render"
+    return re.findall(r'class="legendtext"[^>]*data-unformatted="([^"]*)"', dom)

@@ -156,8 +156,10 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
     monkeypatch.setattr(
         registration, "load", lambda *a, **k: _ByContent(read_back, np.stack([_pose(k) for k in range(4)]), wrong)
     )
-    out, poses, kitti, tum = (str(tmp_path / name) for name in ("scene.ply", "poses.json", "kitti.txt", "tum.txt"))
+    names = ("scene.ply", "poses.json", "kitti.txt", "tum.txt", "scene.html")
+    out, poses, kitti, tum, page = (str(tmp_path / name) for name in names)
     args = [*paths, "--out", out, "--voxel", "0.05", "--poses", poses, "--kitti", kitti, "--tum", tum, "--no-progress"]
+    args += ["--plot", page]
     assert cli.scene_main(args) == 0
     report = json.loads(open(poses).read())
     assert report["scans"] == paths and report["placed"] == [True] * 4 and len(report["edges"]) == 6
@@ -168,7 +170,10 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
     assert np.loadtxt(tum).shape == (4, 8)
     merged = io.read(out)
     assert 0 < len(merged) < sum(len(c) for c in clouds), "thinned to one point per 5-cm cell"
-    assert "edges: 6 pairs registered, 6 kept, 0 switched off by the optimisation, 0 probably wrong" in capsys.readouterr().out
+    assert (
+        "edges: 6 pairs registered, 6 kept, 0 switched off by the optimisation, 0 probably wrong"
+        in capsys.readouterr().out
+    )
 
     wrong.update({(3, t): (90.0, "probably wrong") for t in range(3)})
     assert cli.scene_main([*paths, "--no-progress"]) == cli.EXIT_SUSPECT
@@ -180,6 +185,7 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
         ([*paths, "--out", paths[1]], paths[1]),
         ([*paths, "--kitti", str(tmp_path / "no" / "k.txt")], "its folder does not exist"),
         ([*paths, "--voxel", "0"], "--voxel must be positive"),
+        ([*paths, "--plot", str(tmp_path / "scene.png")], "expected a .html file name"),
     ):
         capsys.readouterr()
         assert cli.scene_main(bad) == 2
