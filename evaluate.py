@@ -31,7 +31,22 @@ import sys
 
 # What each mode leaves out, so that a flag given with it is refused rather than silently ignored.
 _IGNORED_BY = {
+    "--scenes": (
+        "angle_sweep",
+        "data_dir",
+        "settings",
+        "unseen",
+        "variant",
+        "authors_thresholds",
+        "batch_size",
+        "reuse",
+        "skips",
+        "baselines",
+        "max_pairs",
+        "no_dit",
+    ),
     "--scans": (
+        "scenes",
         "angle_sweep",
         "data_dir",
         "settings",
@@ -43,6 +58,7 @@ _IGNORED_BY = {
         "verdict",
     ),
     "--angle-sweep": (
+        "scenes",
         "skips",
         "features",
         "variant",
@@ -80,6 +96,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="evaluate on real scans with known poses instead of shapes: a Stanford .conf, "
         "3DMatch gt.log lists, a KITTI poses.txt or T_target_source.txt",
+    )
+    parser.add_argument(
+        "--scenes",
+        default=None,
+        metavar="DIR",
+        help="place each 3DMatch scene's fragments by a pose graph (dit_jax.scene) and score every benchmark "
+        "pair from the placed poses, beside the pairwise results: a folder of scene folders, or one",
     )
     parser.add_argument(
         "--angle-sweep",
@@ -138,7 +161,7 @@ def main(argv=None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
-    mode = "--scans" if args.scans else "--angle-sweep" if args.angle_sweep else None
+    mode = "--scans" if args.scans else "--scenes" if args.scenes else "--angle-sweep" if args.angle_sweep else None
     for dest in _IGNORED_BY.get(mode, ("skips",)):
         if getattr(args, dest) != parser.get_default(dest):
             flag = "--" + dest.replace("_", "-")
@@ -176,6 +199,13 @@ def main(argv=None) -> int:
             )
             print(results["table"])
             print(f"wrote {args.out}/angle_sweep.md, angle_sweep.json, angle_sweep.png")
+            return 0
+        if args.scenes:
+            results = evaluators.evaluate_scenes(
+                checkpoint, args.scenes, args.out, inference=inference, progress=not args.no_progress
+            )
+            print(results["table"])
+            print(f"wrote {args.out}/results.md, results.json")
             return 0
         if args.scans:
             results = evaluators.evaluate_scans(

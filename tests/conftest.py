@@ -333,3 +333,31 @@ def rendered_legend(path) -> list[str]:
     ).stdout  # fmt: skip
     assert "<canvas" in dom and 'class="gl-container"' in dom, "the 3D scene did not render"
     return re.findall(r'class="legendtext"[^>]*data-unformatted="([^"]*)"', dom)
+
+
+def exact_result(motion: np.ndarray, level: str, fitness: float = 0.9):
+    """A :class:`dit_jax.result.Result` of ``motion`` (4, 4) at the verdict's ``level``, as a stand-in
+    registrar returns it."""
+    from dit_jax.result import Result
+
+    return Result(
+        motion[:3, :3],
+        motion[:3, 3],
+        motion,
+        np.arange(3),
+        np.arange(3),
+        np.ones(3),
+        1.0,
+        fitness,
+        0.0,
+        refinement=None,
+        refine_seconds=0.0,
+        verdict=level == "trusted",
+        level=level,
+        verdict_rule="agreement",
+        threshold=1.0,
+        agreement=0.5,
+        direction="forward",
+        start_turn=0.0,
+        agreement_band=None,
+    )

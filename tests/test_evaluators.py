@@ -415,3 +415,49 @@ def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_pa
         )
         assert rows[method]["per_pair"]["rot_err"][0] == pytest.approx(expected, abs=1e-4), method
     assert rows["DIT+ICP"]["per_pair"]["agreement"][0] == pytest.approx(result.agreement, abs=1e-4)
+
+
+class _SceneTruth:
+    """Registers each pair by the written scene's truth (each fragment known by its first point)."""
+
+    def __init__(self, clouds, poses, wrong=()):
+        self.clouds, self.poses, self.wrong = clouds, poses, set(wrong)
+
+    def register_pairs(self, pairs, batch_size=8, on_pair=None):
+        from conftest import exact_result
+
+        index = lambda cloud: int(np.argmin([np.abs(c[0] - cloud[0]).sum() for c in self.clouds]))
+        results = []
+        for src, tgt in pairs:
+            s, t = index(src), index(tgt)
+            motion = np.linalg.inv(self.poses[t]) @ self.poses[s]
+            if (s, t) in self.wrong:  # a quarter turn off
+                motion = motion @ np.array([[0.0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+            results.append(exact_result(motion, "probably wrong" if (s, t) in self.wrong else "trusted"))
+        return results
+
+
+def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp_path):
+    from conftest import write_3dmatch_scene
+
+    from dit_jax import io
+    from dit_jax.evaluators import scenes
+
+    rng = np.random.default_rng(4)
+    world = rng.normal(size=(300, 3)) * [2.0, 1.0, 0.5]
+    poses = write_3dmatch_scene(tmp_path / "room", world, rng, fragments=(0, 1, 2, 3))
+    clouds = [io.read(tmp_path / "room" / f"cloud_bin_{k}.ply") for k in range(4)]
+    truth = np.stack([poses[k] for k in range(4)])
+    # Fragment 3 onto fragment 0 is found probably wrong: the scene still places 3 through 1 and 2.
+    registrar = _SceneTruth(clouds, truth, wrong=[(3, 0)])
+    results = scenes.evaluate_scenes(None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar)
+    (row,) = results["scenes"]
+    assert row["scene"] == "room" and row["placed"] == 4 and row["left_out"] == []
+    counts = row["lists"]["3DMatch"]
+    assert counts["pairs"] == 6 and counts["scene"] == 6 and counts["pairwise"] == 5
+    assert counts["scene_rmse"] == 6 and counts["pairwise_rmse"] == 5
+    assert row["position_max"] < 1e-5 and row["rotation_max_deg"] < 1e-3
+    assert (row["pairs_registered"], row["rejected"]) == (6, 1) and row["levels"] == {"trusted": 5, "probably wrong": 1}
+    assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 |" in (tmp_path / "out" / "results.md").read_text()
+    with pytest.raises(ValueError, match="no 3DMatch scene"):
+        scenes.scene_folders(tmp_path / "out")

@@ -3,8 +3,8 @@ first poses, the pose graph's optimisation that switches a wrong loop edge off, 
 
 import numpy as np
 import pytest
+from conftest import exact_result
 
-from dit_jax import result as result_lib
 from dit_jax import scene
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
@@ -44,30 +44,6 @@ def _views(n: int) -> tuple[list[np.ndarray], np.ndarray]:
     return clouds, np.linalg.inv(poses[0]) @ poses
 
 
-def _result(motion: np.ndarray, level: str, fitness: float = 0.9) -> result_lib.Result:
-    return result_lib.Result(
-        motion[:3, :3],
-        motion[:3, 3],
-        motion,
-        np.arange(3),
-        np.arange(3),
-        np.ones(3),
-        1.0,
-        fitness,
-        0.0,
-        refinement=None,
-        refine_seconds=0.0,
-        verdict=level == "trusted",
-        level=level,
-        verdict_rule="agreement",
-        threshold=1.0,
-        agreement=0.5,
-        direction="forward",
-        start_turn=0.0,
-        agreement_band=None,
-    )
-
-
 class _Registrar:
     """Registers by the truth, but for the pairs it is told to get wrong (with the level it is told)."""
 
@@ -85,9 +61,9 @@ class _Registrar:
                 turn, level = self.wrong[(s, t)]
                 wrong = np.eye(4)
                 wrong[:3, :3] = euler_zyx_to_matrix([turn, 0.0, 0.0])
-                results.append(_result(truth @ wrong, level))
+                results.append(exact_result(truth @ wrong, level))
             else:
-                results.append(_result(truth, "trusted" if s == t + 1 else "unconfirmed"))
+                results.append(exact_result(truth, "trusted" if s == t + 1 else "unconfirmed"))
             if on_pair is not None:
                 on_pair(1)
         return results

@@ -1,0 +1,160 @@
+"""Scenes (:mod:`dit_jax.scene`) against the 3DMatch benchmark's truth: each scene folder's fragments placed by
+the pose graph, then every benchmark pair's motion read off the placed poses, beside the pairwise pipeline's
+own result for the same pair (registered on the way), and each fragment's pose beside the truth chained
+through both lists (:func:`dit_jax.data.scans.scene_poses`).
+
+    python evaluate.py --scenes ../shared/data/3dmatch --out eval_scenes
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import time
+
+import numpy as np
+
+from dit_jax import geometry
+from dit_jax.evaluators.common import progress_bar
+
+#: A benchmark pair is registered within this rotation (degrees) and translation (the data's units, metres).
+CRITERION = (15.0, 0.3)
+
+
+def scene_folders(directory: str | os.PathLike) -> list[pathlib.Path]:
+    """The 3DMatch scene folders under ``directory`` (each holds ``cloud_bin_*`` fragments and list folders
+    with a ``gt.log``), or ``directory`` itself where it is one."""
+    directory = pathlib.Path(directory)
+    is_scene = lambda folder: any(folder.glob("cloud_bin_*")) and any(folder.glob("*/gt.log"))
+    folders = (
+        [directory] if is_scene(directory) else sorted(f for f in directory.iterdir() if f.is_dir() and is_scene(f))
+    )
+    if not folders:
+        raise ValueError(f"{directory}: no 3DMatch scene (cloud_bin_* fragments and */gt.log lists)")
+    return folders
+
+
+def _right(estimate: np.ndarray, truth: np.ndarray) -> bool:
+    """Whether a 4 x 4 ``estimate`` lies within :data:`CRITERION` of ``truth``."""
+    degrees = geometry.rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
+    return bool(degrees <= CRITERION[0] and np.linalg.norm(estimate[:3, 3] - truth[:3, 3]) <= CRITERION[1])
+
+
+def _rmse_right(estimate: np.ndarray, truth: np.ndarray, info: np.ndarray | None) -> bool:
+    """Whether ``estimate`` meets the benchmark's RMSE threshold (:func:`dit_jax.data.scans.benchmark_rmse`)."""
+    from dit_jax.data import scans
+
+    pair = scans.ScanPair("", None, None, truth[:3, :3], truth[:3, 3], info)
+    return bool(scans.benchmark_rmse(estimate[:3, :3], estimate[:3, 3], pair) <= scans.BENCHMARK_RMSE)
+
+
+def score_scene(folder: pathlib.Path, fragments: list[int], built, seconds: float) -> dict:
+    """The figures of one scene ``built`` (:class:`dit_jax.scene.Scene`) from the ``fragments`` of ``folder``
+    (their numbers, in the scene's order)."""
+    from dit_jax.data import scans
+
+    truth, known = scans.scene_poses(folder)
+    at = {fragment: k for k, fragment in enumerate(fragments)}
+    poses = np.tile(np.eye(4), (len(truth), 1, 1))
+    placed = np.zeros(len(truth), bool)
+    for fragment, k in at.items():
+        poses[fragment], placed[fragment] = built.poses[k], built.placed[k]
+    by_pair = {(fragments[e.source], fragments[e.target]): e.result for e in (*built.edges, *built.rejected)}
+    lists = {}
+    for log in sorted(folder.glob("*/gt.log")):
+        info = scans.read_gt_info(log.with_name("gt.info")) if log.with_name("gt.info").exists() else {}
+        counts = {"pairs": 0, "scene": 0, "pairwise": 0, "scene_rmse": 0, "pairwise_rmse": 0}
+        for i, j, motion in scans.read_gt_log(log):  # fragment j onto fragment i
+            both = bool(placed[i] and placed[j])
+            from_scene = np.linalg.inv(poses[i]) @ poses[j]
+            pairwise = by_pair[(j, i)].matrix if (j, i) in by_pair else np.full((4, 4), np.nan)
+            counts["pairs"] += 1
+            counts["scene"] += both and _right(from_scene, motion)
+            counts["pairwise"] += _right(pairwise, motion)
+            counts["scene_rmse"] += both and _rmse_right(from_scene, motion, info.get((i, j)))
+            counts["pairwise_rmse"] += _rmse_right(pairwise, motion, info.get((i, j)))
+        lists[log.parent.name] = {k: int(v) for k, v in counts.items()}
+    scored = [f for f in fragments if placed[f] and known[f]]
+    position = [float(np.linalg.norm(poses[f][:3, 3] - truth[f][:3, 3])) for f in scored]
+    rotation = [geometry.rotation_angle_deg(poses[f][:3, :3].T @ truth[f][:3, :3]) for f in scored]
+    levels = {}
+    for edge in (*built.edges, *built.rejected):
+        levels[edge.result.level] = levels.get(edge.result.level, 0) + 1
+    return {
+        "scene": folder.name,
+        "fragments": len(fragments),
+        "placed": int(built.placed.sum()),
+        "left_out": [fragments[k] for k in range(len(fragments)) if not built.placed[k]],
+        "lists": lists,
+        "position_rmse": float(np.sqrt(np.mean(np.square(position)))) if position else float("nan"),
+        "position_max": max(position, default=float("nan")),
+        "rotation_median_deg": float(np.median(rotation)) if rotation else float("nan"),
+        "rotation_max_deg": max(rotation, default=float("nan")),
+        "pairs_registered": len(built.edges) + len(built.rejected),
+        "edges_kept": sum(e.kept for e in built.edges),
+        "edges_switched_off": sum(not e.kept for e in built.edges),
+        "rejected": len(built.rejected),
+        "levels": levels,
+        "seconds": seconds,
+    }
+
+
+def evaluate_scenes(
+    checkpoint_dir: str | None,
+    directory: str | os.PathLike,
+    out_dir: str,
+    *,
+    inference: dict | None = None,
+    progress: bool = True,
+    registrar=None,
+) -> dict:
+    """Each 3DMatch scene under ``directory`` (:func:`scene_folders`) placed by :func:`dit_jax.scene.register_scene`
+    with a checkpoint (None: the shipped weights; ``inference``: changes to its settings; ``registrar``: one
+    already loaded instead), scored by :func:`score_scene`. Writes ``results.json`` and ``results.md`` to
+    ``out_dir``; returns the results with their ``table``."""
+    from dit_jax import io, registration, scene
+
+    registrar = registrar or registration.load(checkpoint_dir, **(inference or {}))
+    rows = []
+    for folder in scene_folders(directory):
+        files = sorted(folder.glob("cloud_bin_*.*"), key=lambda f: int(f.stem.split("_")[-1]))
+        fragments = [int(f.stem.split("_")[-1]) for f in files]
+        clouds = [io.read(f) for f in files]
+        bar = progress_bar(progress, len(clouds) * (len(clouds) - 1) // 2, f"scene {folder.name}")
+        started = time.perf_counter()
+        built = scene.register_scene(registrar, clouds, on_pair=bar.update if bar else None)
+        if bar is not None:
+            bar.close()
+        rows.append(score_scene(folder, fragments, built, time.perf_counter() - started))
+    results = {"data": os.fspath(directory), "criterion": list(CRITERION), "scenes": rows}
+    results["table"] = table(rows)
+    os.makedirs(out_dir, exist_ok=True)
+    with open(os.path.join(out_dir, "results.json"), "w") as f:
+        json.dump({k: v for k, v in results.items() if k != "table"}, f, indent=2)
+    with open(os.path.join(out_dir, "results.md"), "w") as f:
+        f.write(results["table"] + "\n")
+    return results
+
+
+def table(rows: list[dict]) -> str:
+    """The scenes' figures as a Markdown table: per scene and list, the benchmark pairs within the criterion
+    (and by the benchmark's RMSE) from the scene's poses and from the pairwise results; the fragments' pose
+    errors; the edges; the time."""
+    lines = [
+        "| scene | list | pairs | scene: within 15 deg, 0.3 m | pairwise | scene: RMSE <= 0.2 m | pairwise |"
+        " fragments placed | position RMSE / max (m) | rotation median / max (deg) | pairs registered, kept,"
+        " switched off, probably wrong | s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        for name, c in row["lists"].items():
+            lines.append(
+                f"| {row['scene']} | {name} | {c['pairs']} | {c['scene']} | {c['pairwise']} | {c['scene_rmse']} |"
+                f" {c['pairwise_rmse']} | {row['placed']} of {row['fragments']} |"
+                f" {row['position_rmse']:.3f} / {row['position_max']:.3f} |"
+                f" {row['rotation_median_deg']:.2f} / {row['rotation_max_deg']:.2f} |"
+                f" {row['pairs_registered']}, {row['edges_kept']}, {row['edges_switched_off']}, {row['rejected']} |"
+                f" {row['seconds']:.0f} |"
+            )
+    return "\n".join(lines)
