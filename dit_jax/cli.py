@@ -847,7 +847,11 @@ def scene_main(argv: list[str] | None = None) -> int:
     try:
         clouds = [_read(path, args, SCENE_PROG) for path in scans]
         model = registration.load(args.checkpoint, **settings.changes(args))
-        bar = tqdm(desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty())
+        # Every pair up to scene.ALL_PAIRS_SCANS scans; above, the count grows once the first poses are known.
+        first = len(scene.candidate_pairs(clouds))
+        bar = tqdm(
+            total=first, desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty()
+        )
         with bar, warnings.catch_warnings():
             warnings.simplefilter("ignore", sampling.SizeMismatchWarning)  # a scene's scans differ in extent
             built = scene.register_scene(model, clouds, on_pair=bar.update)
