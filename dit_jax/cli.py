@@ -74,6 +74,14 @@ def _add_reading_flags(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_checkpoint_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--checkpoint",
+        default=None,
+        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
+    )
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
@@ -121,11 +129,7 @@ def _parser() -> argparse.ArgumentParser:
         "processes or array jobs share it",
     )
     parser.add_argument("--no-progress", action="store_true", help="with --pairs: no progress bar")
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
-    )
+    _add_checkpoint_flag(parser)
     parser.add_argument(
         "--out",
         default=None,
@@ -559,24 +563,18 @@ SERIES_PROG = "dit-register-series"
 
 
 def _series_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=SERIES_PROG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Register a series of scans, each onto the one before, and print every scan's pose in the "
-        "first one's frame (dit_jax.series).",
-        epilog="Prints each scan's 4x4 pose (x_first = R x_scan + t) and each link's verdict. With --loop the "
+    parser = _many_scans_parser(
+        SERIES_PROG,
+        "Register a series of scans, each onto the one before, and print every scan's pose in the first one's "
+        "frame (dit_jax.series).",
+        "Prints each scan's 4x4 pose (x_first = R x_scan + t) and each link's verdict. With --loop the "
         "last scan is registered onto the first too and the loop's gap (the motion left after going "
         "once around it) is spread over the links. Exit status 3 where a link is probably wrong or the loop's "
         f"gap exceeds {LOOP_GAP_WARNING_DEG:g} degrees (a link is then most likely wrong); 2 on bad input.",
+        "the scans (or meshes) in the order they were taken, at least 2",
     )
-    parser.add_argument("scans", nargs="+", help="the scans (or meshes) in the order they were taken, at least 2")
     parser.add_argument(
         "--loop", action="store_true", help="the last scan overlaps the first (a full turn): close the loop"
-    )
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
     )
     parser.add_argument("--out", default=None, help="write every scan moved into the first one's frame, as one cloud")
     parser.add_argument(
@@ -586,23 +584,39 @@ def _series_parser() -> argparse.ArgumentParser:
         help="write each scan moved into the first one's frame to DIR, under its own name and "
         "format (PLY, PCD, LAS and meshes whole: every point and field kept)",
     )
-    parser.add_argument(
-        "--plot",
-        default=None,
-        metavar="FILE.png",
-        help="draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
+    _add_many_scans_flags(
+        parser,
+        plot=(
+            "FILE.png",
+            "draw every scan in the first one's frame, from two sides, beside each link's agreement and verdict",
+        ),
+        shows="poses, links and the loop's gap",
+        suspect="when a link is probably wrong or the loop's gap is large",
     )
-    parser.add_argument("--json", action="store_true", help="print poses, links and the loop's gap as JSON")
+    return parser
+
+
+def _many_scans_parser(prog: str, description: str, epilog: str, scans: str) -> argparse.ArgumentParser:
+    """A parser of dit-register-series or dit-register-scene: the scans (``scans``: their help) and the weights."""
+    parser = argparse.ArgumentParser(
+        prog=prog, formatter_class=argparse.RawDescriptionHelpFormatter, description=description, epilog=epilog
+    )
+    parser.add_argument("scans", nargs="+", help=scans)
+    _add_checkpoint_flag(parser)
+    return parser
+
+
+def _add_many_scans_flags(parser: argparse.ArgumentParser, *, plot: tuple[str, str], shows: str, suspect: str) -> None:
+    """The flags dit-register-series and dit-register-scene share: ``--plot`` (``plot``: its file name and help),
+    ``--json`` (printing what ``shows`` says), the settings they take, reading, progress, the exit status
+    (``suspect``: when it would be 3) and the compilation cache."""
+    parser.add_argument("--plot", default=None, metavar=plot[0], help=plot[1])
+    parser.add_argument("--json", action="store_true", help=f"print {shows} as JSON")
     settings.add_flags(parser, ("refine", "viewpoint", "seed"))
     _add_reading_flags(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument(
-        "--no-verdict-status",
-        action="store_true",
-        help=f"exit 0 even when a link is probably wrong or the loop's gap is large (else {EXIT_SUSPECT})",
-    )
+    parser.add_argument("--no-verdict-status", action="store_true", help=f"exit 0 even {suspect} (else {EXIT_SUSPECT})")
     compile_cache.add_arguments(parser)
-    return parser
 
 
 def _out_dir_problem(folder: str | None, scans: list[str]) -> str | None:
@@ -765,22 +779,16 @@ POSE_FORMS = {"kitti": "kitti", "tum": "tum"}
 
 
 def _scene_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=SCENE_PROG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Register the scans of one scene (fragments of a room, views of an object) into the first "
-        "one's frame by a pose graph over their pairwise registrations (dit_jax.scene).",
-        epilog="Registers every pair where the scans are few (else neighbours in the list and the pairs their "
-        "first placement overlaps), keeps each result the verdict does not find probably wrong as an edge, and "
+    parser = _many_scans_parser(
+        SCENE_PROG,
+        "Register the scans of one scene (fragments of a room, views of an object) into the first one's frame by "
+        "a pose graph over their pairwise registrations (dit_jax.scene).",
+        "Registers every pair where the scans are few (else neighbours in the list and the pairs their first "
+        "placement overlaps), keeps each result the verdict does not find probably wrong as an edge, and "
         "optimises the scans' poses over the edges, switching off the uncertain edges that disagree with the "
         "rest. Prints each scan's pose (x_first = R x_scan + t) and the edges kept and left out. A scan that "
         "joins nothing is reported and left out. Exit status 3 where a scan is left out; 2 on bad input.",
-    )
-    parser.add_argument("scans", nargs="+", help="the scans (or meshes) of the scene, at least 2")
-    parser.add_argument(
-        "--checkpoint",
-        default=None,
-        help="orbax checkpoint directory or the authors' .pth (default: the shipped weights)",
+        "the scans (or meshes) of the scene, at least 2",
     )
     parser.add_argument("--out", default=None, help="write the placed scans in the first one's frame, as one cloud")
     parser.add_argument(
@@ -794,20 +802,15 @@ def _scene_parser() -> argparse.ArgumentParser:
             metavar="FILE.txt",
             help=f"write the placed scans' poses in {form.upper()}'s text form",
         )
-    parser.add_argument(
-        "--plot",
-        default=None,
-        metavar="FILE.html",
-        help="write one page a browser turns: the placed scans in the first one's frame, each in its colour, and the edges",
+    _add_many_scans_flags(
+        parser,
+        plot=(
+            "FILE.html",
+            "write one page a browser turns: the placed scans in the first one's frame, each in its colour, and the edges",
+        ),
+        shows="the scene",
+        suspect="where a scan joins nothing",
     )
-    parser.add_argument("--json", action="store_true", help="print the scene as JSON")
-    settings.add_flags(parser, ("refine", "viewpoint", "seed"))
-    _add_reading_flags(parser)
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument(
-        "--no-verdict-status", action="store_true", help=f"exit 0 even where a scan joins nothing (else {EXIT_SUSPECT})"
-    )
-    compile_cache.add_arguments(parser)
     return parser
 
 
