@@ -11,8 +11,9 @@ Unlike a series (:mod:`dit_jax.series`), which needs every link of its chain, a 
 first estimate places them) and lets the evidence decide:
 
 1. :func:`candidate_pairs`, then each pair registered by the pipeline (:meth:`Registrar.register_pairs`);
-2. :func:`edges_of`: a result the verdict finds "probably wrong" is no edge; a trusted one between neighbours
-   is certain, every other one uncertain, so the optimisation may switch it off;
+2. :func:`edges_of`: a trusted result is a certain edge; any other is an uncertain one, which the optimisation
+   may switch off, unless the verdict finds it probably wrong and it lays less than :data:`MIN_FITNESS` of
+   its source on the target: that pair is no edge;
 3. :func:`first_poses`: a spanning tree of the most trusted edges places each scan it reaches;
 4. :func:`optimise`: Open3D's pose-graph optimisation (Levenberg-Marquardt with a line process over the
    uncertain edges, Choi et al. 2015), each edge weighted by the information of its clouds' correspondences.
@@ -39,6 +40,11 @@ ALL_PAIRS_SCANS = 40
 GRAPH_SPACINGS = 3.0
 #: An uncertain edge whose line-process weight falls below this is pruned (Open3D's default).
 EDGE_PRUNE = 0.25
+#: A result the verdict finds probably wrong still enters the graph, as an uncertain edge, where its fitness
+#: (the share of its source it lays on the target) reaches this: on rooms the verdict leaves many right
+#: results of low-overlap pairs "probably wrong", and those are what join the scans no trusted result reaches;
+#: the line process switches off the ones the rest of the graph contradicts (docs/usage.md, "Scenes").
+MIN_FITNESS = 0.5
 
 
 class Edge(NamedTuple):
@@ -62,7 +68,8 @@ class Scene:
         scan not placed).
       placed: (K,) bool: the scans joined to scan 0 by kept edges.
       edges: every registered pair as an :class:`Edge`, the optimisation's verdict in ``kept``.
-      rejected: the registered pairs that entered no graph: the verdict found them probably wrong.
+      rejected: the registered pairs that entered no graph: the verdict found them probably wrong, and they
+        lay less than :data:`MIN_FITNESS` of their source on the target.
       components: lists of scan indices joined by kept edges, scan 0's first.
     """
 
@@ -157,13 +164,12 @@ def candidate_pairs(clouds: Sequence[np.ndarray], poses: np.ndarray | None = Non
 
 
 def edges_of(pairs: Sequence[tuple[int, int]], results: Sequence[Result]) -> tuple[list[Edge], list[Edge]]:
-    """(the graph's edges, the rejected) of registered ``pairs``: a "probably wrong" result is rejected; a
-    trusted one between neighbours in the list is certain, the rest uncertain."""
+    """(the graph's edges, the rejected) of registered ``pairs``: a trusted result is a certain edge, the rest
+    uncertain ones, but for the "probably wrong" results below :data:`MIN_FITNESS`, which are rejected."""
     edges, rejected = [], []
     for (source, target), result in zip(pairs, results):
-        certain = result.level == "trusted" and source == target + 1
-        edge = Edge(source, target, result, certain)
-        if result.level == "probably wrong":
+        edge = Edge(source, target, result, certain=result.level == "trusted")
+        if result.level == "probably wrong" and not result.fitness >= MIN_FITNESS:
             rejected.append(edge._replace(kept=False))
         else:
             edges.append(edge)

@@ -58,10 +58,10 @@ class _Registrar:
             self.asked.append((s, t))
             truth = np.linalg.inv(self.poses[t]) @ self.poses[s]
             if (s, t) in self.wrong:
-                turn, level = self.wrong[(s, t)]
+                turn, level, *fitness = self.wrong[(s, t)]
                 wrong = np.eye(4)
                 wrong[:3, :3] = euler_zyx_to_matrix([turn, 0.0, 0.0])
-                results.append(exact_result(truth @ wrong, level))
+                results.append(exact_result(truth @ wrong, level, *fitness))
             else:
                 results.append(exact_result(truth, "trusted" if s == t + 1 else "unconfirmed"))
             if on_pair is not None:
@@ -89,14 +89,14 @@ def test_a_scene_is_placed_by_its_edges_and_a_wrong_loop_edge_is_switched_off():
     wrong = next(e for e in built.edges if (e.source, e.target) == (4, 1))
     assert not wrong.kept and not wrong.certain, "the line process switches the wrong loop edge off"
     assert all(e.kept for e in built.edges if (e.source, e.target) != (4, 1))
-    assert all(e.certain == (e.source == e.target + 1) for e in built.edges)
+    assert all(e.certain == (e.result.level == "trusted") for e in built.edges)
     merged = built.merged(clouds)
     assert merged.shape == (sum(len(c) for c in clouds), 3)
 
 
 def test_a_scan_that_joins_nothing_is_reported_not_forced_in():
     clouds, truth = _views(4)
-    wrong = {(3, t): (90.0, "probably wrong") for t in range(3)}
+    wrong = {(3, t): (90.0, "probably wrong", 0.2) for t in range(3)}  # laying little of scan 3 on the others
     registrar = _Registrar(clouds, np.stack([_pose(k) for k in range(4)]), wrong=wrong)
     built = scene.register_scene(registrar, clouds)
     assert built.components == ((0, 1, 2), (3,)) and built.placed.tolist() == [True, True, True, False]
@@ -151,7 +151,7 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
         in capsys.readouterr().out
     )
 
-    wrong.update({(3, t): (90.0, "probably wrong") for t in range(3)})
+    wrong.update({(3, t): (90.0, "probably wrong", 0.2) for t in range(3)})
     assert cli.scene_main([*paths, "--no-progress"]) == cli.EXIT_SUSPECT
     assert f"{paths[3]} joins no scan of the scene: left out" in capsys.readouterr().err
     assert cli.scene_main([*paths, "--no-progress", "--no-verdict-status"]) == 0
@@ -167,3 +167,24 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
         assert cli.scene_main(bad) == 2
         err = capsys.readouterr().err
         assert err.startswith("dit-register-scene: error:") and message in err, err
+
+
+def test_a_probably_wrong_result_that_lays_most_of_its_source_on_the_target_is_an_uncertain_edge():
+    """The verdict is strict: where such a result is right, it joins its scans; where it is wrong, the line
+    process switches it off."""
+    clouds, truth = _views(5)
+    poses = np.stack([_pose(k) for k in range(5)])
+    # Scan 4 reaches the others through probably-wrong results only: right ones onto 3 and 2, a wrong one onto 0.
+    wrong = {
+        (4, 3): (0.0, "probably wrong", 0.8),
+        (4, 2): (0.0, "probably wrong", 0.7),
+        (4, 1): (0.0, "probably wrong", 0.1),
+    }
+    wrong[(4, 0)] = (40.0, "probably wrong", 0.6)
+    built = scene.register_scene(_Registrar(clouds, poses, wrong=wrong), clouds)
+    assert built.placed.all()
+    np.testing.assert_allclose(built.poses, truth, atol=1e-6)
+    edges = {(e.source, e.target): e for e in built.edges}
+    assert not edges[(4, 3)].certain and edges[(4, 3)].kept and edges[(4, 2)].kept
+    assert not edges[(4, 0)].kept, "the wrong one is switched off"
+    assert [(e.source, e.target) for e in built.rejected] == [(4, 1)]
