@@ -143,8 +143,8 @@ def table(rows: list[dict]) -> str:
     errors; the edges; the time."""
     lines = [
         "| scene | list | pairs | scene: within 15 deg, 0.3 m | pairwise | scene: RMSE <= 0.2 m | pairwise |"
-        " fragments placed | position RMSE / max (m) | rotation median / max (deg) | pairs registered, kept,"
-        " switched off, probably wrong | s |",
+        " fragments placed | position RMSE / max (m) | rotation median / max (deg) | pairs registered, edges"
+        " kept, switched off, no edge | s |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
