@@ -30,33 +30,11 @@ import argparse
 import sys
 
 # What each mode leaves out, so that a flag given with it is refused rather than silently ignored.
+#: The flags of the synthetic pairs' tables, which real scans and scenes do not take.
+_TABLES_ONLY = ("angle_sweep", "data_dir", "settings", "unseen", "variant", "authors_thresholds", "batch_size", "reuse")
 _IGNORED_BY = {
-    "--scenes": (
-        "angle_sweep",
-        "data_dir",
-        "settings",
-        "unseen",
-        "variant",
-        "authors_thresholds",
-        "batch_size",
-        "reuse",
-        "skips",
-        "baselines",
-        "max_pairs",
-        "no_dit",
-    ),
-    "--scans": (
-        "scenes",
-        "angle_sweep",
-        "data_dir",
-        "settings",
-        "unseen",
-        "variant",
-        "authors_thresholds",
-        "batch_size",
-        "reuse",
-        "verdict",
-    ),
+    "--scenes": (*_TABLES_ONLY, "skips", "baselines", "max_pairs", "no_dit"),
+    "--scans": (*_TABLES_ONLY, "scenes", "verdict"),
     "--angle-sweep": (
         "scenes",
         "skips",

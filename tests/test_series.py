@@ -7,9 +7,9 @@ import os
 
 import numpy as np
 import pytest
+from conftest import exact_result
 
 from dit_jax import cli, geometry, io, series
-from dit_jax import result as result_lib
 from dit_jax.data.pairs import euler_zyx_to_matrix
 
 
@@ -88,27 +88,7 @@ class _ExactRegistrar:
         b = next(i for i, c in enumerate(self.clouds) if c is tgt)
         self.calls.append((a, b, refine))
         motion = np.linalg.inv(self.poses[b]) @ self.poses[a]
-        return result_lib.Result(
-            motion[:3, :3],
-            motion[:3, 3],
-            motion,
-            np.arange(3),
-            np.arange(3),
-            np.ones(3),
-            1.0,
-            1.0,
-            0.0,
-            refinement=None,
-            refine_seconds=0.0,
-            verdict=a != 3,
-            level="trusted" if a != 3 else "probably wrong",
-            verdict_rule="agreement",
-            threshold=1.0,
-            agreement=0.5,
-            direction="forward",
-            start_turn=0.0,
-            agreement_band=None,
-        )
+        return exact_result(motion, "trusted" if a != 3 else "probably wrong", fitness=1.0)
 
 
 def test_register_series_links_neighbours_and_merges_into_the_first_frame():
