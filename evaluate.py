@@ -6,6 +6,7 @@
         --settings all --unseen --baselines icp fpfh_ransac fgr fpfh_ransac_icp fgr_icp
     python evaluate.py --scans ../shared/data/stanford_dragon_stand --baselines fpfh_ransac   # real scans
     python evaluate.py --data-dir /data/modelnet40_ply_hdf5_2048 --unseen --angle-sweep   # error vs angle
+    python evaluate.py --scenes ../shared/data/3dmatch --out eval_scenes                  # whole scenes
 
 Settings: the authors' three (clean, low_noise_partial, high_noise_partial; both clouds made of the same
 points) and those whose clouds share no point, as real data (independent_*, scan_*; dit_jax.data.pairs).

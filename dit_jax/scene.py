@@ -65,8 +65,7 @@ class Scene:
 
     Attributes:
       poses: (K, 4, 4) float64: scan k's points into scan 0's frame, ``x0 = R_k x_k + t_k`` (the identity for a
-        scan not placed).
-      placed: (K,) bool: the scans joined to scan 0 by kept edges.
+        scan not placed, see :attr:`placed`).
       edges: every registered pair as an :class:`Edge`, the optimisation's verdict in ``kept``.
       rejected: the registered pairs that entered no graph: the verdict found them probably wrong, and they
         lay less than :data:`MIN_FITNESS` of their source on the target.
@@ -74,10 +73,16 @@ class Scene:
     """
 
     poses: np.ndarray
-    placed: np.ndarray
     edges: tuple[Edge, ...]
     rejected: tuple[Edge, ...]
     components: tuple[tuple[int, ...], ...]
+
+    @property
+    def placed(self) -> np.ndarray:
+        """(K,) bool: the scans joined to scan 0 by kept edges (its component)."""
+        placed = np.zeros(len(self.poses), bool)
+        placed[list(self.components[0])] = True
+        return placed
 
     def merged(self, clouds: Sequence[np.ndarray], voxel: float | None = None) -> np.ndarray:
         """(N, 3) the placed scans' points in scan 0's frame; with ``voxel``, one point per occupied cell of a
@@ -280,7 +285,8 @@ def register_scene(
     edges, rejected = edges_of(pairs, results)
     if len(clouds) > ALL_PAIRS_SCANS:  # neighbours first, then the pairs their chain places overlapping
         poses, _ = first_poses(len(clouds), edges)
-        more = [p for p in candidate_pairs(clouds, poses) if p not in set(pairs)]
+        asked = set(pairs)
+        more = [p for p in candidate_pairs(clouds, poses) if p not in asked]
         found = registrar.register_pairs(
             [(clouds[s], clouds[t]) for s, t in more], batch_size=batch_size, on_pair=on_pair
         )
@@ -293,7 +299,6 @@ def register_scene(
     final_edges = [e._replace(kept=(e.source, e.target) in kept_pairs) for e in edges]
     # Scans the line process cut off from scan 0 leave the scene.
     _, after = first_poses(len(clouds), [e for e in final_edges if e.kept])
-    placed = np.zeros(len(clouds), bool)
-    placed[after[0]] = True
+    placed = np.isin(np.arange(len(clouds)), after[0])
     poses = np.where(placed[:, None, None], optimised, np.eye(4))
-    return Scene(poses, placed, tuple(final_edges), tuple(rejected), tuple(tuple(c) for c in after))
+    return Scene(poses, tuple(final_edges), tuple(rejected), tuple(tuple(c) for c in after))

@@ -36,9 +36,11 @@ def scene_folders(directory: str | os.PathLike) -> list[pathlib.Path]:
 
 
 def _right(estimate: np.ndarray, truth: np.ndarray) -> bool:
-    """Whether a 4 x 4 ``estimate`` lies within :data:`CRITERION` of ``truth``."""
+    """Whether a 4 x 4 ``estimate`` lies within :data:`CRITERION` of ``truth`` (as :func:`.scans.is_right`)."""
+    from dit_jax.evaluators.scans import is_right
+
     degrees = geometry.rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
-    return bool(degrees <= CRITERION[0] and np.linalg.norm(estimate[:3, 3] - truth[:3, 3]) <= CRITERION[1])
+    return is_right({"rot_err": degrees, "trans_err": float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))}, CRITERION)
 
 
 def _rmse_right(estimate: np.ndarray, truth: np.ndarray, info: np.ndarray | None) -> bool:
