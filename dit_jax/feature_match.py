@@ -444,9 +444,6 @@ def register_both_ways(
     subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
     direction the estimator finds nothing for starts ICP from the identity and counts 0 inliers; ``viewpoint``:
     where the normals face (:data:`VIEWPOINT`, None: as estimated)."""
-    from dit_jax import geometry
-    from dit_jax import icp as icp_lib
-
     started = time.perf_counter()
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, None, seed, VOXEL_SPACINGS)
     if not enough:
@@ -454,6 +451,60 @@ def register_both_ways(
     # Open3D computes each cloud's normals and features on every core already: the clouds are built in turn.
     thin = icp_voxel(spacing, max(len(src), len(tgt)))
     source, target = _Cloud(src, voxel, thin, viewpoint), _Cloud(tgt, voxel, thin, viewpoint)
+    return _both_ways(Scan(src, source), Scan(tgt, target), spacing, voxel, seed, started)
+
+
+class Scan(NamedTuple):
+    """A cloud ready for :func:`register_scans`: its ``points`` (N, 3) float64 and their features (``cloud``)."""
+
+    points: np.ndarray
+    cloud: _Cloud
+
+
+@dataclasses.dataclass(frozen=True)
+class Scans:
+    """Scans of one scene with their features, built once by :func:`prepare_scans` for many pairs: ``scans``,
+    or None for a scan too small for features (fewer than :data:`MIN_VOXELS` voxels); ``spacing`` and ``voxel``
+    are the scene's, in its units."""
+
+    scans: tuple[Scan | None, ...]
+    spacing: float
+    voxel: float
+
+
+def prepare_scans(clouds, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT) -> Scans:
+    """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
+    computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
+    scan's features are computed once however many pairs it joins."""
+    from dit_jax import icp as icp_lib
+
+    points = [np.asarray(c, np.float64) for c in clouds]
+    spacing = max(icp_lib.point_spacing(p, seed=seed) for p in points)
+    most = max(len(p) for p in points)
+    voxel = max(_capped_voxel(p, feature_voxel(spacing, most), FEATURE_POINTS) for p in points)
+    thin = icp_voxel(spacing, most)
+    scans = []
+    for p in points:
+        enough = occupied_voxels(p[:: max(1, len(p) // 4096)], voxel) >= MIN_VOXELS
+        scans.append(Scan(p, _Cloud(p, voxel, thin, viewpoint)) if enough else None)
+    return Scans(tuple(scans), spacing, voxel)
+
+
+def register_scans(prepared: Scans, source: int, target: int, *, seed: int = 0) -> FeatureEstimate | None:
+    """:func:`register_both_ways` of scan ``source`` onto scan ``target`` of ``prepared`` (:func:`prepare_scans`),
+    from their features as built there; None where either has too few."""
+    src, tgt = prepared.scans[source], prepared.scans[target]
+    if src is None or tgt is None:
+        return None
+    return _both_ways(src, tgt, prepared.spacing, prepared.voxel, seed, time.perf_counter())
+
+
+def _both_ways(src: Scan, tgt: Scan, spacing: float, voxel: float, seed: int, started: float) -> FeatureEstimate:
+    """Both directions of a pair from its scans' features: the estimator then ICP each way, on two threads."""
+    from dit_jax import geometry
+    from dit_jax import icp as icp_lib
+
+    source, target = src.cloud, tgt.cloud
     forward_matches, backward_matches = _matches(source, target)
     # The two directions run on two threads: the estimator's compiled program and ICP release the interpreter.
     with concurrent.futures.ThreadPoolExecutor(2) as threads:
@@ -461,7 +512,7 @@ def register_both_ways(
         back = threads.submit(_estimate_then_icp, target, source, backward_matches, voxel)
         (there, inliers_there, rival_there), (back, inliers_back, rival_back) = there.result(), back.result()
     forward, backward = _split(there), _split(np.linalg.inv(back))
-    shares = icp_lib.overlap(src, tgt, [forward, backward], 2.0 * spacing, seed=seed)
+    shares = icp_lib.overlap(src.points, tgt.points, [forward, backward], 2.0 * spacing, seed=seed)
     return FeatureEstimate(
         forward=forward,
         backward=backward,

@@ -34,7 +34,7 @@ from dit_jax.configs import DITConfig
 from dit_jax.network_stage import PairEstimate
 from dit_jax.refinement import Motion
 from dit_jax.result import Result
-from dit_jax.sampling import Normalised, check_pair, sample_and_normalise
+from dit_jax.sampling import Normalised, check_cloud, check_pair, sample_and_normalise
 from dit_jax.settings import InferenceSettings
 
 if TYPE_CHECKING:
@@ -101,6 +101,51 @@ def register_pairs(
         if on_pair is not None:
             on_pair(1)
     return results
+
+
+def register_scan_pairs(
+    params,
+    config: DITConfig,
+    settings: InferenceSettings,
+    clouds: Sequence,
+    pairs: Sequence[tuple[int, int]],
+    *,
+    batch_size: int = 8,
+    on_pair: Callable[[int], None] | None = None,
+) -> list[Result]:
+    """:func:`register_pairs` for pairs of one set of K ``clouds``, each pair ``(source, target)`` scan indices:
+    where the settings register two clouds by local features first, each scan's features are computed once
+    (:func:`dit_jax.feature_match.prepare_scans`) for all the pairs it joins, at the set's own spacing and
+    voxel, as many pairs as a scene has make that the larger cost; the other pairs go through
+    :func:`register_pairs`."""
+    checked = [check_cloud(f"scan {k}", cloud, config.min_points) for k, cloud in enumerate(clouds)]
+    by_scans = [
+        (s, t) for s, t in pairs
+        if settings.refinement_for(len(checked[s]), len(checked[t])) != "none"
+        and settings.runs_feature_candidate(len(checked[s]), len(checked[t]))
+    ]  # fmt: skip
+    found: dict[tuple[int, int], FeatureEstimate | None] = {}
+    if by_scans:
+        from dit_jax import feature_match
+
+        viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
+        scans = sorted({k for pair in by_scans for k in pair})
+        prepared = feature_match.prepare_scans([checked[k] for k in scans], seed=settings.seed, viewpoint=viewpoint)
+        index = {k: row for row, k in enumerate(scans)}
+        for s, t in by_scans:
+            found[(s, t)] = feature_match.register_scans(prepared, index[s], index[t], seed=settings.seed)
+            if found[(s, t)] is not None and on_pair is not None:
+                on_pair(1)
+    rest = [(s, t) for s, t in pairs if found.get((s, t)) is None]
+    others = {}
+    if rest:
+        rest_pairs = [(checked[s], checked[t]) for s, t in rest]
+        others = dict(zip(rest, register_pairs(params, config, settings, rest_pairs, batch_size=batch_size, on_pair=on_pair)))
+    return [
+        others[(s, t)] if (s, t) in others
+        else features_result(Pair(checked[s], checked[t], features=found[(s, t)]), settings, config)
+        for s, t in pairs
+    ]  # fmt: skip
 
 
 def by_features(pairs: list[Pair], settings: InferenceSettings) -> list[Pair]:

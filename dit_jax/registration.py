@@ -77,6 +77,13 @@ class Registrar:
             self.params, self.config, settings, pairs, batch_size=batch_size, on_pair=on_pair
         )
 
+    def register_scan_pairs(self, clouds, pairs, *, batch_size: int = 8, on_pair=None) -> list[Result]:
+        """:meth:`register_pairs` for index ``pairs`` ``(source, target)`` of one set of ``clouds`` (a scene's
+        scans), each scan's features computed once (:func:`dit_jax.pipeline.register_scan_pairs`)."""
+        return pipeline.register_scan_pairs(
+            self.params, self.config, self.settings, clouds, pairs, batch_size=batch_size, on_pair=on_pair
+        )
+
     def replace(self, *, config: DITConfig | None = None, **changes) -> Registrar:
         """A registrar of the same weights with ``changes`` to the settings (and ``config`` in place of the
         checkpoint's model config, e.g. another ``compute_dtype``); the overrides apply once, to the checkpoint's."""

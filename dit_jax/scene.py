@@ -279,17 +279,13 @@ def register_scene(
     if len(clouds) < 2:
         raise ValueError(f"a scene needs at least 2 scans, got {len(clouds)}")
     pairs = candidate_pairs(clouds)
-    results = registrar.register_pairs(
-        [(clouds[s], clouds[t]) for s, t in pairs], batch_size=batch_size, on_pair=on_pair
-    )
+    results = registrar.register_scan_pairs(clouds, pairs, batch_size=batch_size, on_pair=on_pair)
     edges, rejected = edges_of(pairs, results)
     if len(clouds) > ALL_PAIRS_SCANS:  # neighbours first, then the pairs their chain places overlapping
         poses, _ = first_poses(len(clouds), edges)
         asked = set(pairs)
         more = [p for p in candidate_pairs(clouds, poses) if p not in asked]
-        found = registrar.register_pairs(
-            [(clouds[s], clouds[t]) for s, t in more], batch_size=batch_size, on_pair=on_pair
-        )
+        found = registrar.register_scan_pairs(clouds, more, batch_size=batch_size, on_pair=on_pair)
         extra, extra_rejected = edges_of(more, found)
         edges, rejected = edges + extra, rejected + extra_rejected
     spacing = float(np.median([icp.point_spacing(c) for c in clouds]))

@@ -183,3 +183,23 @@ def test_normals_face_the_viewpoint_before_features_and_are_left_alone_without_o
     as_estimated = feature_match._Cloud(src, voxel, viewpoint=None)
     signs = np.einsum("ij,ij->i", np.asarray(as_estimated.thinned.normals), towards)
     assert np.mean(signs < 0) > 0.05
+
+
+def test_scans_prepared_once_register_each_pair_as_the_pair_alone_does():
+    """A scene's scans are prepared once (:func:`feature_match.prepare_scans`); a pair of them then registers
+    exactly as :func:`register_both_ways` registers the two clouds alone, where the two share the scene's
+    spacing and voxel (as two scans of one set do)."""
+    src, other = _surface(8000, seed=1), _surface(8000, seed=2)
+    truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
+    tgt = other @ truth.T + t_truth
+    prepared = feature_match.prepare_scans([src, tgt], viewpoint=None)
+    alone = feature_match.register_both_ways(src, tgt, viewpoint=None)
+    from_scans = feature_match.register_scans(prepared, 0, 1)
+    assert prepared.voxel == pytest.approx(alone.voxel) and prepared.spacing == pytest.approx(alone.spacing)
+    for mine, theirs in ((from_scans.forward, alone.forward), (from_scans.backward, alone.backward)):
+        np.testing.assert_allclose(mine[0], theirs[0], atol=1e-9)
+        np.testing.assert_allclose(mine[1], theirs[1], atol=1e-9)
+    assert from_scans.inliers == alone.inliers
+    few = np.random.default_rng(0).normal(size=(3, 3))
+    with_few = feature_match.prepare_scans([src, few])
+    assert with_few.scans[1] is None and feature_match.register_scans(with_few, 0, 1) is None

@@ -136,3 +136,35 @@ def test_register_pairs_reads_as_its_stages():
         source.index(f"{name}(") for name in ("check_pair", "by_features", "sampled", "estimated", "network_result")
     ]
     assert positions == sorted(positions), "the stages run in their order"
+
+
+def test_the_pairs_of_one_set_of_scans_compute_each_scan_s_features_once(monkeypatch):
+    """:func:`pipeline.register_scan_pairs` builds each scan's features once however many pairs it joins, and
+    each pair's result is the one :func:`pipeline.register_pairs` gives it (the scans share a spacing)."""
+    pytest.importorskip("open3d")
+    from dit_jax import feature_match
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3 * SCAN_POINTS, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = d * (1 + 0.3 * np.sin(6 * d[:, :1]) * np.cos(5 * d[:, 1:2]) + 0.1 * d[:, 2:] ** 2)
+    turns = [np.eye(3), *(np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(2))]
+    scans = [surface @ (turn * np.sign(np.linalg.det(turn))).T + k for k, turn in enumerate(turns)]
+    built = []
+    original = feature_match._Cloud
+
+    class Counted(original):
+        def __init__(self, *args, **kwargs):
+            built.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(feature_match, "_Cloud", Counted)
+    registrar = registration.load(viewpoint="none")
+    pairs = [(1, 0), (2, 0), (2, 1)]
+    together = registrar.register_scan_pairs(scans, pairs)
+    assert len(built) == 3
+    alone = registrar.register_pairs([(scans[s], scans[t]) for s, t in pairs])
+    assert len(built) == 3 + 2 * len(pairs)
+    for mine, theirs in zip(together, alone):
+        assert mine.candidate == "features" and mine.level == theirs.level
+        np.testing.assert_allclose(mine.matrix, theirs.matrix, atol=1e-9)

@@ -50,6 +50,9 @@ class _Registrar:
     def __init__(self, clouds, poses, wrong=None):
         self.clouds, self.poses, self.wrong, self.asked = clouds, poses, wrong or {}, []
 
+    def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
+        return self.register_pairs([(clouds[s], clouds[t]) for s, t in pairs], batch_size, on_pair)
+
     def register_pairs(self, pairs, batch_size=8, on_pair=None):
         results = []
         for src, tgt in pairs:
