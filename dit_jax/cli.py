@@ -755,7 +755,7 @@ def _print_series(result, args: argparse.Namespace, pairs: list[tuple[int, int]]
             for name, pose in zip(names, result.poses):
                 print(
                     f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
-                    f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame"
+                    f"{np.linalg.norm(pose[:3, 3]):.6g} in {names[built.frame]}'s frame"
                 )
                 print(pose)
         for (a, b), link in zip(pairs, result.links):
@@ -781,16 +781,17 @@ POSE_FORMS = {"kitti": "kitti", "tum": "tum"}
 def _scene_parser() -> argparse.ArgumentParser:
     parser = _many_scans_parser(
         SCENE_PROG,
-        "Register the scans of one scene (fragments of a room, views of an object) into the first one's frame by "
-        "a pose graph over their pairwise registrations (dit_jax.scene).",
-        "Registers every pair where the scans are few (else neighbours in the list and the pairs their first "
-        "placement overlaps), keeps each result the verdict does not find probably wrong as an edge, and "
-        "optimises the scans' poses over the edges, switching off the uncertain edges that disagree with the "
-        "rest. Prints each scan's pose (x_first = R x_scan + t) and the edges kept and left out. A scan that "
-        "joins nothing is reported and left out. Exit status 3 where a scan is left out; 2 on bad input.",
+        "Register the scans of one scene (fragments of a room, views of an object) into one frame by a pose "
+        "graph over their pairwise registrations (dit_jax.scene).",
+        "Registers each scan onto its neighbours in the list, then the pairs the first placement lays over each "
+        "other; trusted results are the graph's edges (unconfirmed ones uncertain edges, probably wrong ones "
+        "none), and the scans' poses are optimised over them, the uncertain edges that disagree with the rest "
+        "switched off. The largest group of scans the edges join is the scene, in its first scan's frame; "
+        "other groups are reported and left out. Prints each scan's pose (x_frame = R x_scan + t) and the "
+        "edges. Exit status 3 where a scan is left out; 2 on bad input.",
         "the scans (or meshes) of the scene, at least 2",
     )
-    parser.add_argument("--out", default=None, help="write the placed scans in the first one's frame, as one cloud")
+    parser.add_argument("--out", default=None, help="write the scene's scans in its frame, as one cloud")
     parser.add_argument(
         "--voxel", type=float, default=None, metavar="SIZE", help="--out keeps one point per cell of this size"
     )
@@ -806,7 +807,7 @@ def _scene_parser() -> argparse.ArgumentParser:
         parser,
         plot=(
             "FILE.html",
-            "write one page a browser turns: the placed scans in the first one's frame, each in its colour, and the edges",
+            "write one page a browser turns: the scene's scans in its frame, each in its colour, and the edges",
         ),
         shows="the scene",
         suspect="where a scan joins nothing",
@@ -850,14 +851,12 @@ def scene_main(argv: list[str] | None = None) -> int:
     try:
         clouds = [_read(path, args, SCENE_PROG) for path in scans]
         model = registration.load(args.checkpoint, **settings.changes(args))
-        # Every pair up to scene.ALL_PAIRS_SCANS scans; above, the count grows once the first poses are known.
-        first = len(scene.candidate_pairs(clouds))
         bar = tqdm(
-            total=first, desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty()
+            total=0, desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty()
         )
         with bar, warnings.catch_warnings():
             warnings.simplefilter("ignore", sampling.SizeMismatchWarning)  # a scene's scans differ in extent
-            built = scene.register_scene(model, clouds, on_pair=bar.update)
+            built = scene.register_scene(model, clouds, **scene.progress(bar))
         _write_scene(built, args, clouds)
     except sampling.InputError as err:
         return fail(str(err))
@@ -867,6 +866,9 @@ def scene_main(argv: list[str] | None = None) -> int:
     left_out = [scans[k] for k in range(len(scans)) if not built.placed[k]]
     for name in left_out:
         print(f"{SCENE_PROG}: warning: {name} joins no scan of the scene: left out", file=sys.stderr)
+    if len(built.components) > 1:
+        groups = ", ".join(str(len(c)) for c in built.components)
+        print(f"{SCENE_PROG}: warning: the scans form {len(built.components)} groups ({groups} scans); the scene is the first", file=sys.stderr)
     return EXIT_SUSPECT if left_out and not args.no_verdict_status else 0
 
 
@@ -894,13 +896,13 @@ def _print_scene(built, args: argparse.Namespace) -> None:
         print(json.dumps(built.to_json(names), indent=2))
         return
     with np.printoptions(precision=9, suppress=True, floatmode="fixed", linewidth=120):
-        for name, pose, placed in zip(names, built.poses, built.placed):
+        for k, (name, pose, placed) in enumerate(zip(names, built.poses, built.placed)):
             if not placed:
-                print(f"{name}: left out (it joins no scan of the scene)")
+                print(f"{name}: left out (in group {built.component_of(k) + 1} of {len(built.components)})")
                 continue
             print(
                 f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
-                f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame"
+                f"{np.linalg.norm(pose[:3, 3]):.6g} in {names[built.frame]}'s frame"
             )
             print(pose)
     kept = sum(e.kept for e in built.edges)

@@ -103,47 +103,68 @@ def register_pairs(
     return results
 
 
+class ScanSet(NamedTuple):
+    """Scans registered in many pairs among themselves (:func:`prepare_scans`): the checked ``clouds`` (K of
+    (N_k, 3) float64) and, where the settings register them by local features, their features
+    (:class:`dit_jax.feature_match.Scans`, scan k at row ``feature_rows[k]``; -1: none for it)."""
+
+    clouds: list
+    features: object | None
+    feature_rows: list
+
+
+def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequence) -> ScanSet:
+    """K ``clouds`` checked, and the features of those the settings register by local features first
+    (:func:`dit_jax.feature_match.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
+    :func:`register_scan_pairs`. Raises :class:`~dit_jax.sampling.InputError` naming a cloud DIT cannot use."""
+    checked = [check_cloud(f"scan {k}", cloud, config.min_points) for k, cloud in enumerate(clouds)]
+    by_features = [
+        k for k, cloud in enumerate(checked)
+        if settings.refinement_for(len(cloud), len(cloud)) != "none"
+        and settings.runs_feature_candidate(len(cloud), len(cloud))
+    ]  # fmt: skip
+    rows, features = [-1] * len(checked), None
+    if len(by_features) >= 2:
+        from dit_jax import feature_match
+
+        viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
+        features = feature_match.prepare_scans([checked[k] for k in by_features], seed=settings.seed, viewpoint=viewpoint)
+        for row, k in enumerate(by_features):
+            rows[k] = row
+    return ScanSet(checked, features, rows)
+
+
 def register_scan_pairs(
     params,
     config: DITConfig,
     settings: InferenceSettings,
-    clouds: Sequence,
+    scans: ScanSet,
     pairs: Sequence[tuple[int, int]],
     *,
     batch_size: int = 8,
     on_pair: Callable[[int], None] | None = None,
 ) -> list[Result]:
-    """:func:`register_pairs` for pairs of one set of K ``clouds``, each pair ``(source, target)`` scan indices:
-    where the settings register two clouds by local features first, each scan's features are computed once
-    (:func:`dit_jax.feature_match.prepare_scans`) for all the pairs it joins, at the set's own spacing and
-    voxel, as many pairs as a scene has make that the larger cost; the other pairs go through
-    :func:`register_pairs`."""
-    checked = [check_cloud(f"scan {k}", cloud, config.min_points) for k, cloud in enumerate(clouds)]
-    by_scans = [
-        (s, t) for s, t in pairs
-        if settings.refinement_for(len(checked[s]), len(checked[t])) != "none"
-        and settings.runs_feature_candidate(len(checked[s]), len(checked[t]))
-    ]  # fmt: skip
-    found: dict[tuple[int, int], FeatureEstimate | None] = {}
-    if by_scans:
-        from dit_jax import feature_match
+    """:func:`register_pairs` for pairs ``(source, target)`` of scan indices into ``scans``
+    (:func:`prepare_scans`): a pair of scans with features registers from them (as many pairs as a scene has
+    make the features the larger cost, so each scan's are computed once); the other pairs, and those whose
+    features find too little, go through :func:`register_pairs`."""
+    from dit_jax import feature_match
 
-        viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
-        scans = sorted({k for pair in by_scans for k in pair})
-        prepared = feature_match.prepare_scans([checked[k] for k in scans], seed=settings.seed, viewpoint=viewpoint)
-        index = {k: row for row, k in enumerate(scans)}
-        for s, t in by_scans:
-            found[(s, t)] = feature_match.register_scans(prepared, index[s], index[t], seed=settings.seed)
+    clouds, rows = scans.clouds, scans.feature_rows
+    found = {}
+    for s, t in pairs:
+        if rows[s] >= 0 and rows[t] >= 0:
+            found[(s, t)] = feature_match.register_scans(scans.features, rows[s], rows[t], seed=settings.seed)
             if found[(s, t)] is not None and on_pair is not None:
                 on_pair(1)
     rest = [(s, t) for s, t in pairs if found.get((s, t)) is None]
     others = {}
     if rest:
-        rest_pairs = [(checked[s], checked[t]) for s, t in rest]
+        rest_pairs = [(clouds[s], clouds[t]) for s, t in rest]
         others = dict(zip(rest, register_pairs(params, config, settings, rest_pairs, batch_size=batch_size, on_pair=on_pair)))
     return [
         others[(s, t)] if (s, t) in others
-        else features_result(Pair(checked[s], checked[t], features=found[(s, t)]), settings, config)
+        else features_result(Pair(clouds[s], clouds[t], features=found[(s, t)]), settings, config)
         for s, t in pairs
     ]  # fmt: skip
 

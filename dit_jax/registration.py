@@ -77,11 +77,19 @@ class Registrar:
             self.params, self.config, settings, pairs, batch_size=batch_size, on_pair=on_pair
         )
 
-    def register_scan_pairs(self, clouds, pairs, *, batch_size: int = 8, on_pair=None) -> list[Result]:
-        """:meth:`register_pairs` for index ``pairs`` ``(source, target)`` of one set of ``clouds`` (a scene's
-        scans), each scan's features computed once (:func:`dit_jax.pipeline.register_scan_pairs`)."""
+    def prepare_scans(self, clouds) -> pipeline.ScanSet:
+        """``clouds`` (K of (N_k, 3)) checked, with each one's features computed once, for
+        :meth:`register_scan_pairs` (:func:`dit_jax.pipeline.prepare_scans`)."""
+        return pipeline.prepare_scans(self.config, self.settings, clouds)
+
+    def register_scan_pairs(self, scans, pairs, *, batch_size: int = 8, on_pair=None) -> list[Result]:
+        """:meth:`register_pairs` for index ``pairs`` ``(source, target)`` of one set of scans (a scene's):
+        ``scans`` from :meth:`prepare_scans`, or the clouds themselves (prepared here)
+        (:func:`dit_jax.pipeline.register_scan_pairs`)."""
+        if not isinstance(scans, pipeline.ScanSet):
+            scans = self.prepare_scans(scans)
         return pipeline.register_scan_pairs(
-            self.params, self.config, self.settings, clouds, pairs, batch_size=batch_size, on_pair=on_pair
+            self.params, self.config, self.settings, scans, pairs, batch_size=batch_size, on_pair=on_pair
         )
 
     def replace(self, *, config: DITConfig | None = None, **changes) -> Registrar:

@@ -1,25 +1,29 @@
-"""A scene from its scans: every scan in one frame, by a pose graph over pairwise registrations.
+"""A scene from its scans: the scans in one frame, by a pose graph over their pairwise registrations.
 
     from dit_jax import io, registration, scene
     scans = [io.read(p) for p in paths]                  # fragments of one room, each in its camera's frame
     built = scene.register_scene(registration.load(), scans)
-    built.poses        # (K, 4, 4): scan k's points into scan 0's frame (where ``built.placed[k]``)
-    built.components   # scans that join scan 0 through kept edges, and each group that joins nothing
+    built.components   # groups of scans joined by trusted registrations, the largest first
+    built.poses        # (K, 4, 4): scan k's points into its group's frame (its group's first scan)
+    built.placed       # (K,) bool: the scans of the largest group, the scene
 
-Unlike a series (:mod:`dit_jax.series`), which needs every link of its chain, a scene registers many pairs
-(every pair where the scans are few, else neighbours in the list and pairs whose clouds overlap where the
-first estimate places them) and lets the evidence decide:
+Unlike a series (:mod:`dit_jax.series`), which needs every link of its chain, a scene registers many pairs and
+lets the evidence decide:
 
-1. :func:`candidate_pairs`, then each pair registered by the pipeline (:meth:`Registrar.register_pairs`);
-2. :func:`edges_of`: a trusted result is a certain edge; any other is an uncertain one, which the optimisation
-   may switch off, unless the verdict finds it probably wrong and it lays less than :data:`MIN_FITNESS` of
-   its source on the target: that pair is no edge;
-3. :func:`first_poses`: a spanning tree of the most trusted edges places each scan it reaches;
-4. :func:`optimise`: Open3D's pose-graph optimisation (Levenberg-Marquardt with a line process over the
-   uncertain edges, Choi et al. 2015), each edge weighted by the information of its clouds' correspondences.
+1. :func:`neighbour_pairs`: each scan with the :data:`NEIGHBOURS` before it in the list (scans taken along a
+   path overlap their neighbours most);
+2. :func:`edges_of`: a trusted result is an edge; an unconfirmed one an uncertain edge, which the optimisation
+   may switch off; a probably wrong one is no edge (on rooms, such results are right too rarely to place a
+   scan by);
+3. :func:`first_poses`: a spanning tree of the edges places each scan in its group's frame; then
+   :func:`overlap_pairs`, the pairs of one group that the tree lays over each other and that are not yet
+   registered, are registered and the groups built again, until no such pair is left;
+4. :func:`optimise`: Open3D's pose-graph optimisation of each group (Levenberg-Marquardt with a line process
+   over the uncertain edges, Choi et al. 2015), each edge weighted by the information of its clouds'
+   correspondences.
 
-A scan that no kept edge joins to scan 0 is reported in its own component and left out of the scene, never
-forced in.
+Groups that no trusted registration joins stay apart, each in its own frame: the largest is the scene, and
+the others are reported, never forced in by a registration the verdict doubts.
 """
 
 from __future__ import annotations
@@ -32,19 +36,22 @@ import numpy as np
 
 from dit_jax.result import Result
 
-#: Where a scene has at most this many scans, every pair is registered (K (K - 1) / 2 pairs); above it,
-#: neighbours in the list and the pairs :func:`candidate_pairs` finds overlapping.
-ALL_PAIRS_SCANS = 40
+#: Each scan is registered onto this many scans before it in the list: the neighbours along a camera's path.
+#: On the shared 3DMatch scenes, the groups that three neighbours and the overlap rounds give are those of
+#: every pair registered (docs/usage.md, "Scenes"), in a fifth of the pairs.
+NEIGHBOURS = 3
+#: :func:`overlap_pairs` lays the scans on a grid of cells this many point spacings wide, and registers two
+#: scans of one group where their shared cells are at least :data:`MIN_SHARED_CELLS` of the smaller one's.
+OVERLAP_CELL_SPACINGS = 10.0
+MIN_SHARED_CELLS = 0.2
+#: Rounds of :func:`overlap_pairs` at most (each one's new edges can join groups and lay more scans over
+#: each other).
+MAX_ROUNDS = 4
 #: The pose graph's correspondences (its edges' information and the line process) pair points within this
-#: many point spacings of the scans (the larger scan's, :func:`dit_jax.icp.point_spacing`).
+#: many point spacings of the scans (the scene's median spacing, :func:`dit_jax.icp.point_spacing`).
 GRAPH_SPACINGS = 3.0
 #: An uncertain edge whose line-process weight falls below this is pruned (Open3D's default).
 EDGE_PRUNE = 0.25
-#: A result the verdict finds probably wrong still enters the graph, as an uncertain edge, where its fitness
-#: (the share of its source it lays on the target) reaches this: on rooms the verdict leaves many right
-#: results of low-overlap pairs "probably wrong", and those are what join the scans no trusted result reaches;
-#: the line process switches off the ones the rest of the graph contradicts (docs/usage.md, "Scenes").
-MIN_FITNESS = 0.5
 
 
 class Edge(NamedTuple):
@@ -61,15 +68,16 @@ class Edge(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-    """Scans in one frame.
+    """Scans in one frame: the largest group of scans that trusted registrations join, and the other groups
+    apart, each in its own frame.
 
     Attributes:
-      poses: (K, 4, 4) float64: scan k's points into scan 0's frame, ``x0 = R_k x_k + t_k`` (the identity for a
-        scan not placed, see :attr:`placed`).
-      edges: every registered pair as an :class:`Edge`, the optimisation's verdict in ``kept``.
-      rejected: the registered pairs that entered no graph: the verdict found them probably wrong, and they
-        lay less than :data:`MIN_FITNESS` of their source on the target.
-      components: lists of scan indices joined by kept edges, scan 0's first.
+      poses: (K, 4, 4) float64: scan k's points into the frame of its component's first scan,
+        ``x_first = R_k x_k + t_k`` (the identity for a scan alone).
+      edges: every registered pair the graph holds as an :class:`Edge`, the optimisation's verdict in ``kept``.
+      rejected: the registered pairs that entered no graph: the verdict found them probably wrong.
+      components: sorted tuples of scan indices joined by kept edges, the largest first (ties: the one with
+        the earlier scan); ``components[0]`` is the scene.
     """
 
     poses: np.ndarray
@@ -79,13 +87,22 @@ class Scene:
 
     @property
     def placed(self) -> np.ndarray:
-        """(K,) bool: the scans joined to scan 0 by kept edges (its component)."""
+        """(K,) bool: the scans of the scene (the largest component)."""
         placed = np.zeros(len(self.poses), bool)
         placed[list(self.components[0])] = True
         return placed
 
+    @property
+    def frame(self) -> int:
+        """The scan whose frame the scene's poses are in: the first of the largest component."""
+        return self.components[0][0]
+
+    def component_of(self, scan: int) -> int:
+        """The index into :attr:`components` of the one holding ``scan``."""
+        return next(k for k, component in enumerate(self.components) if scan in component)
+
     def merged(self, clouds: Sequence[np.ndarray], voxel: float | None = None) -> np.ndarray:
-        """(N, 3) the placed scans' points in scan 0's frame; with ``voxel``, one point per occupied cell of a
+        """(N, 3) the placed scans' points in the scene's frame (:attr:`frame`); with ``voxel``, one point per occupied cell of a
         grid of that size (the first, in the scans' order)."""
         moved = [c @ p[:3, :3].T + p[:3, 3] for c, p, ok in zip(clouds, self.poses, self.placed) if ok]
         points = np.concatenate(moved) if moved else np.zeros((0, 3))
@@ -96,7 +113,7 @@ class Scene:
         return points[np.sort(first)]
 
     def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str], title: str | None = None) -> str:
-        """Writes one self-contained HTML page (:mod:`dit_jax.view`) of the placed scans in scan 0's frame, each
+        """Writes one self-contained HTML page (:mod:`dit_jax.view`) of the placed scans in the scene's frame, each
         in its own colour, and the edges between their centres: kept solid, switched off dashed. Returns the
         path."""
         from dit_jax import view
@@ -115,13 +132,16 @@ class Scene:
         return view.write(path, view.page(moved, [names[k] for k in placed], title=heading, lines=lines))
 
     def to_json(self, names: Sequence[str]) -> dict:
-        """The scene as JSON, each scan by its name: poses, placement, components and every edge's verdict."""
+        """The scene as JSON, each scan by its name: its frame, each scan's pose in its component's frame and
+        its component, the components and every edge's verdict."""
         edge = lambda e: {"source": names[e.source], "target": names[e.target], "level": e.result.level,
                           "certain": e.certain, "kept": e.kept, "fitness": e.result.fitness}  # fmt: skip
         return {
             "scans": list(names),
+            "frame": names[self.frame],
             "poses": self.poses.tolist(),
             "placed": self.placed.tolist(),
+            "component": [self.component_of(k) for k in range(len(names))],
             "components": [[names[k] for k in component] for component in self.components],
             "edges": [edge(e) for e in self.edges],
             "rejected": [edge(e) for e in self.rejected],
@@ -148,33 +168,45 @@ def pose_lines(poses: np.ndarray, placed: np.ndarray, form: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def candidate_pairs(clouds: Sequence[np.ndarray], poses: np.ndarray | None = None) -> list[tuple[int, int]]:
-    """The (source, target) pairs to register among K ``clouds``: every pair (source > target) up to
-    :data:`ALL_PAIRS_SCANS` scans; above, each scan onto the one before it, and, given first ``poses``
-    (K, 4, 4), every other pair whose bounding spheres overlap where those poses place them."""
-    n = len(clouds)
-    if n <= ALL_PAIRS_SCANS or poses is None:
-        every = [(s, t) for s in range(n) for t in range(s)]
-        return every if n <= ALL_PAIRS_SCANS else [(k + 1, k) for k in range(n - 1)]
-    centres = np.stack([c.mean(axis=0) for c in clouds])
-    radii = np.array([np.linalg.norm(c - m, axis=1).max() for c, m in zip(clouds, centres)])
-    placed = np.einsum("kij,kj->ki", poses[:, :3, :3], centres) + poses[:, :3, 3]
+def neighbour_pairs(n_scans: int) -> list[tuple[int, int]]:
+    """The first pairs a scene registers: each scan (source) onto the :data:`NEIGHBOURS` before it (target)."""
+    return [(s, t) for s in range(n_scans) for t in range(max(0, s - NEIGHBOURS), s)]
+
+
+def overlap_pairs(
+    clouds: Sequence[np.ndarray],
+    poses: np.ndarray,
+    components: Sequence[Sequence[int]],
+    spacing: float,
+    asked: set,
+) -> list[tuple[int, int]]:
+    """The pairs (source > target) of one component, not in ``asked``, whose scans ``poses`` (K, 4, 4) lay over
+    each other: on a grid of :data:`OVERLAP_CELL_SPACINGS` point ``spacing`` cells, their shared cells are at
+    least :data:`MIN_SHARED_CELLS` of the smaller one's (each scan measured on about 5,000 of its points)."""
+    cell = OVERLAP_CELL_SPACINGS * spacing
+    cells = []
+    for cloud, pose in zip(clouds, poses):
+        points = np.asarray(cloud[:: max(1, len(cloud) // 5_000)], np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        cells.append(np.unique(np.floor(points / cell).astype(np.int64), axis=0))
+    key = lambda c: np.ascontiguousarray(c).view([("", c.dtype)] * 3).ravel()  # noqa: E731  a cell as one value
     pairs = []
-    for s in range(n):
-        for t in range(s):
-            near = np.linalg.norm(placed[s] - placed[t]) < radii[s] + radii[t]
-            if s == t + 1 or near:
-                pairs.append((s, t))
+    for component in components:
+        for s in component:
+            for t in component:
+                if t < s and (s, t) not in asked:
+                    shared = len(np.intersect1d(key(cells[s]), key(cells[t])))
+                    if shared >= MIN_SHARED_CELLS * min(len(cells[s]), len(cells[t])):
+                        pairs.append((s, t))
     return pairs
 
 
 def edges_of(pairs: Sequence[tuple[int, int]], results: Sequence[Result]) -> tuple[list[Edge], list[Edge]]:
-    """(the graph's edges, the rejected) of registered ``pairs``: a trusted result is a certain edge, the rest
-    uncertain ones, but for the "probably wrong" results below :data:`MIN_FITNESS`, which are rejected."""
+    """(the graph's edges, the rejected) of registered ``pairs``: a trusted result is a certain edge, an
+    unconfirmed one an uncertain edge, a probably wrong one rejected."""
     edges, rejected = [], []
     for (source, target), result in zip(pairs, results):
         edge = Edge(source, target, result, certain=result.level == "trusted")
-        if result.level == "probably wrong" and not result.fitness >= MIN_FITNESS:
+        if result.level == "probably wrong":
             rejected.append(edge._replace(kept=False))
         else:
             edges.append(edge)
@@ -184,7 +216,7 @@ def edges_of(pairs: Sequence[tuple[int, int]], results: Sequence[Result]) -> tup
 def first_poses(n_scans: int, edges: Sequence[Edge]) -> tuple[np.ndarray, list[list[int]]]:
     """Each scan's pose in its component's frame, along a spanning tree of ``edges`` (the certain ones first,
     then by fitness, Kruskal's order): ((K, 4, 4) poses, components as sorted lists of scan indices, each
-    component's frame that of its smallest scan, scan 0's component first)."""
+    component's frame that of its smallest scan, the largest component first, ties by their first scan)."""
     parent = list(range(n_scans))
 
     def root(k: int) -> int:
@@ -216,8 +248,9 @@ def first_poses(n_scans: int, edges: Sequence[Edge]) -> tuple[np.ndarray, list[l
                     poses[there] = poses[here] @ motion
                     component.append(there)
                     stack.append(there)
+        # The tree's poses put the component in the frame of the scan the walk started from: its smallest.
         components.append(sorted(component))
-    return poses, components
+    return poses, sorted(components, key=lambda c: (-len(c), c[0]))
 
 
 def optimise(
@@ -271,30 +304,59 @@ def register_scene(
     *,
     batch_size: int = 8,
     on_pair: Callable[[int], None] | None = None,
+    on_planned: Callable[[int], None] | None = None,
 ) -> Scene:
-    """Registers K scans of one scene into scan 0's frame (module docs). ``registrar``: a
-    :class:`dit_jax.registration.Registrar`; ``on_pair(count)`` as pairs finish (a progress bar's ``update``)."""
+    """Registers K scans of one scene into the frame of the first scan of their largest component (module
+    docs). ``registrar``: a :class:`dit_jax.registration.Registrar`; ``on_pair(count)`` as pairs finish (a
+    progress bar's ``update``); ``on_planned(count)`` as pairs join the plan (the neighbours, then each round's
+    overlapping pairs)."""
     from dit_jax import icp
 
     if len(clouds) < 2:
         raise ValueError(f"a scene needs at least 2 scans, got {len(clouds)}")
-    pairs = candidate_pairs(clouds)
-    results = registrar.register_scan_pairs(clouds, pairs, batch_size=batch_size, on_pair=on_pair)
-    edges, rejected = edges_of(pairs, results)
-    if len(clouds) > ALL_PAIRS_SCANS:  # neighbours first, then the pairs their chain places overlapping
-        poses, _ = first_poses(len(clouds), edges)
-        asked = set(pairs)
-        more = [p for p in candidate_pairs(clouds, poses) if p not in asked]
-        found = registrar.register_scan_pairs(clouds, more, batch_size=batch_size, on_pair=on_pair)
-        extra, extra_rejected = edges_of(more, found)
-        edges, rejected = edges + extra, rejected + extra_rejected
+    scans = registrar.prepare_scans(clouds)
     spacing = float(np.median([icp.point_spacing(c) for c in clouds]))
-    poses, components = first_poses(len(clouds), edges)
-    optimised, judged = optimise(clouds, poses, edges, components[0], spacing)
-    kept_pairs = {(e.source, e.target) for e in judged if e.kept}
-    final_edges = [e._replace(kept=(e.source, e.target) in kept_pairs) for e in edges]
-    # Scans the line process cut off from scan 0 leave the scene.
+    pairs, results = [], []
+    more = neighbour_pairs(len(clouds))
+    for _ in range(MAX_ROUNDS + 1):
+        if on_planned is not None:
+            on_planned(len(more))
+        results += registrar.register_scan_pairs(scans, more, batch_size=batch_size, on_pair=on_pair)
+        pairs += more
+        edges, rejected = edges_of(pairs, results)
+        poses, components = first_poses(len(clouds), edges)
+        more = overlap_pairs(clouds, poses, components, spacing, set(pairs))
+        if not more:
+            break
+    judged = []
+    for component in components:
+        if len(component) > 2:  # two scans' one edge has nothing to agree or disagree with
+            poses, kept = optimise(clouds, poses, edges, component, spacing)
+            judged += kept
+    switched_off = {(e.source, e.target) for e in judged if not e.kept}
+    final_edges = [e._replace(kept=(e.source, e.target) not in switched_off) for e in edges]
+    # Scans the line process cut off from their component leave it.
     _, after = first_poses(len(clouds), [e for e in final_edges if e.kept])
-    placed = np.isin(np.arange(len(clouds)), after[0])
-    poses = np.where(placed[:, None, None], optimised, np.eye(4))
-    return Scene(poses, tuple(final_edges), tuple(rejected), tuple(tuple(c) for c in after))
+    return Scene(_in_component_frames(poses, after), tuple(final_edges), tuple(rejected), tuple(map(tuple, after)))
+
+
+def progress(bar) -> dict:
+    """:func:`register_scene`'s ``on_pair`` and ``on_planned`` for a tqdm ``bar`` whose total grows with the plan
+    (none for None)."""
+    if bar is None:
+        return {}
+
+    def planned(count: int) -> None:
+        bar.total += count
+        bar.refresh()
+
+    return {"on_pair": bar.update, "on_planned": planned}
+
+
+def _in_component_frames(poses: np.ndarray, components: Sequence[Sequence[int]]) -> np.ndarray:
+    """``poses`` (K, 4, 4) moved so that each component's first scan has the identity (a scan alone: the
+    identity)."""
+    moved = np.array(poses, np.float64)
+    for component in components:
+        moved[list(component)] = np.linalg.inv(poses[component[0]]) @ poses[list(component)]
+    return moved

@@ -423,6 +423,12 @@ class _SceneTruth:
     def __init__(self, clouds, poses, wrong=()):
         self.clouds, self.poses, self.wrong = clouds, poses, set(wrong)
 
+    def prepare_scans(self, clouds):
+        return clouds
+
+    def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
+        return self.register_pairs([(clouds[s], clouds[t]) for s, t in pairs], batch_size, on_pair)
+
     def register_pairs(self, pairs, batch_size=8, on_pair=None):
         from conftest import exact_result
 
@@ -459,6 +465,22 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     assert counts["scene_rmse"] == 6 and counts["pairwise_rmse"] == 5
     assert row["position_max"] < 1e-5 and row["rotation_max_deg"] < 1e-3
     assert (row["pairs_registered"], row["rejected"]) == (6, 1) and row["levels"] == {"trusted": 5, "probably wrong": 1}
-    assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 |" in (tmp_path / "out" / "results.md").read_text()
+    assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 (4) |" in (tmp_path / "out" / "results.md").read_text()
     with pytest.raises(ValueError, match="no 3DMatch scene"):
         scenes.scene_folders(tmp_path / "out")
+
+
+def test_a_benchmark_pair_the_scene_did_not_register_is_registered_for_the_pairwise_column(tmp_path, monkeypatch):
+    from conftest import write_3dmatch_scene
+
+    from dit_jax import io, scene
+    from dit_jax.evaluators import scenes
+
+    monkeypatch.setattr(scene, "MAX_ROUNDS", 0)  # the neighbours alone: (4, 0) is none of them
+    rng = np.random.default_rng(5)
+    poses = write_3dmatch_scene(tmp_path / "room", rng.normal(size=(300, 3)), rng, fragments=(0, 1, 2, 3, 4))
+    clouds = [io.read(tmp_path / "room" / f"cloud_bin_{k}.ply") for k in range(5)]
+    registrar = _SceneTruth(clouds, np.stack([poses[k] for k in range(5)]))
+    (row,) = scenes.evaluate_scenes(None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar)["scenes"]
+    assert row["pairs_registered"] == 9, "the scene's own pairs"
+    assert row["lists"]["3DMatch"] == {"pairs": 10, "scene": 10, "pairwise": 10, "scene_rmse": 10, "pairwise_rmse": 10}

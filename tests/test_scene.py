@@ -50,6 +50,9 @@ class _Registrar:
     def __init__(self, clouds, poses, wrong=None):
         self.clouds, self.poses, self.wrong, self.asked = clouds, poses, wrong or {}, []
 
+    def prepare_scans(self, clouds):
+        return clouds
+
     def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
         return self.register_pairs([(clouds[s], clouds[t]) for s, t in pairs], batch_size, on_pair)
 
@@ -72,22 +75,25 @@ class _Registrar:
         return results
 
 
-def test_candidates_are_every_pair_for_few_scans_and_neighbours_and_overlaps_for_many(monkeypatch):
-    clouds = [0.3 * np.random.default_rng(k).normal(size=(20, 3)) + [3.0 * k, 0, 0] for k in range(5)]
-    assert scene.candidate_pairs(clouds) == [(s, t) for s in range(5) for t in range(s)]
-    monkeypatch.setattr(scene, "ALL_PAIRS_SCANS", 3)
-    assert scene.candidate_pairs(clouds) == [(1, 0), (2, 1), (3, 2), (4, 3)]
+def test_a_scene_registers_neighbours_then_the_pairs_its_groups_lay_over_each_other():
+    assert scene.neighbour_pairs(5) == [(1, 0), (2, 0), (2, 1), (3, 0), (3, 1), (3, 2), (4, 1), (4, 2), (4, 3)]
+    assert scene.neighbour_pairs(1) == []
+    clouds = [0.3 * np.random.default_rng(k).normal(size=(200, 3)) + [3.0 * k, 0, 0] for k in range(5)]
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[4, :3, 3] = [-12.0, 0, 0]  # placed where scan 0 is
-    assert scene.candidate_pairs(clouds, poses) == [(1, 0), (2, 1), (3, 2), (4, 0), (4, 3)]
+    asked = set(scene.neighbour_pairs(5))
+    assert scene.overlap_pairs(clouds, poses, [range(5)], 0.05, asked) == [(4, 0)]
+    assert scene.overlap_pairs(clouds, poses, [[0, 1, 2], [3, 4]], 0.05, asked) == [], "only within a group"
+    assert scene.overlap_pairs(clouds, poses, [range(5)], 0.05, asked | {(4, 0)}) == [], "each pair once"
 
 
 def test_a_scene_is_placed_by_its_edges_and_a_wrong_loop_edge_is_switched_off():
     clouds, truth = _views(6)
     registrar = _Registrar(clouds, np.stack([_pose(k) for k in range(6)]), wrong={(4, 1): (30.0, "unconfirmed")})
-    done = []
-    built = scene.register_scene(registrar, clouds, on_pair=done.append)
-    assert len(registrar.asked) == sum(done) == 15 and built.placed.all() and built.components == (tuple(range(6)),)
+    done, planned = [], []
+    built = scene.register_scene(registrar, clouds, on_pair=done.append, on_planned=planned.append)
+    assert len(registrar.asked) == sum(done) == sum(planned) and planned[0] == 12, "the neighbours first"
+    assert built.placed.all() and built.components == (tuple(range(6)),) and built.frame == 0
     np.testing.assert_allclose(built.poses, truth, atol=1e-6)
     wrong = next(e for e in built.edges if (e.source, e.target) == (4, 1))
     assert not wrong.kept and not wrong.certain, "the line process switches the wrong loop edge off"
@@ -156,7 +162,8 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
 
     wrong.update({(3, t): (90.0, "probably wrong", 0.2) for t in range(3)})
     assert cli.scene_main([*paths, "--no-progress"]) == cli.EXIT_SUSPECT
-    assert f"{paths[3]} joins no scan of the scene: left out" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{paths[3]} joins no scan of the scene: left out" in err and "form 2 groups (3, 1 scans)" in err
     assert cli.scene_main([*paths, "--no-progress", "--no-verdict-status"]) == 0
 
     for bad, message in (
@@ -172,22 +179,23 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
         assert err.startswith("dit-register-scene: error:") and message in err, err
 
 
-def test_a_probably_wrong_result_that_lays_most_of_its_source_on_the_target_is_an_uncertain_edge():
-    """The verdict is strict: where such a result is right, it joins its scans; where it is wrong, the line
-    process switches it off."""
-    clouds, truth = _views(5)
+def test_two_groups_stay_apart_each_in_its_own_frame_the_larger_the_scene():
+    """A probably wrong result is no edge however much of its source it lays on the target: scans 0 and 1 reach
+    the rest only through such results, so they form a group of their own."""
+    clouds, _ = _views(5)
     poses = np.stack([_pose(k) for k in range(5)])
-    # Scan 4 reaches the others through probably-wrong results only: right ones onto 3 and 2, a wrong one onto 0.
-    wrong = {
-        (4, 3): (0.0, "probably wrong", 0.8),
-        (4, 2): (0.0, "probably wrong", 0.7),
-        (4, 1): (0.0, "probably wrong", 0.1),
-    }
-    wrong[(4, 0)] = (40.0, "probably wrong", 0.6)
+    wrong = {(s, t): (0.0 if s == 2 else 40.0, "probably wrong", 0.9) for s in (2, 3, 4) for t in (0, 1)}
     built = scene.register_scene(_Registrar(clouds, poses, wrong=wrong), clouds)
-    assert built.placed.all()
-    np.testing.assert_allclose(built.poses, truth, atol=1e-6)
-    edges = {(e.source, e.target): e for e in built.edges}
-    assert not edges[(4, 3)].certain and edges[(4, 3)].kept and edges[(4, 2)].kept
-    assert not edges[(4, 0)].kept, "the wrong one is switched off"
-    assert [(e.source, e.target) for e in built.rejected] == [(4, 1)]
+    assert built.components == ((2, 3, 4), (0, 1)) and built.frame == 2
+    assert built.placed.tolist() == [False, False, True, True, True] and built.component_of(1) == 1
+    in_frame = lambda frame, k: np.linalg.inv(poses[frame]) @ poses[k]  # noqa: E731
+    for k in (2, 3, 4):
+        np.testing.assert_allclose(built.poses[k], in_frame(2, k), atol=1e-6)
+    np.testing.assert_allclose(built.poses[1], in_frame(0, 1), atol=1e-6)
+    np.testing.assert_allclose(built.poses[0], np.eye(4), atol=1e-12)
+    rejected = {(e.source, e.target) for e in built.rejected}
+    assert rejected == set(wrong) - {(4, 0)}, "(4, 0) is no neighbour pair, and no group holds both"
+    assert not any(e.kept for e in built.rejected)
+    report = built.to_json([f"s{k}" for k in range(5)])
+    assert report["frame"] == "s2" and report["component"] == [1, 1, 0, 0, 0]
+    assert len(built.merged(clouds)) == sum(len(c) for c in clouds[2:])
