@@ -6,7 +6,7 @@
         --settings all --unseen --baselines icp fpfh_ransac fgr fpfh_ransac_icp fgr_icp
     python evaluate.py --scans ../shared/data/stanford_dragon_stand --baselines fpfh_ransac   # real scans
     python evaluate.py --data-dir /data/modelnet40_ply_hdf5_2048 --unseen --angle-sweep   # error vs angle
-    python evaluate.py --scenes ../shared/data/3dmatch --out eval_scenes                  # whole scenes
+    python evaluate.py --scenes ../shared/data/3dmatch --baselines open3d_multiway --out eval_scenes  # whole scenes
 
 Settings: the authors' three (clean, low_noise_partial, high_noise_partial; both clouds made of the same
 points) and those whose clouds share no point, as real data (independent_*, scan_*; dit_jax.data.pairs).
@@ -21,7 +21,9 @@ drops it); beside them the --baselines, each at the options tuned for the settin
 (docs/baselines_tuning.md). With --scans three more rows may be asked for: open3d_room_5cm, Open3D's tutorial
 recipe for rooms in metres as it stands; open3d_room_full, the same at full strength (normals facing the sensor,
 RANSAC to confidence 0.9999, ICP within 4 cm); and features, the pipeline's registration by local features alone. A folder of
-3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans).
+3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans). With
+--scenes, the one baseline is open3d_multiway, Open3D's multiway registration of the whole scene at full
+strength.
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
 worst pair) to --out.
@@ -34,7 +36,7 @@ import sys
 #: The flags of the synthetic pairs' tables, which real scans and scenes do not take.
 _TABLES_ONLY = ("angle_sweep", "data_dir", "settings", "unseen", "variant", "authors_thresholds", "batch_size", "reuse")
 _IGNORED_BY = {
-    "--scenes": (*_TABLES_ONLY, "skips", "baselines", "max_pairs", "no_dit"),
+    "--scenes": (*_TABLES_ONLY, "skips", "max_pairs", "no_dit"),
     "--scans": (*_TABLES_ONLY, "scenes", "verdict"),
     "--angle-sweep": (
         "scenes",
@@ -59,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     """evaluate.py's command line."""
     from dit_jax import compile_cache
     from dit_jax import settings as inference_settings
-    from dit_jax.baselines import SCAN_BASELINES as BASELINES
+    from dit_jax.baselines import SCAN_BASELINES, SCENE_BASELINES
     from dit_jax.data.pairs import SETTINGS
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
@@ -119,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run each setting at the authors' GMCCE threshold for it (their paper's table) instead of the "
         "model's own, the same for every input",
     )
-    parser.add_argument("--baselines", nargs="*", default=[], choices=BASELINES)
+    parser.add_argument("--baselines", nargs="*", default=[], choices=(*SCAN_BASELINES, *SCENE_BASELINES))
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--out", default="eval")
     parser.add_argument(
@@ -147,9 +149,14 @@ def main(argv=None) -> int:
             parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
     from dit_jax.baselines import NAMES as TUNED_BASELINES
 
-    untuned = [name for name in args.baselines if name not in TUNED_BASELINES]
+    from dit_jax.baselines import SCENE_BASELINES
+
+    untuned = [name for name in args.baselines if name not in TUNED_BASELINES and name not in SCENE_BASELINES]
     if untuned and not args.scans:
         parser.error(f"--baselines {' '.join(untuned)}: only with --scans")
+    whole = [name for name in args.baselines if name in SCENE_BASELINES]
+    if whole != args.baselines and args.scenes or whole and not args.scenes:
+        parser.error(f"--baselines: with --scenes, only {', '.join(SCENE_BASELINES)}, which takes whole scenes")
     chosen = []
     for name in args.settings:
         chosen += list(SETTINGS) if name == "all" else list(AUTHORS_SETTINGS) if name == "authors" else [name]
@@ -181,7 +188,12 @@ def main(argv=None) -> int:
             return 0
         if args.scenes:
             results = evaluators.evaluate_scenes(
-                checkpoint, args.scenes, args.out, inference=inference, progress=not args.no_progress
+                checkpoint,
+                args.scenes,
+                args.out,
+                inference=inference,
+                progress=not args.no_progress,
+                baselines=args.baselines,
             )
             print(results["table"])
             print(f"wrote {args.out}/results.md, results.json")

@@ -299,6 +299,63 @@ def room_full_strength(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) ->
     return _room(src, tgt, room_options(voxel, confidence=0.9999, face_origin=True), 0.8 * voxel)
 
 
+#: Open3D's multiway registration keeps a loop-closure edge where ICP lays at least this share of the source
+#: on the target (odometry edges, between neighbours in the list, are always kept).
+MULTIWAY_MIN_FITNESS = 0.3
+
+
+def open3d_multiway(clouds, voxel: float = 0.05, *, on_pair=None) -> np.ndarray:
+    """Open3D's multiway registration of K scans of one scene at full strength, ``voxel`` in their units:
+    every pair (source k onto target l > k) by FPFH with normals facing each scan's sensor, RANSAC to confidence
+    0.9999 and point-to-plane ICP within 0.8 voxels (:func:`room_full_strength`, each scan's features computed
+    once); odometry edges between neighbours in the list are certain, the other pairs uncertain loop closures
+    where ICP's fitness reaches :data:`MULTIWAY_MIN_FITNESS`; then Levenberg-Marquardt with a line process
+    (pairing within 1.5 voxels, edges pruned below 0.25), scan 0 the reference. ``on_pair(1)`` as pairs
+    finish. Returns (K, 4, 4) poses: scan k's points into scan 0's frame."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    options = room_options(voxel, confidence=0.9999, face_origin=True)
+    found = [features(c, options) for c in clouds]
+    fine = []
+    for points in clouds:
+        cloud = _cloud(points).voxel_down_sample(voxel / 2)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius, max_nn=30))
+        fine.append(cloud)
+    graph = reg.PoseGraph()
+    odometry = np.eye(4)
+    graph.nodes.append(reg.PoseGraphNode(odometry))
+    for source in range(len(clouds)):
+        for target in range(source + 1, len(clouds)):
+            rotation, translation = ransac_on_features(found[source], found[target], options)
+            start = np.eye(4)
+            start[:3, :3], start[:3, 3] = rotation, translation
+            icp = reg.registration_icp(
+                fine[source], fine[target], 0.8 * voxel, start, reg.TransformationEstimationPointToPlane()
+            )
+            motion = np.asarray(icp.transformation)
+            info = reg.get_information_matrix_from_point_clouds(fine[source], fine[target], 0.8 * voxel, motion)
+            if target == source + 1:
+                odometry = motion @ odometry
+                graph.nodes.append(reg.PoseGraphNode(np.linalg.inv(odometry)))
+                graph.edges.append(reg.PoseGraphEdge(source, target, motion, info, uncertain=False))
+            elif icp.fitness >= MULTIWAY_MIN_FITNESS:
+                graph.edges.append(reg.PoseGraphEdge(source, target, motion, info, uncertain=True))
+            if on_pair is not None:
+                on_pair(1)
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=1.5 * voxel, edge_prune_threshold=0.25, reference_node=0
+    )
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        reg.global_optimization(
+            graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
+        )
+    return np.stack([np.asarray(node.pose, np.float64) for node in graph.nodes])
+
+
+#: Baselines of whole scenes: ``{name: (clouds, on_pair=None) -> (K, 4, 4) poses in scan 0's frame}``.
+SCENE_BASELINES = {"open3d_multiway": open3d_multiway}
+
+
 #: Baselines at a fixed recipe in the data's own units (metres), not tuned and not scaled into the unit sphere:
 #: ``{name: (src, tgt) -> (R, t)}``.
 RECIPES = {"open3d_room_5cm": room_recipe, "open3d_room_full": room_full_strength}

@@ -807,7 +807,8 @@ def _scene_parser() -> argparse.ArgumentParser:
         parser,
         plot=(
             "FILE.html",
-            "write one page a browser turns: the scene's scans in its frame, each in its colour, and the edges",
+            "write one page a browser turns: the scene's scans in its frame, each in its colour, and the edges "
+            "(FILE.png: a picture of them from two sides)",
         ),
         shows="the scene",
         suspect="where a scan joins nothing",
@@ -837,7 +838,7 @@ def scene_main(argv: list[str] | None = None) -> int:
     problem = (
         _output_problem(args.out, inputs=scans)
         or next((p for p in (_text_output_problem(path, flag, scans) for path, flag in texts) if p), None)
-        or _plot_problem(args.plot, scans, (".html",))
+        or _plot_problem(args.plot, scans, (".html", ".png"))
     )
     if args.voxel is not None and not args.voxel > 0:
         problem = problem or f"--voxel must be positive, got {args.voxel}"

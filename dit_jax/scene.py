@@ -40,6 +40,15 @@ from dit_jax.result import Result
 #: On the shared 3DMatch scenes, the groups that three neighbours and the overlap rounds give are those of
 #: every pair registered (docs/usage.md, "Scenes"), in a fifth of the pairs.
 NEIGHBOURS = 3
+#: Scans of different groups are registered where they lie at most this many places apart in the list
+#: (:func:`bridge_pairs`): where the path broke, the scans a few steps on may still join the groups.
+BRIDGE_NEIGHBOURS = 8
+#: Two groups join without a trusted registration between them where at least :data:`AGREEING` of the other
+#: registrations between them put the one group in the same place beside the other: within these degrees and
+#: point spacings (:func:`agreeing_links`). Wrong registrations of low-overlap pairs scatter; right ones agree.
+AGREEING = 2
+AGREE_DEGREES = 5.0
+AGREE_SPACINGS = 10.0
 #: :func:`overlap_pairs` lays the scans on a grid of cells this many point spacings wide, and registers two
 #: scans of one group where their shared cells are at least :data:`MIN_SHARED_CELLS` of the smaller one's.
 OVERLAP_CELL_SPACINGS = 10.0
@@ -114,7 +123,8 @@ class Scene:
 
     def plot(self, path, clouds: Sequence[np.ndarray], names: Sequence[str], title: str | None = None) -> str:
         """Writes one self-contained HTML page (:mod:`dit_jax.view`) of the placed scans in the scene's frame, each
-        in its own colour, and the edges between their centres: kept solid, switched off dashed. Returns the
+        in its own colour, and the edges between their centres: kept solid, switched off dashed; or, for a path
+        ending in .png, a picture of them from two sides (:func:`dit_jax.plotting.plot_series`). Returns the
         path."""
         from dit_jax import view
 
@@ -129,6 +139,10 @@ class Scene:
                 lines.append(view.Lines(name, np.array(ends), dash))
         left_out = len(clouds) - len(placed)
         heading = title or f"{len(placed)} scans placed" + (f", {left_out} left out" if left_out else "")
+        if str(path).lower().endswith(".png"):
+            from dit_jax import plotting
+
+            return plotting.plot_series(path, moved, names=[names[k] for k in placed], title=heading)
         return view.write(path, view.page(moved, [names[k] for k in placed], title=heading, lines=lines))
 
     def to_json(self, names: Sequence[str]) -> dict:
@@ -198,6 +212,48 @@ def overlap_pairs(
                     if shared >= MIN_SHARED_CELLS * min(len(cells[s]), len(cells[t])):
                         pairs.append((s, t))
     return pairs
+
+
+def bridge_pairs(components: Sequence[Sequence[int]], asked: set) -> list[tuple[int, int]]:
+    """The pairs (source > target), not in ``asked``, of scans in different ``components`` at most
+    :data:`BRIDGE_NEIGHBOURS` places apart in the list."""
+    group = {scan: k for k, component in enumerate(components) for scan in component}
+    return [
+        (s, t) for s in sorted(group) for t in range(max(0, s - BRIDGE_NEIGHBOURS), s)
+        if group[s] != group[t] and (s, t) not in asked
+    ]  # fmt: skip
+
+
+def agreeing_links(n_scans: int, edges: Sequence[Edge], others: Sequence[Edge], spacing: float) -> list[Edge]:
+    """Of ``others`` (registrations that are no edge), those that join two groups of ``edges`` together with at
+    least :data:`AGREEING` - 1 more of them that place the two groups alike (within :data:`AGREE_DEGREES` and
+    :data:`AGREE_SPACINGS` point ``spacing``), as uncertain edges."""
+    from dit_jax import geometry
+
+    poses, components = first_poses(n_scans, edges)
+    group = {scan: k for k, component in enumerate(components) for scan in component}
+    between: dict = {}
+    for edge in others:
+        a, b = group[edge.source], group[edge.target]
+        if a == b:
+            continue
+        # Group a's frame into group b's, by this registration; stored with the smaller group index first.
+        placed = poses[edge.target] @ edge.result.matrix @ np.linalg.inv(poses[edge.source])
+        key, placed = ((a, b), placed) if a < b else ((b, a), np.linalg.inv(placed))
+        between.setdefault(key, []).append((edge, placed))
+    links = []
+    for found in between.values():
+        best = []
+        for _, anchor in found:
+            alike = [
+                e for e, other in found
+                if geometry.rotation_angle_deg(anchor[:3, :3].T @ other[:3, :3]) <= AGREE_DEGREES
+                and np.linalg.norm(anchor[:3, 3] - other[:3, 3]) <= AGREE_SPACINGS * spacing
+            ]  # fmt: skip
+            best = alike if len(alike) > len(best) else best
+        if len(best) >= AGREEING:
+            links += [e._replace(certain=False, kept=True) for e in best]
+    return links
 
 
 def edges_of(pairs: Sequence[tuple[int, int]], results: Sequence[Result]) -> tuple[list[Edge], list[Edge]]:
@@ -324,8 +380,12 @@ def register_scene(
         results += registrar.register_scan_pairs(scans, more, batch_size=batch_size, on_pair=on_pair)
         pairs += more
         edges, rejected = edges_of(pairs, results)
+        links = agreeing_links(len(clouds), edges, rejected, spacing)
+        linked = {(e.source, e.target) for e in links}
+        edges, rejected = edges + links, [e for e in rejected if (e.source, e.target) not in linked]
         poses, components = first_poses(len(clouds), edges)
-        more = overlap_pairs(clouds, poses, components, spacing, set(pairs))
+        asked = set(pairs)
+        more = overlap_pairs(clouds, poses, components, spacing, asked) + bridge_pairs(components, asked)
         if not more:
             break
     judged = []

@@ -466,6 +466,7 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     assert row["position_max"] < 1e-5 and row["rotation_max_deg"] < 1e-3
     assert (row["pairs_registered"], row["rejected"]) == (6, 1) and row["levels"] == {"trusted": 5, "probably wrong": 1}
     assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 (4) |" in (tmp_path / "out" / "results.md").read_text()
+    assert (tmp_path / "out" / "scene_room.png").stat().st_size > 10_000, "a picture of the scene"
     with pytest.raises(ValueError, match="no 3DMatch scene"):
         scenes.scene_folders(tmp_path / "out")
 

@@ -24,6 +24,9 @@ Tables:
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
+* ``scenes`` (docs/scenes.md): the 3DMatch scenes placed whole by ``dit_jax.scene`` (``eval_scenes``): per
+  scene and list, the benchmark's pairs read off the scene beside the pairwise results, the fragments' pose
+  errors, the edges and the seconds per fragment.
 * ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.verdict.level`)
   was right, per setting and pair set, for DIT alone and DIT+ICP.
 """
@@ -71,6 +74,7 @@ PAGES = {
     "rival": DOCS / "verdict.md",
     "left_out": DOCS / "verdict.md",
     "bands": DOCS / "verdict.md",
+    "scenes": DOCS / "scenes.md",
 }
 #: The README's table: the real sets and one synthetic directory.
 EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "eval_modelnet40_unseen")
@@ -456,7 +460,18 @@ def bands_table(source: str = "eval_modelnet40_unseen") -> list[str]:
     return lines
 
 
+def scenes_table() -> list[str]:
+    """The 3DMatch scenes placed whole (``eval_scenes``), as :func:`dit_jax.evaluators.scenes.table` writes them."""
+    from dit_jax.evaluators import scenes
+
+    results = _load("eval_scenes")
+    if results is None:
+        return ["(no docs/eval_scenes/results.json yet)"]
+    return scenes.table(results["scenes"]).splitlines()
+
+
 TABLES = {
+    "scenes": scenes_table,
     "expect": expect_table,
     "results": results_tables,
     "rooms": rooms_table,

@@ -12,6 +12,7 @@ import json
 import os
 import pathlib
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -123,12 +124,15 @@ def evaluate_scenes(
     inference: dict | None = None,
     progress: bool = True,
     registrar=None,
+    baselines: Sequence[str] = (),
 ) -> dict:
     """Each 3DMatch scene under ``directory`` (:func:`scene_folders`) placed by :func:`dit_jax.scene.register_scene`
     with a checkpoint (None: the shipped weights; ``inference``: changes to its settings; ``registrar``: one
     already loaded instead), timed, then each benchmark pair the scene did not register registered on its own
     (untimed), and all scored by :func:`score_scene`. Writes ``results.json`` and ``results.md`` to
-    ``out_dir``; returns the results with their ``table``."""
+    ``out_dir``, and a picture of each scene (``scene_NAME.png``); returns the results with their ``table``.
+    ``baselines``: names of :data:`dit_jax.baselines.SCENE_BASELINES` placed and scored beside (each fragment
+    in scan 0's frame, one group), under each row's ``baselines``."""
     from dit_jax import io, registration, scene
 
     registrar = registrar or registration.load(checkpoint_dir, **(inference or {}))
@@ -143,7 +147,15 @@ def evaluate_scenes(
         seconds = time.perf_counter() - started
         if bar is not None:
             bar.close()
-        rows.append(score_scene(folder, fragments, built, seconds, _pairwise(registrar, folder, fragments, clouds, built)))
+        pairwise = _pairwise(registrar, folder, fragments, clouds, built)
+        rows.append(score_scene(folder, fragments, built, seconds, pairwise))
+        rows[-1]["baselines"] = {
+            name: _baseline(name, folder, fragments, clouds, pairwise, progress) for name in baselines
+        }
+        os.makedirs(out_dir, exist_ok=True)
+        picture = os.path.join(out_dir, f"scene_{folder.name}.png")
+        names = [f"fragment {fragment}" for fragment in fragments]
+        built.plot(picture, clouds, names, title=f"{folder.name}: the largest group, {int(built.placed.sum())} of {len(clouds)} fragments")
     results = {"data": os.fspath(directory), "criterion": list(CRITERION), "scenes": rows}
     results["table"] = table(rows)
     os.makedirs(out_dir, exist_ok=True)
@@ -152,6 +164,23 @@ def evaluate_scenes(
     with open(os.path.join(out_dir, "results.md"), "w") as f:
         f.write(results["table"] + "\n")
     return results
+
+
+def _baseline(name: str, folder: pathlib.Path, fragments: list[int], clouds: list, pairwise: dict, progress: bool):
+    """The figures of :data:`dit_jax.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene."""
+    from dit_jax import baselines, scene
+
+    count = len(clouds) * (len(clouds) - 1) // 2
+    bar = progress_bar(progress, count, f"{name} {folder.name}")
+    started = time.perf_counter()
+    poses = baselines.SCENE_BASELINES[name](clouds, on_pair=bar.update if bar else None)
+    seconds = time.perf_counter() - started
+    if bar is not None:
+        bar.close()
+    placed = scene.Scene(poses, (), (), (tuple(range(len(clouds))),))
+    row = score_scene(folder, fragments, placed, seconds, pairwise)
+    keep = ("lists", "position_rmse", "position_max", "rotation_median_deg", "rotation_max_deg", "seconds")
+    return {key: row[key] for key in (*keep, "seconds_per_fragment")}
 
 
 def _pairwise(registrar, folder: pathlib.Path, fragments: list[int], clouds: list, built) -> dict:
@@ -167,6 +196,17 @@ def _pairwise(registrar, folder: pathlib.Path, fragments: list[int], clouds: lis
     return registered
 
 
+def _baseline_cells(row: dict, list_name: str, name: str = "open3d_multiway") -> str:
+    """The table's cells of the baseline ``name`` on one scene and list ('-' where it did not run)."""
+    found = row.get("baselines", {}).get(name)
+    if found is None:
+        return " - | - | - |"
+    return (
+        f" {found['lists'][list_name]['scene']} | {found['position_rmse']:.3f} / {found['position_max']:.3f} |"
+        f" {found['seconds_per_fragment']:.2f} |"
+    )
+
+
 def table(rows: list[dict]) -> str:
     """The scenes' figures as a Markdown table: per scene and list, the benchmark pairs within the criterion
     (and by the benchmark's RMSE) from the scene's poses and from the pairwise results; the fragments' pose
@@ -174,8 +214,9 @@ def table(rows: list[dict]) -> str:
     lines = [
         "| scene | list | pairs | scene: within 15 deg, 0.3 m | pairwise | scene: RMSE <= 0.2 m | pairwise |"
         " fragments in the scene (groups) | position RMSE / max (m) | rotation median / max (deg) | pairs"
-        " registered, edges kept, switched off, no edge | s per fragment |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        " registered, edges kept, switched off, no edge | s per fragment | Open3D multiway: within 15 deg, 0.3 m |"
+        " its position RMSE / max (m) | its s per fragment |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         for name, c in row["lists"].items():
@@ -186,6 +227,6 @@ def table(rows: list[dict]) -> str:
                 f" {row['position_rmse']:.3f} / {row['position_max']:.3f} |"
                 f" {row['rotation_median_deg']:.2f} / {row['rotation_max_deg']:.2f} |"
                 f" {row['pairs_registered']}, {row['edges_kept']}, {row['edges_switched_off']}, {row['rejected']} |"
-                f" {row['seconds_per_fragment']:.2f} |"
+                f" {row['seconds_per_fragment']:.2f} |" + _baseline_cells(row, name)
             )
     return "\n".join(lines)
