@@ -148,7 +148,6 @@ def main(argv=None) -> int:
             flag = "--" + dest.replace("_", "-")
             parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
     from dit_jax.baselines import NAMES as TUNED_BASELINES
-
     from dit_jax.baselines import SCENE_BASELINES
 
     untuned = [name for name in args.baselines if name not in TUNED_BASELINES and name not in SCENE_BASELINES]

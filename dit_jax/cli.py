@@ -755,7 +755,7 @@ def _print_series(result, args: argparse.Namespace, pairs: list[tuple[int, int]]
             for name, pose in zip(names, result.poses):
                 print(
                     f"{name}: rotation {rotation_angle_deg(pose[:3, :3]):.3f} deg, translation "
-                    f"{np.linalg.norm(pose[:3, 3]):.6g} in {names[built.frame]}'s frame"
+                    f"{np.linalg.norm(pose[:3, 3]):.6g} from {names[0]}'s frame"
                 )
                 print(pose)
         for (a, b), link in zip(pairs, result.links):
@@ -869,7 +869,10 @@ def scene_main(argv: list[str] | None = None) -> int:
         print(f"{SCENE_PROG}: warning: {name} joins no scan of the scene: left out", file=sys.stderr)
     if len(built.components) > 1:
         groups = ", ".join(str(len(c)) for c in built.components)
-        print(f"{SCENE_PROG}: warning: the scans form {len(built.components)} groups ({groups} scans); the scene is the first", file=sys.stderr)
+        print(
+            f"{SCENE_PROG}: warning: the scans form {len(built.components)} groups ({groups} scans); the scene is the first",
+            file=sys.stderr,
+        )
     return EXIT_SUSPECT if left_out and not args.no_verdict_status else 0
 
 

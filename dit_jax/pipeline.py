@@ -128,7 +128,9 @@ def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequen
         from dit_jax import feature_match
 
         viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
-        features = feature_match.prepare_scans([checked[k] for k in by_features], seed=settings.seed, viewpoint=viewpoint)
+        features = feature_match.prepare_scans(
+            [checked[k] for k in by_features], seed=settings.seed, viewpoint=viewpoint
+        )
         for row, k in enumerate(by_features):
             rows[k] = row
     return ScanSet(checked, features, rows)
@@ -161,7 +163,9 @@ def register_scan_pairs(
     others = {}
     if rest:
         rest_pairs = [(clouds[s], clouds[t]) for s, t in rest]
-        others = dict(zip(rest, register_pairs(params, config, settings, rest_pairs, batch_size=batch_size, on_pair=on_pair)))
+        others = dict(
+            zip(rest, register_pairs(params, config, settings, rest_pairs, batch_size=batch_size, on_pair=on_pair))
+        )
     return [
         others[(s, t)] if (s, t) in others
         else features_result(Pair(clouds[s], clouds[t], features=found[(s, t)]), settings, config)

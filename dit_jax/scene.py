@@ -45,7 +45,9 @@ NEIGHBOURS = 3
 BRIDGE_NEIGHBOURS = 8
 #: Two groups join without a trusted registration between them where at least :data:`AGREEING` of the other
 #: registrations between them put the one group in the same place beside the other: within these degrees and
-#: point spacings (:func:`agreeing_links`). Wrong registrations of low-overlap pairs scatter; right ones agree.
+#: point spacings (:func:`agreeing_links`). Wrong registrations of low-overlap pairs scatter; right ones agree,
+#: and so do wrong ones that a repeated structure explains, which is why a registration whose features saw a
+#: rival motion or a turned twin past the verdict's bounds never links (on hotel3 every such link was wrong).
 AGREEING = 2
 AGREE_DEGREES = 5.0
 AGREE_SPACINGS = 10.0
@@ -235,7 +237,7 @@ def agreeing_links(n_scans: int, edges: Sequence[Edge], others: Sequence[Edge], 
     between: dict = {}
     for edge in others:
         a, b = group[edge.source], group[edge.target]
-        if a == b:
+        if a == b or _ambiguous(edge.result):
             continue
         # Group a's frame into group b's, by this registration; stored with the smaller group index first.
         placed = poses[edge.target] @ edge.result.matrix @ np.linalg.inv(poses[edge.source])
@@ -254,6 +256,12 @@ def agreeing_links(n_scans: int, edges: Sequence[Edge], others: Sequence[Edge], 
         if len(best) >= AGREEING:
             links += [e._replace(certain=False, kept=True) for e in best]
     return links
+
+
+def _ambiguous(result: Result) -> bool:
+    """Whether a result's features saw another motion, or a turned twin of it, fit about as well (past the
+    verdict's bounds; never for a result found without features)."""
+    return bool(result.rival > result.max_rival or result.twin > result.max_twin)  # NaN compares False
 
 
 def edges_of(pairs: Sequence[tuple[int, int]], results: Sequence[Result]) -> tuple[list[Edge], list[Edge]]:

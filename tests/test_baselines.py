@@ -94,3 +94,26 @@ def test_dense_clouds_are_downsampled_for_features(modelnet_shapes):
     dense = np.repeat(modelnet_shapes[3], 6, axis=0) + np.random.default_rng(0).normal(0, 0.002, (6 * 1024, 3))
     cloud, _ = baselines.features(dense, baselines.Options())
     assert len(dense) > baselines.DENSE_POINTS and len(cloud.points) < len(dense) / 3
+
+
+def test_open3d_multiway_places_views_of_one_surface_in_the_first_one_s_frame():
+    """The scenes' baseline: three independent samplings of one bumpy surface, each in its own frame, come back
+    as poses into scan 0's frame close to the truth."""
+    from dit_jax.geometry import rotation_angle_deg
+
+    poses, clouds = [], []
+    for k in range(3):
+        d = np.random.default_rng(k).normal(size=(6000, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        surface = d * (1 + 0.3 * np.sin(6 * d[:, :1]) * np.cos(5 * d[:, 1:2]) + 0.1 * d[:, 2:] ** 2)
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = euler_zyx_to_matrix([20.0 * k, 5.0 * k, -10.0 * k]), [0.2 * k, 0.0, 0.1]
+        poses.append(pose)
+        clouds.append((surface - pose[:3, 3]) @ pose[:3, :3])  # the surface seen from pose k
+    counted = []
+    found = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append)
+    assert found.shape == (3, 4, 4) and sum(counted) == 3
+    for k in range(3):
+        expected = np.linalg.inv(poses[0]) @ poses[k]
+        assert rotation_angle_deg(found[k][:3, :3].T @ expected[:3, :3]) < 2.0
+        assert np.linalg.norm(found[k][:3, 3] - expected[:3, 3]) < 0.05

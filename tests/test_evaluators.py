@@ -238,6 +238,10 @@ def test_evaluate_py_applies_or_refuses_every_flag_with_scans(tiny_checkpoint, t
     with pytest.raises(SystemExit):  # the room recipe and the feature candidate alone register scans only
         evaluate.main(["--baselines", "open3d_room_5cm", "--out", str(tmp_path / "refused")])
     assert "only with --scans" in capsys.readouterr().err
+    for argv in (["--scenes", str(tmp_path), "--baselines", "icp"], ["--baselines", "open3d_multiway"]):
+        with pytest.raises(SystemExit):  # the multiway baseline places whole scenes, and scenes take it alone
+            evaluate.main(argv + ["--out", str(tmp_path / "refused")])
+        assert "only open3d_multiway, which takes whole scenes" in capsys.readouterr().err
     assert not (tmp_path / "refused").exists()
 
 
@@ -444,7 +448,7 @@ class _SceneTruth:
         return results
 
 
-def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp_path):
+def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp_path, monkeypatch):
     from conftest import write_3dmatch_scene
 
     from dit_jax import io
@@ -457,7 +461,15 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     truth = np.stack([poses[k] for k in range(4)])
     # Fragment 3 onto fragment 0 is found probably wrong: the scene still places 3 through 1 and 2.
     registrar = _SceneTruth(clouds, truth, wrong=[(3, 0)])
-    results = scenes.evaluate_scenes(None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar)
+    from dit_jax import baselines
+
+    # A whole-scene baseline that places every fragment right but fragment 2, half a metre off.
+    off = np.linalg.inv(truth[0]) @ truth
+    off[2, :3, 3] += [0.5, 0.0, 0.0]
+    monkeypatch.setitem(baselines.SCENE_BASELINES, "open3d_multiway", lambda clouds, on_pair=None: off)
+    results = scenes.evaluate_scenes(
+        None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar, baselines=["open3d_multiway"]
+    )
     (row,) = results["scenes"]
     assert row["scene"] == "room" and row["placed"] == 4 and row["left_out"] == []
     counts = row["lists"]["3DMatch"]
@@ -465,7 +477,11 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     assert counts["scene_rmse"] == 6 and counts["pairwise_rmse"] == 5
     assert row["position_max"] < 1e-5 and row["rotation_max_deg"] < 1e-3
     assert (row["pairs_registered"], row["rejected"]) == (6, 1) and row["levels"] == {"trusted": 5, "probably wrong": 1}
-    assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 (4) |" in (tmp_path / "out" / "results.md").read_text()
+    table = (tmp_path / "out" / "results.md").read_text()
+    assert "| room | 3DMatch | 6 | 6 | 5 | 6 | 5 | 4 of 4 (4) |" in table
+    multiway = row["baselines"]["open3d_multiway"]
+    assert multiway["lists"]["3DMatch"]["scene"] == 3 and multiway["position_max"] == pytest.approx(0.5)
+    assert "| 3 | 0.250 / 0.500 |" in table
     assert (tmp_path / "out" / "scene_room.png").stat().st_size > 10_000, "a picture of the scene"
     with pytest.raises(ValueError, match="no 3DMatch scene"):
         scenes.scene_folders(tmp_path / "out")
@@ -482,6 +498,8 @@ def test_a_benchmark_pair_the_scene_did_not_register_is_registered_for_the_pairw
     poses = write_3dmatch_scene(tmp_path / "room", rng.normal(size=(300, 3)), rng, fragments=(0, 1, 2, 3, 4))
     clouds = [io.read(tmp_path / "room" / f"cloud_bin_{k}.ply") for k in range(5)]
     registrar = _SceneTruth(clouds, np.stack([poses[k] for k in range(5)]))
-    (row,) = scenes.evaluate_scenes(None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar)["scenes"]
+    (row,) = scenes.evaluate_scenes(None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar)[
+        "scenes"
+    ]
     assert row["pairs_registered"] == 9, "the scene's own pairs"
     assert row["lists"]["3DMatch"] == {"pairs": 10, "scene": 10, "pairwise": 10, "scene_rmse": 10, "pairwise_rmse": 10}

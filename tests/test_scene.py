@@ -215,3 +215,25 @@ def test_two_groups_join_where_registrations_the_verdict_doubts_agree_on_how():
     links = {(e.source, e.target) for e in built.edges if e.result.level == "probably wrong"}
     assert links == set(doubted) - {(2, 1)} and not any(e.certain for e in built.edges if (e.source, e.target) in links)
     assert {(e.source, e.target) for e in built.rejected} == {(2, 1)}
+
+
+def test_doubted_registrations_whose_features_saw_a_rival_never_link_groups():
+    """A repeated structure makes wrong registrations agree: where the features saw a rival motion past the
+    verdict's bound, agreement between doubted registrations joins nothing."""
+    import dataclasses
+
+    clouds, _ = _views(5)
+    poses = np.stack([_pose(k) for k in range(5)])
+    doubted = {(s, t): (0.0, "probably wrong", 0.4) for s, t in ((2, 0), (3, 0), (3, 1), (4, 0), (4, 1))}
+    doubted[(2, 1)] = (45.0, "probably wrong", 0.4)
+    registrar = _Registrar(clouds, poses, wrong=doubted)
+    plain = registrar.register_pairs
+
+    def with_rivals(pairs, batch_size=8, on_pair=None):
+        found = plain(pairs, batch_size, on_pair)
+        return [dataclasses.replace(r, rival=0.9, max_rival=0.5) if r.level == "probably wrong" else r for r in found]
+
+    registrar.register_pairs = with_rivals
+    built = scene.register_scene(registrar, clouds)
+    assert built.components == ((2, 3, 4), (0, 1))
+    assert not any(e.result.level == "probably wrong" for e in built.edges)

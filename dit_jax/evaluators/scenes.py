@@ -155,7 +155,12 @@ def evaluate_scenes(
         os.makedirs(out_dir, exist_ok=True)
         picture = os.path.join(out_dir, f"scene_{folder.name}.png")
         names = [f"fragment {fragment}" for fragment in fragments]
-        built.plot(picture, clouds, names, title=f"{folder.name}: the largest group, {int(built.placed.sum())} of {len(clouds)} fragments")
+        built.plot(
+            picture,
+            clouds,
+            names,
+            title=f"{folder.name}: the largest group, {int(built.placed.sum())} of {len(clouds)} fragments",
+        )
     results = {"data": os.fspath(directory), "criterion": list(CRITERION), "scenes": rows}
     results["table"] = table(rows)
     os.makedirs(out_dir, exist_ok=True)
