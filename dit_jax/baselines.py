@@ -304,17 +304,19 @@ def room_full_strength(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) ->
 MULTIWAY_MIN_FITNESS = 0.3
 
 
-def open3d_multiway(clouds, voxel: float = 0.05, *, on_pair=None) -> np.ndarray:
+def open3d_multiway(clouds, voxel: float = 0.05, *, draws: int = 1_000_000, on_pair=None) -> np.ndarray:
     """Open3D's multiway registration of K scans of one scene at full strength, ``voxel`` in their units:
     every pair (source k onto target l > k) by FPFH with normals facing each scan's sensor, RANSAC to confidence
     0.9999 and point-to-plane ICP within 0.8 voxels (:func:`room_full_strength`, each scan's features computed
     once); odometry edges between neighbours in the list are certain, the other pairs uncertain loop closures
     where ICP's fitness reaches :data:`MULTIWAY_MIN_FITNESS`; then Levenberg-Marquardt with a line process
     (pairing within 1.5 voxels, edges pruned below 0.25), scan 0 the reference. ``on_pair(1)`` as pairs
-    finish. Returns (K, 4, 4) poses: scan k's points into scan 0's frame."""
+    finish; ``draws``: RANSAC's most draws a pair (Open3D's multiway tutorial stops at 100,000; most pairs of a
+    scene do not overlap, and there RANSAC draws them all). Returns (K, 4, 4) poses: scan k's points into scan
+    0's frame."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
-    options = room_options(voxel, confidence=0.9999, face_origin=True)
+    options = dataclasses.replace(room_options(voxel, confidence=0.9999, face_origin=True), ransac_iterations=draws)
     found = [features(c, options) for c in clouds]
     fine = []
     for points in clouds:

@@ -16,8 +16,9 @@ lets the evidence decide:
    may switch off; a probably wrong one is no edge (on rooms, such results are right too rarely to place a
    scan by);
 3. :func:`first_poses`: a spanning tree of the edges places each scan in its group's frame; then
-   :func:`overlap_pairs`, the pairs of one group that the tree lays over each other and that are not yet
-   registered, are registered and the groups built again, until no such pair is left;
+   :func:`overlap_pairs` (the pairs of one group that the tree lays over each other) and :func:`bridge_pairs`
+   (scans of different groups a few places apart) are registered and the groups built again, until no new
+   pair is left; doubted registrations that agree on how two groups lie join them (:func:`agreeing_links`);
 4. :func:`optimise`: Open3D's pose-graph optimisation of each group (Levenberg-Marquardt with a line process
    over the uncertain edges, Choi et al. 2015), each edge weighted by the information of its clouds'
    correspondences.
@@ -37,8 +38,8 @@ import numpy as np
 from dit_jax.result import Result
 
 #: Each scan is registered onto this many scans before it in the list: the neighbours along a camera's path.
-#: On the shared 3DMatch scenes, the groups that three neighbours and the overlap rounds give are those of
-#: every pair registered (docs/usage.md, "Scenes"), in a fifth of the pairs.
+#: With the overlap rounds after them, they reach the groups that registering every pair reaches, for far
+#: fewer pairs (docs/scenes.md).
 NEIGHBOURS = 3
 #: Scans of different groups are registered where they lie at most this many places apart in the list
 #: (:func:`bridge_pairs`): where the path broke, the scans a few steps on may still join the groups.
@@ -47,7 +48,7 @@ BRIDGE_NEIGHBOURS = 8
 #: registrations between them put the one group in the same place beside the other: within these degrees and
 #: point spacings (:func:`agreeing_links`). Wrong registrations of low-overlap pairs scatter; right ones agree,
 #: and so do wrong ones that a repeated structure explains, which is why a registration whose features saw a
-#: rival motion or a turned twin past the verdict's bounds never links (on hotel3 every such link was wrong).
+#: rival motion or a turned twin past the verdict's bounds never links (docs/scenes.md).
 AGREEING = 2
 AGREE_DEGREES = 5.0
 AGREE_SPACINGS = 10.0
