@@ -472,14 +472,17 @@ class Scans:
     voxel: float
 
 
-def prepare_scans(clouds, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT) -> Scans:
+def prepare_scans(
+    clouds, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT, spacings: list[float] | None = None
+) -> Scans:
     """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
     computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
-    scan's features are computed once however many pairs it joins."""
+    scan's features are computed once however many pairs it joins. ``spacings``: each cloud's point spacing
+    where the caller has measured it (:func:`dit_jax.icp.point_spacing` with ``seed``)."""
     from dit_jax import icp as icp_lib
 
     points = [np.asarray(c, np.float64) for c in clouds]
-    spacing = max(icp_lib.point_spacing(p, seed=seed) for p in points)
+    spacing = max(spacings or [icp_lib.point_spacing(p, seed=seed) for p in points])
     most = max(len(p) for p in points)
     voxel = max(_capped_voxel(p, feature_voxel(spacing, most), FEATURE_POINTS) for p in points)
     thin = icp_voxel(spacing, most)

@@ -105,19 +105,24 @@ def register_pairs(
 
 class ScanSet(NamedTuple):
     """Scans registered in many pairs among themselves (:func:`prepare_scans`): the checked ``clouds`` (K of
-    (N_k, 3) float64) and, where the settings register them by local features, their features
-    (:class:`dit_jax.feature_match.Scans`, scan k at row ``feature_rows[k]``; -1: none for it)."""
+    (N_k, 3) float64); where the settings register them by local features, their features
+    (:class:`dit_jax.feature_match.Scans`, scan k at row ``feature_rows[k]``; -1: none for it); and each
+    one's point ``spacings`` (:func:`dit_jax.icp.point_spacing`)."""
 
     clouds: list
     features: object | None
     feature_rows: list
+    spacings: list
 
 
 def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequence) -> ScanSet:
     """K ``clouds`` checked, and the features of those the settings register by local features first
     (:func:`dit_jax.feature_match.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
     :func:`register_scan_pairs`. Raises :class:`~dit_jax.sampling.InputError` naming a cloud DIT cannot use."""
+    from dit_jax import icp
+
     checked = [check_cloud(f"scan {k}", cloud, config.min_points) for k, cloud in enumerate(clouds)]
+    spacings = [icp.point_spacing(cloud, seed=settings.seed) for cloud in checked]
     by_features = [
         k for k, cloud in enumerate(checked)
         if settings.refinement_for(len(cloud), len(cloud)) != "none"
@@ -129,11 +134,14 @@ def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequen
 
         viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
         features = feature_match.prepare_scans(
-            [checked[k] for k in by_features], seed=settings.seed, viewpoint=viewpoint
+            [checked[k] for k in by_features],
+            seed=settings.seed,
+            viewpoint=viewpoint,
+            spacings=[spacings[k] for k in by_features],
         )
         for row, k in enumerate(by_features):
             rows[k] = row
-    return ScanSet(checked, features, rows)
+    return ScanSet(checked, features, rows, spacings)
 
 
 def register_scan_pairs(

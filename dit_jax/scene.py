@@ -375,12 +375,10 @@ def register_scene(
     docs). ``registrar``: a :class:`dit_jax.registration.Registrar`; ``on_pair(count)`` as pairs finish (a
     progress bar's ``update``); ``on_planned(count)`` as pairs join the plan (the neighbours, then each round's
     overlapping pairs)."""
-    from dit_jax import icp
-
     if len(clouds) < 2:
         raise ValueError(f"a scene needs at least 2 scans, got {len(clouds)}")
     scans = registrar.prepare_scans(clouds)
-    spacing = float(np.median([icp.point_spacing(c) for c in clouds]))
+    spacing = float(np.median(scans.spacings))
     pairs, results = [], []
     more = neighbour_pairs(len(clouds))
     for _ in range(MAX_ROUNDS + 1):

@@ -335,6 +335,16 @@ def rendered_legend(path) -> list[str]:
     return re.findall(r'class="legendtext"[^>]*data-unformatted="([^"]*)"', dom)
 
 
+def scan_set(clouds):
+    """``clouds`` as a :class:`dit_jax.pipeline.ScanSet` without features, as a stand-in registrar's
+    ``prepare_scans`` returns them (a ScanSet is returned as it is)."""
+    from dit_jax import icp, pipeline
+
+    if isinstance(clouds, pipeline.ScanSet):
+        return clouds
+    return pipeline.ScanSet(list(clouds), None, [-1] * len(clouds), [icp.point_spacing(c) for c in clouds])
+
+
 def exact_result(motion: np.ndarray, level: str, fitness: float = 0.9):
     """A :class:`dit_jax.result.Result` of ``motion`` (4, 4) at the verdict's ``level``, as a stand-in
     registrar returns it."""

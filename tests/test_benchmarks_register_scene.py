@@ -4,7 +4,7 @@ import json
 import sys
 
 import numpy as np
-from conftest import ROOT, exact_result, write_3dmatch_scene
+from conftest import ROOT, exact_result, scan_set, write_3dmatch_scene
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import register_scene  # noqa: E402
@@ -17,9 +17,10 @@ class _Truth:
         self.clouds, self.poses = clouds, poses
 
     def prepare_scans(self, clouds):
-        return clouds
+        return scan_set(clouds)
 
-    def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
+    def register_scan_pairs(self, scans, pairs, batch_size=8, on_pair=None):
+        clouds = scans.clouds
         index = lambda cloud: int(np.argmin([np.abs(c[0] - cloud[0]).sum() for c in self.clouds]))  # noqa: E731
         motions = [np.linalg.inv(self.poses[index(clouds[t])]) @ self.poses[index(clouds[s])] for s, t in pairs]
         return [exact_result(m, "trusted") for m in motions]

@@ -428,9 +428,14 @@ class _SceneTruth:
         self.clouds, self.poses, self.wrong = clouds, poses, set(wrong)
 
     def prepare_scans(self, clouds):
-        return clouds
+        from conftest import scan_set
 
-    def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
+        return scan_set(clouds)
+
+    def register_scan_pairs(self, scans, pairs, batch_size=8, on_pair=None):
+        from conftest import scan_set
+
+        clouds = scan_set(scans).clouds
         return self.register_pairs([(clouds[s], clouds[t]) for s, t in pairs], batch_size, on_pair)
 
     def register_pairs(self, pairs, batch_size=8, on_pair=None):

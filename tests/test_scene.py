@@ -3,7 +3,7 @@ first poses, the pose graph's optimisation that switches a wrong loop edge off, 
 
 import numpy as np
 import pytest
-from conftest import exact_result
+from conftest import exact_result, scan_set
 
 from dit_jax import scene
 from dit_jax.data.pairs import euler_zyx_to_matrix
@@ -51,9 +51,10 @@ class _Registrar:
         self.clouds, self.poses, self.wrong, self.asked = clouds, poses, wrong or {}, []
 
     def prepare_scans(self, clouds):
-        return clouds
+        return scan_set(clouds)
 
-    def register_scan_pairs(self, clouds, pairs, batch_size=8, on_pair=None):
+    def register_scan_pairs(self, scans, pairs, batch_size=8, on_pair=None):
+        clouds = scan_set(scans).clouds
         return self.register_pairs([(clouds[s], clouds[t]) for s, t in pairs], batch_size, on_pair)
 
     def register_pairs(self, pairs, batch_size=8, on_pair=None):
