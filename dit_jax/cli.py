@@ -36,6 +36,8 @@ The network handles rotations within its training range; --refine none is faster
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import json
 import os
 import re
@@ -106,20 +108,12 @@ def _parser() -> argparse.ArgumentParser:
         help="instead of SRC TGT: a text file of pairs, 'SRC TGT' a line (paths relative to the "
         "list's folder, # comments), registered in this process, one JSON line per pair",
     )
-    parser.add_argument(
-        "--results",
-        default=None,
-        metavar="FILE.jsonl",
-        help="with --pairs: append each pair's JSON line here instead of printing it. The file is a log: "
+    _add_results_flags(
+        parser,
+        "with --pairs: append each pair's JSON line here instead of printing it. The file is a log: "
         "nothing in it is ever cut or rewritten. Pairs it already holds a result for (same files, same "
         "settings) are skipped and errors are tried again, so a stopped run resumes; processes sharing the "
         "file (shards, or the same list twice) never register one pair twice",
-    )
-    parser.add_argument(
-        "--reuse-results",
-        action="store_true",
-        help="with --results: the file may hold records of another list or other settings; keep them and "
-        "add this run's beside them (else such a file is refused)",
     )
     parser.add_argument(
         "--shard",
@@ -153,6 +147,17 @@ def _parser() -> argparse.ArgumentParser:
     )
     compile_cache.add_arguments(parser)
     return parser
+
+
+def _add_results_flags(parser: argparse.ArgumentParser, results_help: str) -> None:
+    """``--results`` (``results_help``: what the command writes there) and ``--reuse-results``."""
+    parser.add_argument("--results", default=None, metavar="FILE.jsonl", help=results_help)
+    parser.add_argument(
+        "--reuse-results",
+        action="store_true",
+        help="with --results: the file may hold records of other scans or other settings; keep them and "
+        "add this run's beside them (else such a file is refused)",
+    )
 
 
 def _fail(message: str, prog: str = PROG) -> int:
@@ -295,9 +300,10 @@ def _reading(args) -> dict:
     return {"max_points": args.max_points, "drop_nonfinite": args.drop_nonfinite, "no_downsample": args.no_downsample}
 
 
-def _open_results(args, pairs: list[tuple[str, str]], key: dict):
+def _open_results(args, pairs: list[tuple[str, str]], key: dict, prog: str = PROG):
     """The --results log, read and checked (:mod:`dit_jax.results_log`), or None without --results. Raises
-    ValueError where it holds records of another list or other settings and --reuse-results was not given."""
+    ValueError where it holds records of pairs other than ``pairs`` or other settings and --reuse-results was
+    not given."""
     from dit_jax import results_log
 
     if args.results is None:
@@ -309,12 +315,12 @@ def _open_results(args, pairs: list[tuple[str, str]], key: dict):
     if log.bad_lines:
         shown = ", ".join(map(str, log.bad_lines[:10])) + (", ..." if len(log.bad_lines) > 10 else "")
         print(
-            f"{PROG}: note: {args.results}: {len(log.bad_lines)} line(s) do not parse and are skipped (left as "
+            f"{prog}: note: {args.results}: {len(log.bad_lines)} line(s) do not parse and are skipped (left as "
             f"they are): line {shown}",
             file=sys.stderr,
         )
     if log.cut_short:
-        print(f"{PROG}: note: {args.results}: its last line is cut short; left as it is", file=sys.stderr)
+        print(f"{prog}: note: {args.results}: its last line is cut short; left as it is", file=sys.stderr)
     listed = {(os.path.abspath(src), os.path.abspath(tgt)) for src, tgt in pairs}
 
     def paths(record: dict) -> tuple:
@@ -325,7 +331,7 @@ def _open_results(args, pairs: list[tuple[str, str]], key: dict):
     if foreign and not args.reuse_results:
         log.close()
         raise ValueError(
-            f"--results {args.results}: holds {len(foreign)} record(s) of another list or other settings; "
+            f"--results {args.results}: holds {len(foreign)} record(s) of other pairs or other settings; "
             "give another file, or --reuse-results to add this run's records beside them"
         )
     return log
@@ -796,6 +802,12 @@ def _scene_parser() -> argparse.ArgumentParser:
         "--voxel", type=float, default=None, metavar="SIZE", help="--out keeps one point per cell of this size"
     )
     parser.add_argument("--poses", default=None, metavar="FILE.json", help="write poses, edges and components as JSON")
+    _add_results_flags(
+        parser,
+        "append each registered pair's JSON line here (the result in full). The file is a log: nothing in it is "
+        "ever cut or rewritten. Pairs it already holds (same files, same settings) are taken from it, so a "
+        "stopped run resumes where it stopped and builds the same scene",
+    )
     for form in POSE_FORMS:
         parser.add_argument(
             f"--{form}",
@@ -834,7 +846,8 @@ def scene_main(argv: list[str] | None = None) -> int:
     if len(args.scans) < 2:
         return fail(f"a scene needs at least 2 scans, got {len(args.scans)}")
     scans = tuple(args.scans)
-    texts = [(args.poses, "--poses")] + [(getattr(args, form), f"--{form}") for form in POSE_FORMS]
+    texts = [(args.poses, "--poses"), (args.results, "--results")]
+    texts += [(getattr(args, form), f"--{form}") for form in POSE_FORMS]
     problem = (
         _output_problem(args.out, inputs=scans)
         or next((p for p in (_text_output_problem(path, flag, scans) for path, flag in texts) if p), None)
@@ -842,6 +855,8 @@ def scene_main(argv: list[str] | None = None) -> int:
     )
     if args.voxel is not None and not args.voxel > 0:
         problem = problem or f"--voxel must be positive, got {args.voxel}"
+    if args.reuse_results and args.results is None:
+        problem = problem or "--reuse-results goes with --results"
     if problem:
         return fail(problem)
     compile_cache.from_args(args)
@@ -855,9 +870,10 @@ def scene_main(argv: list[str] | None = None) -> int:
         bar = tqdm(
             total=0, desc="pairs", unit="pair", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty()
         )
-        with bar, warnings.catch_warnings():
+        log, known, on_result = _scene_results(args, scans)
+        with bar, warnings.catch_warnings(), log or contextlib.nullcontext():
             warnings.simplefilter("ignore", sampling.SizeMismatchWarning)  # a scene's scans differ in extent
-            built = scene.register_scene(model, clouds, **scene.progress(bar))
+            built = scene.register_scene(model, clouds, known=known, on_result=on_result, **scene.progress(bar))
         _write_scene(built, args, clouds)
     except sampling.InputError as err:
         return fail(str(err))
@@ -874,6 +890,40 @@ def scene_main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
     return EXIT_SUSPECT if left_out and not args.no_verdict_status else 0
+
+
+def _scene_results(args: argparse.Namespace, scans: tuple[str, ...]) -> tuple:
+    """``--results`` of dit-register-scene: ``(log, known, on_result)`` for :func:`dit_jax.scene.register_scene`,
+    the pairs of these scans the log holds under this run's settings, and the callback that appends each new
+    one; ``(None, None, None)`` without --results."""
+    from dit_jax import results_log
+    from dit_jax.result import Result
+
+    key = {**results_log.settings_key(args.checkpoint, settings.changes(args), _reading(args)), "job": "scene"}
+    pairs = [(s, t) for s in scans for t in scans if s != t]
+    log = _open_results(args, pairs, key, SCENE_PROG)
+    if log is None:
+        return None, None, None
+    by_identity: dict[str, list[tuple[int, int]]] = {}
+    for s, t in itertools.permutations(range(len(scans)), 2):
+        by_identity.setdefault(results_log.identity_key(results_log.identity(scans[s], scans[t])), []).append((s, t))
+    known = {}
+    for record in log.records:
+        if record.get("settings") != key or not isinstance(record.get("result"), dict):
+            continue
+        try:
+            result = Result.from_record(record["result"])
+        except ValueError:
+            continue  # a record this version cannot read back: its pair is registered again
+        for pair in by_identity.get(results_log.identity_key(record.get("pair")), ()):
+            known[pair] = result
+
+    def append(pair: tuple[int, int], result: Result) -> None:
+        src, tgt = scans[pair[0]], scans[pair[1]]
+        record = {"src": src, "tgt": tgt, "pair": results_log.identity(src, tgt), "settings": key}
+        log.append(record | result.to_json() | {"result": result.to_record()})
+
+    return log, known, append
 
 
 def _write_scene(built, args: argparse.Namespace, clouds: list[np.ndarray]) -> None:

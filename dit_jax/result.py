@@ -181,6 +181,23 @@ class Result:
             else dict(zip(("low_deg", "high_deg", "validation_pairs", "within_5_deg"), self.agreement_band)),
         }
 
+    def to_record(self) -> dict:
+        """Every field, for JSON, so that :meth:`from_record` gives this result back exactly (arrays as
+        ``[dtype, nested lists]``, NaN as None): a results file a run resumes from (:mod:`dit_jax.scene`)."""
+        return {field.name: _to_plain(getattr(self, field.name)) for field in dataclasses.fields(self)}
+
+    @classmethod
+    def from_record(cls, record: dict) -> Result:
+        """The result :meth:`to_record` wrote. Raises ValueError where ``record`` is not such a record."""
+        try:
+            values = _fields_from_plain(cls, record)
+            values["stages"] = tuple(Stage(**_fields_from_plain(Stage, stage)) for stage in values["stages"])
+            if values["agreement_band"] is not None:
+                values["agreement_band"] = tuple(values["agreement_band"])
+            return cls(**values)
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"not a result's record: {err}") from None
+
     def evidence(self) -> str:
         """One line of what the verdict rests on, e.g. for a report or a warning."""
         if self.candidate == "features":
@@ -261,3 +278,37 @@ class Result:
 def _number(value: float) -> float | None:
     """A float for JSON: None for NaN."""
     return None if np.isnan(value) else float(value)
+
+
+def _to_plain(value):
+    """A field's value for JSON (:meth:`Result.to_record`): arrays tagged with their dtype, NaN as None."""
+    if isinstance(value, np.ndarray):
+        return {"dtype": value.dtype.str, "shape": list(value.shape), "values": _to_plain(value.ravel().tolist())}
+    if isinstance(value, Stage):
+        return {field.name: _to_plain(getattr(value, field.name)) for field in dataclasses.fields(value)}
+    if isinstance(value, (tuple, list)):
+        return [_to_plain(item) for item in value]
+    if isinstance(value, (float, np.floating)):
+        return None if np.isnan(value) else float(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _fields_from_plain(cls, record: dict) -> dict:
+    """The fields of dataclass ``cls`` from ``record`` (:func:`_to_plain`'s form): NaN back in float fields."""
+    values = {}
+    for field in dataclasses.fields(cls):
+        value = _from_plain(record[field.name])
+        values[field.name] = np.nan if value is None and field.type == "float" else value
+    return values
+
+
+def _from_plain(value):
+    """:func:`_to_plain` undone, but for NaN in a float field (:func:`_fields_from_plain`)."""
+    if isinstance(value, dict) and "dtype" in value:  # an array (a stage's record is a dict of its own)
+        values = [np.nan if v is None else v for v in value["values"]]
+        return np.array(values, dtype=np.dtype(value["dtype"])).reshape(value["shape"])
+    if isinstance(value, list):
+        return [_from_plain(item) for item in value]
+    return value

@@ -30,7 +30,7 @@ the others are reported, never forced in by a registration the verdict doubts.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -370,21 +370,40 @@ def register_scene(
     batch_size: int = 8,
     on_pair: Callable[[int], None] | None = None,
     on_planned: Callable[[int], None] | None = None,
+    known: Mapping[tuple[int, int], Result] | None = None,
+    on_result: Callable[[tuple[int, int], Result], None] | None = None,
 ) -> Scene:
     """Registers K scans of one scene into the frame of the first scan of their largest component (module
     docs). ``registrar``: a :class:`dit_jax.registration.Registrar`; ``on_pair(count)`` as pairs finish (a
     progress bar's ``update``); ``on_planned(count)`` as pairs join the plan (the neighbours, then each round's
-    overlapping pairs)."""
+    overlapping pairs).
+
+    Resuming: ``known`` maps pairs ``(source, target)`` registered before (an earlier run's results, e.g. read
+    back by :meth:`Result.from_record`) to their results, which are taken as they are; ``on_result(pair,
+    result)`` is called as each newly registered batch finishes (to append it to a results file), so a run
+    killed part way loses at most one batch. The plan follows the results, so a resumed run plans the same
+    pairs and builds the same scene."""
     if len(clouds) < 2:
         raise ValueError(f"a scene needs at least 2 scans, got {len(clouds)}")
     scans = registrar.prepare_scans(clouds)
     spacing = float(np.median(scans.spacings))
+    known = dict(known or {})
     pairs, results = [], []
     more = neighbour_pairs(len(clouds))
     for _ in range(MAX_ROUNDS + 1):
         if on_planned is not None:
             on_planned(len(more))
-        results += registrar.register_scan_pairs(scans, more, batch_size=batch_size, on_pair=on_pair)
+        if on_pair is not None and (reused := sum(pair in known for pair in more)):
+            on_pair(reused)
+        new = [pair for pair in more if pair not in known]
+        for start in range(0, len(new), batch_size):
+            batch = new[start : start + batch_size]
+            found = registrar.register_scan_pairs(scans, batch, batch_size=batch_size, on_pair=on_pair)
+            for pair, result in zip(batch, found):
+                known[pair] = result
+                if on_result is not None:
+                    on_result(pair, result)
+        results += [known[pair] for pair in more]
         pairs += more
         edges, rejected = edges_of(pairs, results)
         links = agreeing_links(len(clouds), edges, rejected, spacing)

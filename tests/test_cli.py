@@ -703,7 +703,7 @@ def test_resume_keeps_every_record_around_a_blank_line_and_matches_pairs_not_pos
     other.mkdir()
     five = _pair_list(other, pair, 5)
     code, out, err = run(capsys, *_list_args(five, results, tiny_checkpoint))
-    assert code == 2 and err.count("\n") == 1 and "another list or other settings" in err and out == ""
+    assert code == 2 and err.count("\n") == 1 and "other pairs or other settings" in err and out == ""
     assert results.read_text() == before
     code, _, err = run(capsys, *_list_args(five, results, tiny_checkpoint), "--reuse-results", "--no-verdict-status")
     assert code == 0, err

@@ -238,3 +238,71 @@ def test_doubted_registrations_whose_features_saw_a_rival_never_link_groups():
     built = scene.register_scene(registrar, clouds)
     assert built.components == ((2, 3, 4), (0, 1))
     assert not any(e.result.level == "probably wrong" for e in built.edges)
+
+
+def test_a_resumed_scene_takes_the_pairs_it_has_and_builds_the_same_scene():
+    clouds, truth = _views(6)
+    poses = np.stack([_pose(k) for k in range(6)])
+    wrong = {(4, 1): (30.0, "unconfirmed")}
+    first, written = _Registrar(clouds, poses, wrong=wrong), {}
+    whole = scene.register_scene(first, clouds, batch_size=4, on_result=written.__setitem__)
+    assert list(written) == first.asked, "every registered pair is handed over, in order"
+    kept = dict(list(written.items())[:5])  # a run killed after five pairs
+    again, done = _Registrar(clouds, poses, wrong=wrong), []
+    resumed = scene.register_scene(again, clouds, batch_size=4, known=kept, on_pair=done.append)
+    assert again.asked == first.asked[5:] and sum(done) == len(first.asked), "the bar counts the pairs taken too"
+    np.testing.assert_allclose(resumed.poses, whole.poses, atol=1e-12)
+    assert resumed.components == whole.components
+    assert [(e.source, e.target, e.kept) for e in resumed.edges] == [(e.source, e.target, e.kept) for e in whole.edges]
+
+
+def test_dit_register_scene_resumes_from_its_results_file_after_a_kill(tmp_path, monkeypatch, capsys):
+    import json
+
+    from dit_jax import cli, io, registration
+
+    clouds, truth = _views(5)
+    paths = []
+    for k, cloud in enumerate(clouds):
+        paths.append(str(tmp_path / f"scan{k}.ply"))
+        io.write(paths[-1], cloud)
+    read_back = [io.read(p) for p in paths]
+    registrars = []
+
+    def load(*_, **__):
+        registrars.append(_ByContent(read_back, np.stack([_pose(k) for k in range(5)])))
+        return registrars[-1]
+
+    monkeypatch.setattr(registration, "load", load)
+    log, poses = str(tmp_path / "pairs.jsonl"), str(tmp_path / "poses.json")
+    args = [*paths, "--results", log, "--poses", poses, "--no-progress"]
+    assert cli.scene_main(args) == 0
+    whole = json.loads(open(poses).read())
+    lines = open(log).read().splitlines()
+    assert len(lines) == len(registrars[0].asked) and json.loads(lines[0])["level"] == "trusted"
+
+    assert cli.scene_main(args) == 0 and registrars[1].asked == [], "every pair is taken from the file"
+    assert open(log).read().splitlines() == lines, "nothing is added for pairs the file holds"
+
+    # A run killed mid-write: the first three records and half of the fourth.
+    open(log, "w").write("\n".join(lines[:3]) + "\n" + lines[3][:40])
+    capsys.readouterr()
+    assert cli.scene_main(args) == 0
+    assert "its last line is cut short; left as it is" in capsys.readouterr().err
+    assert registrars[2].asked == registrars[0].asked[3:]
+    again = open(log).read().splitlines()
+    assert again[:4] == [*lines[:3], lines[3][:40]], "what was there stays"
+    assert len(again) == len(lines) + 1
+    np.testing.assert_allclose(json.loads(open(poses).read())["poses"], whole["poses"], atol=1e-12)
+    np.testing.assert_allclose(whole["poses"], truth, atol=1e-5)
+
+    for bad, message in (
+        ([*paths[:3], "--results", log], "--reuse-results"),  # the file holds pairs of scans not given
+        ([*paths, "--results", paths[0]], "it is one of the scans"),
+        ([*paths, "--reuse-results"], "--reuse-results goes with --results"),
+    ):
+        capsys.readouterr()
+        assert cli.scene_main(bad) == 2
+        assert message in capsys.readouterr().err
+    assert cli.scene_main([*paths[:3], "--results", log, "--reuse-results", "--no-progress"]) == 0
+    assert registrars[-1].asked == [], "the pairs of the three scans are in the file"
