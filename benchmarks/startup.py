@@ -37,13 +37,14 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # Runs dit-register's main() as its console script does, and notes when main() starts and returns.
 _WRAPPER = """
-import contextlib, io, json, sys, time
+import contextlib, io, json, os, sys, time
 started = time.time()
 from dit_jax import cli
 out = io.StringIO()
 with contextlib.redirect_stdout(out):
     status = cli.main(sys.argv[1:])
-print(json.dumps({"started": started, "returned": time.time(), "status": status, "report": out.getvalue()}))
+print(json.dumps({"started": started, "returned": time.time(), "status": status, "report": out.getvalue()}), flush=True)
+os._exit(0)  # as the console script leaves (dit_jax.cli._console_script)
 """
 
 # A Python user's session, each step timed.
@@ -101,7 +102,7 @@ def cli_call(args: list[str]) -> dict:
 def side_by_side(pair: list[str], cache: str, repeats: int) -> dict:
     """Median wall seconds of the whole `dit-register` process (warm cache) and of the Open3D script,
     alternating."""
-    dit = [sys.executable, "-m", "dit_jax.cli", *pair, "--compile-cache", cache]
+    dit = [os.path.join(os.path.dirname(sys.executable), "dit-register"), *pair, "--compile-cache", cache]
     o3d = [sys.executable, "benchmarks/open3d_pair.py", *pair]
     times: dict[str, list[float]] = {"dit_register_s": [], "open3d_script_s": []}
     _run(dit)  # fills whatever the cache still lacks for these settings

@@ -1,6 +1,6 @@
 """Iterative closest point: the local refinement that follows a global estimate (DIT's or a baseline's).
 
-Written here, in NumPy and scipy's k-d tree, float64, because DIT's refinement (:func:`refine`) is a choice
+Written here, in NumPy and a k-d tree (:func:`nearest_points`), float64, because DIT's refinement (:func:`refine`) is a choice
 among ICP runs that the libraries do not offer: trimmed runs (the closest share of the pairs, Chetverikov et
 al.), point-to-point and point-to-plane runs from one start, each stopped at a tolerance on the motion's step
 and judged by a trimmed fit. small_gicp's ICP has neither trimming nor that stopping rule, Open3D's offers
@@ -8,7 +8,8 @@ robust kernels instead of trimming; both are faster per iteration, and replacing
 would change the refinement that the validation chose (docs/refinement.md, "One ICP per job"). small_gicp's
 GICP serves dense scans (:func:`refine_gicp`). The target's k-d tree is built once, and each iteration pairs
 every source point with its nearest target point within a distance, then solves for the whole motion again
-from those pairs.
+from those pairs. :func:`refine` runs its descents side by side, one query and one batched solve a step for
+all of them, each run ending exactly where it would alone.
 
 * :func:`icp` -- point-to-point (Besl and McKay 1992): each iteration is a Procrustes (Kabsch) solve.
 * ``method="point_to_plane"`` (Chen and Medioni 1992): each iteration minimises the distances along the
@@ -24,11 +25,10 @@ estimate it was handed.
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
-import functools
 import os
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -45,6 +45,10 @@ REFINE_CANDIDATES = (
     ("point_to_point", (0.1, 0.05, 0.02), 0.5),
     ("point_to_plane", (0.1, 0.05), 0.5),
 )
+#: Each stage of a :func:`refine` run stops after this many iterations, or once an update moves no point by
+#: more than :data:`REFINE_TOLERANCE` times the stage's pairing distance (:func:`icp`'s ``tolerance``).
+REFINE_ITERATIONS = 50
+REFINE_TOLERANCE = 1e-7
 #: :func:`trimmed_fit` scores a motion by its closest FIT_SHARE of the source points, so the parts of a
 #: partial view the other cloud lacks do not count (validation: 0.7 beats the median and the closest half).
 FIT_SHARE = 0.7
@@ -64,9 +68,11 @@ GRID_POINTS = 500
 #: (docs/benchmarks.md, "Dense scans").
 TARGET_POINTS = 50_000
 
-#: :func:`refine` runs its searched descents side by side (threads) only on targets of at least this many
-#: points: there the k-d tree queries, which release the GIL, dominate, while on small clouds the threads
-#: contend for NumPy's small steps and gain nothing (docs/refinement.md, "The translation search side by side").
+#: :func:`nearest_points` uses scipy's k-d tree, queried in threads, on clouds of at least this many points
+#: (it stops searching at the pairing distance and releases the GIL, so two directions also refine in
+#: threads, :func:`dit_jax.refinement.refine_pair`); on smaller ones small_gicp's, whose query of a few
+#: hundred points takes a third of the time, and the two directions one after the other (docs/refinement.md,
+#: "ICP in milliseconds").
 PARALLEL_MIN_TARGET = 10_000
 
 
@@ -89,12 +95,20 @@ class ICPResult:
     iterations: int
 
 
-def procrustes(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def procrustes(src: np.ndarray, tgt: np.ndarray, paired: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The rigid motion (R (..., 3, 3), t (..., 3)) minimising ``sum |R src_i + t - tgt_i|^2`` over paired rows of
-    src, tgt (..., K, 3), for every leading index at once, in float64 (Kabsch, with the reflection removed)."""
+    src, tgt (..., K, 3), for every leading index at once, in float64 (Kabsch, with the reflection removed).
+    ``paired`` (..., K) bool: only those rows count (default: all)."""
     src, tgt = np.asarray(src, np.float64), np.asarray(tgt, np.float64)
-    src_mean, tgt_mean = src.mean(axis=-2), tgt.mean(axis=-2)
-    cross = np.swapaxes(tgt - tgt_mean[..., None, :], -1, -2) @ (src - src_mean[..., None, :])
+    if paired is None:
+        src_mean, tgt_mean = src.mean(axis=-2), tgt.mean(axis=-2)
+        weight = 1.0
+    else:  # sums as products with the 0/1 weights: a tenth of the time of NumPy's sums over the points' axis
+        weights = paired.astype(np.float64)[..., None, :]
+        count = weights.sum(axis=-1)
+        src_mean, tgt_mean = (weights @ src)[..., 0, :] / count, (weights @ tgt)[..., 0, :] / count
+        weight = np.swapaxes(weights, -1, -2)
+    cross = np.swapaxes((tgt - tgt_mean[..., None, :]) * weight, -1, -2) @ (src - src_mean[..., None, :])
     u, _, vt = np.linalg.svd(cross)
     flip = np.ones(u.shape[:-1])
     flip[..., 2] = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
@@ -102,34 +116,112 @@ def procrustes(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return rotation, tgt_mean - np.einsum("...ij,...j->...i", rotation, src_mean)
 
 
+def linear_quantile(values: np.ndarray, share: float) -> float:
+    """``np.quantile(values, share)`` (linear interpolation) of values (K,), K >= 1, by a partial sort: the
+    same number, for a tenth of the time on a few hundred values."""
+    position = share * (len(values) - 1)
+    below = int(np.floor(position))
+    above = min(below + 1, len(values) - 1)
+    part = np.partition(values, (below, above))
+    low, high, fraction = part[below], part[above], position - below
+    # NumPy's own interpolation, from whichever end is nearer.
+    return float(high - (high - low) * (1 - fraction) if fraction >= 0.5 else low + (high - low) * fraction)
+
+
 def estimate_normals(points: np.ndarray, k: int = 20, tree=None) -> np.ndarray:
     """Unit normals (N, 3) of points (N, 3): the least-variance direction of each point's k nearest
     neighbours (sign arbitrary; point-to-plane ICP does not need it)."""
-    from scipy.spatial import cKDTree
-
-    tree = tree if tree is not None else cKDTree(points)
+    tree = tree if tree is not None else nearest_points(points)
     _, idx = tree.query(points, k=min(k, len(points)))
     neighbours = points[idx] - points[idx].mean(axis=1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", neighbours, neighbours))
     return vectors[:, :, 0]
 
 
-def _point_to_plane_step(src: np.ndarray, tgt: np.ndarray, normals: np.ndarray):
-    """The small motion (R, t) minimising ``sum ((R src_i + t - tgt_i) . n_i)^2``, linearised in R; None
-    where the system is singular (all normals parallel, say)."""
-    a = np.concatenate([np.cross(src, normals), normals], axis=1)
-    b = np.einsum("ni,ni->n", tgt - src, normals)
-    ata = a.T @ a
-    if np.linalg.cond(ata) > 1e12:
-        return None
-    x = np.linalg.solve(ata, a.T @ b)
-    angle = np.linalg.norm(x[:3])
-    if angle > 0:
-        k = np.array([[0, -x[2], x[1]], [x[2], 0, -x[0]], [-x[1], x[0], 0]]) / angle
-        rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-    else:
-        rotation = np.eye(3)
-    return rotation, x[3:]
+def _point_to_plane_steps(src: np.ndarray, tgt: np.ndarray, normals: np.ndarray, paired: np.ndarray):
+    """For each of K runs, the small motion (R, t) minimising ``sum ((R src_i + t - tgt_i) . n_i)^2`` over its
+    ``paired`` rows, linearised in R: src, tgt, normals (K, N, 3), paired (K, N) bool. Returns rotations
+    (K, 3, 3), translations (K, 3) and which systems are singular (K,) bool (all normals parallel, say: their
+    rows are the identity and zero)."""
+    (sx, sy, sz), (nx, ny, nz) = np.moveaxis(src, -1, 0), np.moveaxis(normals, -1, 0)
+    a = np.empty(src.shape[:-1] + (6,))  # each row (src x n, n): written out, np.cross costs far more
+    a[..., 0], a[..., 1], a[..., 2] = sy * nz - sz * ny, sz * nx - sx * nz, sx * ny - sy * nx
+    a[..., 3:] = normals
+    a *= paired[..., None]
+    b = np.einsum("kni,kni->kn", tgt - src, normals) * paired
+    ata = a.transpose(0, 2, 1) @ a
+    singular = ~(np.linalg.cond(ata) <= 1e12)  # NaN counts as singular
+    x = np.zeros((len(src), 6))
+    if not singular.all():
+        atb = (a[~singular].transpose(0, 2, 1) @ b[~singular][..., None])[..., 0]
+        x[~singular] = np.linalg.solve(ata[~singular], atb[..., None])[..., 0]
+    return _axis_angle_matrices(x[:, :3]), x[:, 3:], singular
+
+
+def _axis_angle_matrices(vectors: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) rotations by the angles ``|v|`` about the axes ``v`` of vectors (K, 3) (Rodrigues)."""
+    angle = np.linalg.norm(vectors, axis=1)
+    axis = vectors / np.where(angle > 0, angle, 1.0)[:, None]
+    k = np.zeros((len(vectors), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k = k - k.transpose(0, 2, 1)
+    return np.eye(3) + np.sin(angle)[:, None, None] * k + (1 - np.cos(angle))[:, None, None] * (k @ k)
+
+
+def nearest_points(points: np.ndarray, *, workers: int = 1):
+    """The nearest of ``points`` (M, 3) to any point, as ``scipy.spatial.cKDTree.query`` answers for one
+    neighbour: ``query(x, distance_upper_bound=inf)`` gives (distances, indices), inf and M where none lies
+    below the bound. Below :data:`PARALLEL_MIN_TARGET` points, small_gicp's k-d tree, whose query of a few
+    hundred points takes a third of scipy's; from there, scipy's, which stops searching at the bound (far
+    faster on large scans) and queries in ``workers`` threads."""
+    points = np.asarray(points, np.float64)
+    if len(points) >= PARALLEL_MIN_TARGET:
+        return _ScipyTree(points, workers)
+    return _SmallTree(points)
+
+
+class _ScipyTree:
+    """:func:`nearest_points` on a large cloud: scipy's k-d tree, queried in ``workers`` threads."""
+
+    def __init__(self, points: np.ndarray, workers: int):
+        from scipy.spatial import cKDTree
+
+        self.tree, self.workers = cKDTree(points), workers
+
+    def query(self, x: np.ndarray, distance_upper_bound: float = np.inf, k: int = 1):
+        return self.tree.query(x, k=k, distance_upper_bound=distance_upper_bound, workers=self.workers)
+
+
+class _SmallTree:
+    """:func:`nearest_points` on a small cloud: small_gicp's k-d tree."""
+
+    def __init__(self, points: np.ndarray):
+        import small_gicp
+
+        self.points = np.ascontiguousarray(points, np.float64)
+        self.tree = small_gicp.KdTree(self.points) if len(self.points) else None
+
+    def query(self, x: np.ndarray, distance_upper_bound: float = np.inf, k: int = 1):
+        x = np.ascontiguousarray(x, np.float64).reshape(-1, 3)
+        if self.tree is None:
+            return np.full((len(x), k), np.inf).squeeze(1), np.full((len(x), k), 0, np.intp).squeeze(1)
+        idx = self.tree.batch_knn_search(x, k)[0].astype(np.intp)
+        # Each distance as scipy's tree measures it, so that a fit's score does not depend on which tree ran.
+        gap = np.sqrt(np.sum((x[:, None, :] - self.points[idx]) ** 2, axis=-1))
+        far = ~(gap < distance_upper_bound)
+        gap[far], idx[far] = np.inf, len(self.points)
+        return (gap[:, 0], idx[:, 0]) if k == 1 else (gap, idx)
+
+
+class _Run(NamedTuple):
+    """One ICP run of :func:`_runs_side_by_side`: where it starts (R (3, 3), t (3,)) and how it runs: ``method``,
+    its stages' pairing ``distances`` (the clouds' units) and ``trim``, as :func:`icp` takes them."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    method: str
+    distances: tuple[float, ...]
+    trim: float | None
 
 
 def icp(
@@ -161,7 +253,8 @@ def icp(
       tolerance: a stage ends when the motion's update moves no point by more than this times ``distance``.
       max_points: the source is thinned at random (seeded) to this many points; the target is used whole.
       normal_neighbours: neighbours per target normal (point-to-plane only).
-      tree: a ``scipy.spatial.cKDTree`` of ``tgt`` to reuse (built here otherwise).
+      tree: the target's nearest points to reuse (:func:`nearest_points`, or a ``scipy.spatial.cKDTree``; built
+        here otherwise).
       trim: keep only this share of the pairs, the closest (trimmed ICP, Chetverikov et al. 2002), so the
         points one cloud has and the other lacks pull less; None keeps every pair within the distance.
       normals: (M, 3) the target's normals to reuse (point-to-plane; estimated here otherwise).
@@ -169,46 +262,104 @@ def icp(
     Returns:
       :class:`ICPResult`, in float64.
     """
-    from scipy.spatial import cKDTree
-
     if method not in METHODS:
         raise ValueError(f"unknown ICP method {method!r}; choose from {', '.join(METHODS)}")
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     rotation = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
     translation = np.zeros(3) if translation is None else np.asarray(translation, np.float64)
-    stages = [float(distances)] if np.ndim(distances) == 0 else [float(d) for d in distances]
-    if max_points and len(src) > max_points:
-        src = src[np.random.default_rng(seed).choice(len(src), max_points, replace=False)]
-    tree = tree if tree is not None else cKDTree(tgt)
+    stages = (float(distances),) if np.ndim(distances) == 0 else tuple(float(d) for d in distances)
+    if max_points:
+        src = _subset(src, max_points, seed)
+    tree = tree if tree is not None else nearest_points(tgt)
     if method == "point_to_plane" and normals is None:
-        normals = estimate_normals(tgt, normal_neighbours, tree)
+        normals = estimate_normals(tgt, normal_neighbours, tree if isinstance(tree, (_ScipyTree, _SmallTree)) else None)
+    run = _Run(rotation, translation, method, stages, trim)
+    rotations, translations, iterations = _runs_side_by_side(
+        src,
+        tgt,
+        tree,
+        normals,
+        rotation[None],
+        translation[None],
+        run,
+        max_iterations=max_iterations,
+        tolerance=tolerance,
+    )
+    return _result(src, tree, rotations[0], translations[0], stages[-1], int(iterations[0]))
+
+
+def _runs_side_by_side(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    tree,
+    normals,
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    run: _Run,
+    *,
+    max_iterations: int,
+    tolerance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K runs of one ICP (``run``'s method, stages and trim; its start unused) of one (already thinned) src
+    (N, 3) onto tgt (M, 3), from K starts, rotation (K, 3, 3) and translation (K, 3), each iterating as
+    :func:`icp` describes, side by side: each step pairs the points of every run still going in one query of
+    ``tree`` and solves their motions at once, so the Python work of a step is shared (on a few hundred points
+    each run's own NumPy calls cost more than their arithmetic). ``normals``: (M, 3), for point-to-plane.
+    Returns each run's rotation (K, 3, 3), translation (K, 3) and iterations (K,)."""
+    rotation, translation = np.array(rotation, np.float64), np.array(translation, np.float64)
+    stages = np.asarray(run.distances, np.float64)
+    stage = np.zeros(len(rotation), int) if max_iterations > 0 else np.full(len(rotation), len(stages))
+    steps, iterations = np.zeros(len(rotation), int), np.zeros(len(rotation), int)
     extent = float(np.linalg.norm(np.ptp(src, axis=0))) or 1.0
-    iterations = 0
-    for distance in stages:
-        for _ in range(max_iterations):
-            moved = src @ rotation.T + translation
-            gap, idx = tree.query(moved, distance_upper_bound=distance)
-            paired = np.isfinite(gap)
-            if trim is not None and paired.sum() >= 3:
-                paired &= gap <= np.quantile(gap[paired], trim)
-            if paired.sum() < 3:
-                break
-            if method == "point_to_point":
-                new_rotation, new_translation = procrustes(src[paired], tgt[idx[paired]])
-            else:
-                step = _point_to_plane_step(moved[paired], tgt[idx[paired]], normals[idx[paired]])
-                if step is None:
-                    break
-                new_rotation = step[0] @ rotation
-                new_translation = step[0] @ translation + step[1]
-            iterations += 1
-            # How far the update moves the cloud: the rotation change at the cloud's extent plus the shift.
-            change = np.linalg.norm(new_rotation - rotation) * extent + np.linalg.norm(new_translation - translation)
-            rotation, translation = new_rotation, new_translation
-            if change <= tolerance * distance:
-                break
-    return _result(src, tree, rotation, translation, stages[-1], iterations)
+    while (going := np.flatnonzero(stage < len(stages))).size:
+        distance = stages[stage[going]]
+        moved = src @ rotation[going].transpose(0, 2, 1) + translation[going, None, :]
+        gap, idx = tree.query(moved.reshape(-1, 3), distance_upper_bound=float(distance.max()))
+        gap, idx = gap.reshape(len(going), -1), idx.reshape(len(going), -1)
+        paired = gap < distance[:, None]  # a k-d tree's bound keeps a pair only below it
+        if run.trim is not None:
+            paired &= gap <= _row_quantiles(gap, paired, run.trim)[:, None]
+        solved = paired.sum(axis=1) >= 3
+        rows = np.flatnonzero(solved)  # the runs with pairs enough to solve
+        idx, paired = np.where(paired, idx, 0)[rows], paired[rows]
+        new_rotation, new_translation = rotation[going].copy(), translation[going].copy()
+        if run.method == "point_to_point" and rows.size:
+            new_rotation[rows], new_translation[rows] = procrustes(src, tgt[idx], paired)
+        elif rows.size:
+            turn, shift, singular = _point_to_plane_steps(moved[rows], tgt[idx], normals[idx], paired)
+            new_rotation[rows] = turn @ rotation[going[rows]]
+            new_translation[rows] = np.einsum("kij,kj->ki", turn, translation[going[rows]]) + shift
+            solved[rows[singular]] = False
+        # How far the update moves the cloud: the rotation change at the cloud's extent plus the shift.
+        change = np.linalg.norm(new_rotation - rotation[going], axis=(1, 2)) * extent + np.linalg.norm(
+            new_translation - translation[going], axis=1
+        )
+        moved_on = going[solved]
+        rotation[moved_on], translation[moved_on] = new_rotation[solved], new_translation[solved]
+        iterations[moved_on] += 1
+        steps[moved_on] += 1
+        # A stage ends without a solve (too few pairs, a singular system), on converging, or at its limit.
+        ends = going[~solved | (change <= tolerance * distance) | (steps[going] >= max_iterations)]
+        stage[ends] += 1
+        steps[ends] = 0
+    return rotation, translation, iterations
+
+
+def _row_quantiles(values: np.ndarray, keep: np.ndarray, share: float) -> np.ndarray:
+    """For each row of values (K, N), :func:`linear_quantile` of its ``keep`` (K, N) entries at ``share``,
+    where at least 3 are kept (else +inf: nothing is trimmed)."""
+    count = keep.sum(axis=1)
+    ordered = np.sort(np.where(keep, values, np.inf), axis=1)
+    position = share * (np.maximum(count, 1) - 1)
+    below = np.floor(position).astype(int)
+    above = np.minimum(below + 1, np.maximum(count, 1) - 1)
+    low = np.take_along_axis(ordered, below[:, None], axis=1)[:, 0]
+    high = np.take_along_axis(ordered, above[:, None], axis=1)[:, 0]
+    fraction = position - below
+    with np.errstate(invalid="ignore"):  # rows of fewer than 3 are not used
+        quantile = np.where(fraction >= 0.5, high - (high - low) * (1 - fraction), low + (high - low) * fraction)
+    return np.where(count >= 3, quantile, np.inf)
 
 
 def _result(src: np.ndarray, tree, rotation: np.ndarray, translation: np.ndarray, distance: float, iterations: int):
@@ -285,10 +436,8 @@ def fits_better(src: np.ndarray, tgt: np.ndarray, motion: tuple, other: tuple) -
     against the same points). Against the true motion: where it does, the points themselves prefer that pose, and
     no refinement that fits them can be expected to end at the truth. Between two estimates: the one to keep
     (:class:`dit_jax.registration.Registrar`'s ``best_direction``)."""
-    from scipy.spatial import cKDTree
-
     src = np.asarray(src, np.float64)
-    tree = cKDTree(_thinned(np.asarray(tgt, np.float64), TARGET_POINTS))
+    tree = nearest_points(_thinned(np.asarray(tgt, np.float64), TARGET_POINTS))
     as_float = lambda m: (np.asarray(m[0], np.float64), np.asarray(m[1], np.float64))
     return trimmed_fit(src, tree, *as_float(motion)) < trimmed_fit(src, tree, *as_float(other))
 
@@ -399,102 +548,92 @@ def refine(
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
     this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
     target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
-    units of ``scale``, or None for the plain descent; ``workers``: threads for the searched descents
-    (default: one per start, at most the machine's cores, on targets of at least :data:`PARALLEL_MIN_TARGET`
-    points, else 1; any number gives the result of running them one after another).
+    units of ``scale``, or None for the plain descent; ``workers``: threads for the nearest-point queries on
+    targets of at least :data:`PARALLEL_MIN_TARGET` points (default: the machine's cores; any number gives
+    the same result). The plain and the searched descents run side by side (:func:`_runs_side_by_side`).
     Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
     """
-    from scipy.spatial import cKDTree
-
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     start = (np.asarray(rotation, np.float64), np.asarray(translation, np.float64))
     if max_target_points:
         tgt = _thinned(tgt, max_target_points, seed)
-    tree = cKDTree(tgt)
-    finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
-    score = lambda r, t: trimmed_fit(src, tree, r, t, seed=seed, max_points=max_points)
+    # The runs and the fit use one seeded subset of the source (icp's and trimmed_fit's own).
+    runs_src = _subset(src, max_points, seed)
+    tree = nearest_points(tgt, workers=(os.cpu_count() or 1) if workers is None else max(1, int(workers)))
+    score = lambda r, t: trimmed_fit(runs_src, tree, r, t, seed=seed, max_points=max_points)  # noqa: E731
+    starts = [start]
+    if translation_search is not None:
+        starts += _searched_starts(src, tree, start, scale, seed, translation_search)
+    # The searched descents run beside the plain one, though they count only where its fit is not exact.
     normals = estimate_normals(tgt, tree=tree)
-
-    descend = functools.partial(
-        _descend, src, tgt, tree, normals, score, start, scale=scale, seed=seed, rounds=rounds,
-        max_points=max_points, max_shift=max_shift,
-    )  # fmt: skip
-
-    best, best_score, iterations = descend(*start)
+    descents = _descents(src, runs_src, tgt, tree, normals, score, start, starts, scale, rounds, max_shift)
+    (best, best_score, iterations), searched = descents[0], descents[1:]
     # An exact fit (shared points at the true pose) cannot be bettered; the search would only cost time.
-    if translation_search is not None and best_score > (1e-6 * scale) ** 2:
-        searched = _searched_descents(descend, src, tree, start, scale, seed, translation_search, workers, len(tgt))
-        for run, run_score, run_iterations in searched:
+    if best_score > (1e-6 * scale) ** 2:
+        for run, run_score, run_iterations in searched:  # in the grid's order
             iterations += run_iterations
-            shift_ok = max_shift is None or mean_shift(src, run.rotation, run.translation, *start) <= max_shift * scale
-            if run.iterations and shift_ok and run_score < best_score:
+            shift_ok = max_shift is None or mean_shift(src, run[0], run[1], *start) <= max_shift * scale
+            if run[2] and shift_ok and run_score < best_score:
                 best, best_score = run, run_score
-    if best.iterations == 0:
-        return best
-    final = icp(src, tgt, best.rotation, best.translation, distances=finest, max_iterations=0, tree=tree)
-    return dataclasses.replace(final, iterations=iterations)
-
-
-def _descend(
-    src, tgt, tree, normals, score, start: tuple, rotation, translation, *, scale, seed, rounds, max_points, max_shift
-) -> tuple[ICPResult, float, int]:
-    """:func:`refine`'s descent from one estimate: up to ``rounds`` rounds of every :data:`REFINE_CANDIDATES` ICP
-    from the best motion so far, each kept where ``score`` (lower is better) improves and it moves the source no
-    further than ``max_shift`` times ``scale`` from ``start``. Returns (the best run, its score, iterations)."""
     finest = scale * min(min(distances) for _, distances, _ in REFINE_CANDIDATES)
-    best = icp(src, tgt, rotation, translation, distances=finest, max_iterations=0, tree=tree)
-    best_score, iterations = score(best.rotation, best.translation), 0
+    final = icp(src, tgt, best[0], best[1], distances=finest, max_iterations=0, tree=tree)
+    return dataclasses.replace(final, iterations=iterations if best[2] else 0)
+
+
+def _subset(points: np.ndarray, most: int, seed: int) -> np.ndarray:
+    """``points`` (N, 3), or the seeded random ``most`` of them that :func:`icp` and :func:`trimmed_fit` take."""
+    if len(points) <= most:
+        return points
+    return points[np.random.default_rng(seed).choice(len(points), most, replace=False)]
+
+
+def _descents(
+    src, runs_src, tgt, tree, normals, score, start, starts, scale: float, rounds: int, max_shift: float | None
+) -> list[tuple[tuple, float, int]]:
+    """:func:`refine`'s descent from each of ``starts`` ((R, t) pairs), all side by side: up to ``rounds``
+    rounds in which every :data:`REFINE_CANDIDATES` ICP in turn runs from the best motion so far and is kept
+    where ``score`` (lower is better) improves and it moves src no further than ``max_shift`` times ``scale``
+    from ``start``; a descent stops after a round that keeps nothing. The runs move ``runs_src``, a subset
+    of src. Returns, for each start, the
+    best motion (R, t, the iterations of the run that found it; 0: the start itself), its score and all its
+    runs' iterations."""
+    best = [(r, t, 0) for r, t in starts]
+    best_score = [score(r, t) for r, t in starts]
+    iterations = [0] * len(starts)
+    going = list(range(len(starts)))
     for _ in range(rounds):
-        improved = False
+        improved = set()
         for method, distances, trim in REFINE_CANDIDATES:
-            run = icp(
-                src,
-                tgt,
-                best.rotation,
-                best.translation,
-                distances=tuple(scale * d for d in distances),
-                method=method,
-                trim=trim,
-                seed=seed,
-                tree=tree,
-                max_points=max_points,
-                normals=normals,
-            )
-            iterations += run.iterations
-            if max_shift is not None and mean_shift(src, run.rotation, run.translation, *start) > max_shift * scale:
-                continue
-            run_score = score(run.rotation, run.translation)
-            if run_score < best_score:
-                best, best_score, improved = run, run_score, True
-        if not improved:
+            run = _Run(None, None, method, tuple(scale * d for d in distances), trim)
+            found = _runs_side_by_side(
+                runs_src, tgt, tree, normals, [best[k][0] for k in going], [best[k][1] for k in going], run,
+                max_iterations=REFINE_ITERATIONS, tolerance=REFINE_TOLERANCE,
+            )  # fmt: skip
+            for k, rotation, translation, run_iterations in zip(going, *found):
+                iterations[k] += run_iterations
+                if max_shift is not None and mean_shift(src, rotation, translation, *start) > max_shift * scale:
+                    continue
+                run_score = score(rotation, translation)
+                if run_score < best_score[k]:
+                    best[k], best_score[k] = (rotation, translation, run_iterations), run_score
+                    improved.add(k)
+        going = [k for k in going if k in improved]
+        if not going:
             break
-    return best, best_score, iterations
+    return list(zip(best, best_score, iterations))
 
 
-def _searched_descents(
-    descend, src, tree, start: tuple, scale: float, seed: int, search: tuple, workers, n_target: int
-):
-    """:func:`refine`'s descents (``descend(rotation, translation)``'s results) from the estimate ``start``
-    moved by the ``search``'s best offsets (span, step, starts; :data:`TRANSLATION_SEARCH`), in the grid's order.
-    ``workers``: threads, as :func:`refine` takes them; ``n_target``: the target's points."""
+def _searched_starts(src, tree, start: tuple, scale: float, seed: int, search: tuple) -> list[tuple]:
+    """:func:`refine`'s further starts: the estimate ``start`` moved by the ``search``'s best offsets (span,
+    step, starts; :data:`TRANSLATION_SEARCH`), in the grid's order."""
     span, step, starts = search
     offsets = scale * _translation_offsets(span, step)
     # The grid is scored at the estimate's rotation, on a few hundred points (it only ranks the offsets).
     grid_scores = trimmed_fit(
         src, tree, start[0], start[1] + offsets, seed=seed, max_points=GRID_POINTS, cap=step * scale
     )
-    chosen = np.argsort(grid_scores, kind="stable")[:starts]
-    # The searched descents are independent NumPy and scipy work (which releases the GIL), so they run side by
-    # side; they are then weighed in the grid's order, which keeps the result the serial one's.
-    if workers is None:
-        workers = min(len(chosen), os.cpu_count() or 1) if n_target >= PARALLEL_MIN_TARGET else 1
-    workers = max(1, int(workers))
-    descents = lambda k: descend(start[0], start[1] + offsets[k])
-    if workers > 1 and len(chosen) > 1:
-        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            return list(pool.map(descents, chosen))
-    return [descents(k) for k in chosen]
+    return [(start[0], start[1] + offsets[k]) for k in np.argsort(grid_scores, kind="stable")[:starts]]
 
 
 #: :func:`refine_gicp`'s resolutions, in point spacings (:func:`point_spacing`): GICP runs on voxel-thinned

@@ -1,6 +1,6 @@
 """Stage 3 of the pipeline (:mod:`dit_jax.pipeline`): the network's estimate refined on the full clouds.
 
-:func:`refine_pair` refines both directions of a pair by ICP (:func:`dit_jax.icp.refine`, side by side) or by
+:func:`refine_pair` refines both directions of a pair by ICP (:func:`dit_jax.icp.refine`) or by
 small_gicp's GICP on dense scans (:func:`dit_jax.icp.refine_gicp`), as
 :meth:`~dit_jax.settings.InferenceSettings.refinement_for` chooses, and keeps the better fitting direction where
 ``best_direction`` says so. :func:`fitness` measures the kept motion as the network measures its own.
@@ -52,8 +52,8 @@ def refine_pair(
     method: str = "icp",
 ) -> Refined:
     """Stage 3 for one pair: refines ``forward``, source onto target, and ``backward``, target onto source
-    (None: one direction), on the full clouds by ``method``: "icp" (:func:`dit_jax.icp.refine`, the two side
-    by side) or "gicp" (:func:`dit_jax.icp.refine_gicp` at the pair's :func:`spacing`, threaded itself); with
+    (None: one direction), on the full clouds by ``method``: "icp" (:func:`dit_jax.icp.refine`, the two in
+    threads on scans, one after the other on small clouds) or "gicp" (:func:`dit_jax.icp.refine_gicp` at the pair's :func:`spacing`, threaded itself); with
     ``best_direction``, keeps the inverse of the backward motion where it lays the source onto the target
     better (:func:`dit_jax.icp.fits_better`)."""
     started = time.perf_counter()
@@ -63,10 +63,12 @@ def refine_pair(
     if method == "gicp":
         pair_spacing = spacing(pair, seed)  # GICP works at the clouds' point spacing: measured once for the pair
         refined = [icp_lib.refine_gicp(*job, seed=seed, spacing=pair_spacing) for job in jobs]
-    else:
-        # Independent NumPy and scipy work, which releases the GIL: two threads take about half the serial time.
+    elif min(len(pair.src), len(pair.tgt)) >= icp_lib.PARALLEL_MIN_TARGET:
+        # Scans: mostly scipy's k-d tree queries, which release the GIL, so two threads take about half the time.
         with concurrent.futures.ThreadPoolExecutor(len(jobs)) as pool:
             refined = list(pool.map(lambda job: icp_lib.refine(*job, scale=pair.scale, seed=seed), jobs))
+    else:  # small clouds' steps hold the GIL (small_gicp's queries, small NumPy calls): threads only contend
+        refined = [icp_lib.refine(*job, scale=pair.scale, seed=seed) for job in jobs]
     rotation, translation, direction = refined[0].rotation, refined[0].translation, "forward"
     back_rotation = None
     if backward is not None:

@@ -253,13 +253,16 @@ def test_translation_search_pulls_back_views_slid_along_each_other(seed):
     assert rotation_angle_deg(searched.rotation.T @ truth) < 1.0
 
 
-def test_searched_descents_side_by_side_give_the_serial_result():
-    """The translation search's descents run in threads; the result (motion, fit, iterations) must be the
-    one of running them one after another, whatever the number of threads."""
+def test_refine_gives_one_result_whatever_its_query_threads():
+    """On a large target the nearest points are queried in threads; the result (motion, fit, iterations)
+    must be the one of a single thread."""
     src, tgt, truth, t = _box_views(2)
+    copies = -(-icp.PARALLEL_MIN_TARGET // len(tgt))  # past it: scipy's tree, queried in threads
+    tgt = np.concatenate([tgt + np.random.default_rng(k).normal(scale=1e-4, size=tgt.shape) for k in range(copies)])
+    assert len(tgt) >= icp.PARALLEL_MIN_TARGET
     start, shifted = euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0]
     serial = icp.refine(src, tgt, start, shifted, workers=1)
-    for workers in (None, 2, 3):
+    for workers in (None, 2):
         threaded = icp.refine(src, tgt, start, shifted, workers=workers)
         np.testing.assert_array_equal(threaded.rotation, serial.rotation)
         np.testing.assert_array_equal(threaded.translation, serial.translation)
@@ -351,3 +354,61 @@ def test_overlap_counts_the_source_points_that_land_on_the_target():
     shares = icp.overlap(src, tgt, [(truth, t_truth), (turned, t_truth), (truth, t_truth + 10.0)], radius)
     assert shares.shape == (3,) and np.all((shares >= 0) & (shares <= 1))
     assert shares[0] > 0.9 and shares[1] < 0.5 * shares[0] and shares[2] == 0.0
+
+
+def test_both_nearest_point_trees_answer_as_scipys_does():
+    """Small clouds' tree (small_gicp's) and large clouds' (scipy's) give cKDTree.query's answer: the same
+    indices and distances to the last bit, inf and M past the bound, and the k nearest in order."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    points, queries = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
+    reference = cKDTree(points)
+    small, large = icp._SmallTree(points), icp._ScipyTree(points, workers=2)
+    for bound in (np.inf, 0.2):
+        want = reference.query(queries, distance_upper_bound=bound)
+        for tree in (small, large):
+            got = tree.query(queries, distance_upper_bound=bound)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+    np.testing.assert_array_equal(small.query(queries, k=20)[1], reference.query(queries, k=20)[1])
+    assert isinstance(icp.nearest_points(points), icp._SmallTree)
+    assert isinstance(icp.nearest_points(rng.normal(size=(icp.PARALLEL_MIN_TARGET, 3))), icp._ScipyTree)
+
+
+def test_quantiles_by_partial_sort_are_numpys():
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 3, 10, 401):
+        values = rng.exponential(size=n)
+        for share in (0.0, 0.5, 0.7, 1.0):
+            assert icp.linear_quantile(values, share) == np.quantile(values, share)
+    values, keep = rng.exponential(size=(5, 40)), rng.random((5, 40)) < 0.6
+    keep[4, 2:] = False  # too few to trim
+    rows = icp._row_quantiles(values, keep, 0.5)
+    for row in range(4):
+        assert rows[row] == np.quantile(values[row, keep[row]], 0.5)
+    assert rows[4] == np.inf
+
+
+@pytest.mark.parametrize(("method", "trim"), [("point_to_point", None), ("point_to_plane", 0.5)])
+def test_runs_side_by_side_end_where_each_ends_alone(method, trim):
+    """refine's runs share each step's query and solve; each must end where icp() run alone ends, iterations
+    included, whether it converges early, late or not at all."""
+    tgt = _surface(600, seed=5)
+    src = _surface(500, seed=6)
+    rng = np.random.default_rng(7)
+    starts = [(euler_zyx_to_matrix(rng.uniform(-20, 20, 3)), rng.uniform(-0.2, 0.2, 3)) for _ in range(4)]
+    starts.append((np.eye(3), np.full(3, 50.0)))  # nothing within reach: no pairs, the start comes back
+    tree, normals = icp.nearest_points(tgt), icp.estimate_normals(tgt)
+    run = icp._Run(None, None, method, (0.3, 0.1, 0.05), trim)
+    rotations, translations, iterations = icp._runs_side_by_side(
+        src, tgt, tree, normals, [r for r, _ in starts], [t for _, t in starts], run, max_iterations=30, tolerance=1e-4
+    )
+    for k, (rotation, translation) in enumerate(starts):
+        alone = icp.icp(src, tgt, rotation, translation, distances=(0.3, 0.1, 0.05), method=method, trim=trim,
+                        max_iterations=30, tolerance=1e-4, max_points=None, tree=tree, normals=normals)  # fmt: skip
+        np.testing.assert_allclose(rotations[k], alone.rotation, atol=1e-12)
+        np.testing.assert_allclose(translations[k], alone.translation, atol=1e-12)
+        assert iterations[k] == alone.iterations
+    assert iterations[-1] == 0 and np.array_equal(translations[-1], np.full(3, 50.0))
+    assert len(set(iterations[:-1].tolist())) > 1, "the runs end at different steps"
