@@ -205,9 +205,8 @@ class _SmallTree:
         x = np.ascontiguousarray(x, np.float64).reshape(-1, 3)
         if self.tree is None:
             return np.full((len(x), k), np.inf).squeeze(1), np.full((len(x), k), 0, np.intp).squeeze(1)
-        idx = self.tree.batch_knn_search(x, k)[0].astype(np.intp)
-        # Each distance as scipy's tree measures it, so that a fit's score does not depend on which tree ran.
-        gap = np.sqrt(np.sum((x[:, None, :] - self.points[idx]) ** 2, axis=-1))
+        found, squared = self.tree.batch_knn_search(x, k)
+        idx, gap = found.astype(np.intp), np.sqrt(squared)
         far = ~(gap < distance_upper_bound)
         gap[far], idx[far] = np.inf, len(self.points)
         return (gap[:, 0], idx[:, 0]) if k == 1 else (gap, idx)
