@@ -68,11 +68,11 @@ GRID_POINTS = 500
 #: (docs/benchmarks.md, "Dense scans").
 TARGET_POINTS = 50_000
 
-#: :func:`nearest_points` uses scipy's k-d tree, queried in threads, on clouds of at least this many points
-#: (it stops searching at the pairing distance and releases the GIL, so two directions also refine in
-#: threads, :func:`dit_jax.refinement.refine_pair`); on smaller ones small_gicp's, whose query of a few
-#: hundred points takes a third of the time, and the two directions one after the other (docs/refinement.md,
-#: "ICP in milliseconds").
+#: :func:`nearest_points` uses scipy's k-d tree on clouds of at least this many points (it stops searching at
+#: the pairing distance and releases the GIL, so two directions also refine in threads,
+#: :func:`dit_jax.refinement.refine_pair`); on smaller ones small_gicp's, whose query of a few hundred points
+#: takes a third of the time but holds the GIL, so the two directions refine one after the other
+#: (docs/refinement.md, "Small clouds' ICP").
 PARALLEL_MIN_TARGET = 10_000
 
 
@@ -168,16 +168,17 @@ def _axis_angle_matrices(vectors: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle)[:, None, None] * k + (1 - np.cos(angle))[:, None, None] * (k @ k)
 
 
-def nearest_points(points: np.ndarray, *, workers: int = 1):
+def nearest_points(points: np.ndarray, *, workers: int | None = None):
     """The nearest of ``points`` (M, 3) to any point, as ``scipy.spatial.cKDTree.query`` answers for one
     neighbour: ``query(x, distance_upper_bound=inf)`` gives (distances, indices), inf and M where none lies
     below the bound. Below :data:`PARALLEL_MIN_TARGET` points, small_gicp's k-d tree, whose query of a few
     hundred points takes a third of scipy's; from there, scipy's, which stops searching at the bound (far
-    faster on large scans) and queries in ``workers`` threads."""
+    faster on large scans). Either queries in ``workers`` threads (default: the machine's cores)."""
     points = np.asarray(points, np.float64)
+    workers = max(1, int(workers or os.cpu_count() or 1))
     if len(points) >= PARALLEL_MIN_TARGET:
         return _ScipyTree(points, workers)
-    return _SmallTree(points)
+    return _SmallTree(points, workers)
 
 
 class _ScipyTree:
@@ -193,19 +194,19 @@ class _ScipyTree:
 
 
 class _SmallTree:
-    """:func:`nearest_points` on a small cloud: small_gicp's k-d tree."""
+    """:func:`nearest_points` on a small cloud: small_gicp's k-d tree, queried in ``workers`` threads."""
 
-    def __init__(self, points: np.ndarray):
+    def __init__(self, points: np.ndarray, workers: int = 1):
         import small_gicp
 
-        self.points = np.ascontiguousarray(points, np.float64)
+        self.points, self.workers = np.ascontiguousarray(points, np.float64), workers
         self.tree = small_gicp.KdTree(self.points) if len(self.points) else None
 
     def query(self, x: np.ndarray, distance_upper_bound: float = np.inf, k: int = 1):
         x = np.ascontiguousarray(x, np.float64).reshape(-1, 3)
         if self.tree is None:
             return np.full((len(x), k), np.inf).squeeze(1), np.full((len(x), k), 0, np.intp).squeeze(1)
-        found, squared = self.tree.batch_knn_search(x, k)
+        found, squared = self.tree.batch_knn_search(x, k, self.workers)
         idx, gap = found.astype(np.intp), np.sqrt(squared)
         far = ~(gap < distance_upper_bound)
         gap[far], idx[far] = np.inf, len(self.points)
@@ -547,9 +548,8 @@ def refine(
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
     this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
     target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
-    units of ``scale``, or None for the plain descent; ``workers``: threads for the nearest-point queries on
-    targets of at least :data:`PARALLEL_MIN_TARGET` points (default: the machine's cores; any number gives
-    the same result). The plain and the searched descents run side by side (:func:`_runs_side_by_side`).
+    units of ``scale``, or None for the plain descent; ``workers``: threads for the nearest-point queries
+    (:func:`nearest_points`; default: the machine's cores; any number gives the same result). The plain and the searched descents run side by side (:func:`_runs_side_by_side`).
     Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
     """
     src = np.asarray(src, np.float64)
@@ -559,7 +559,7 @@ def refine(
         tgt = _thinned(tgt, max_target_points, seed)
     # The runs and the fit use one seeded subset of the source (icp's and trimmed_fit's own).
     runs_src = _subset(src, max_points, seed)
-    tree = nearest_points(tgt, workers=(os.cpu_count() or 1) if workers is None else max(1, int(workers)))
+    tree = nearest_points(tgt, workers=workers)
     score = lambda r, t: trimmed_fit(runs_src, tree, r, t, seed=seed, max_points=max_points)  # noqa: E731
     starts = [start]
     if translation_search is not None:

@@ -364,14 +364,14 @@ def test_both_nearest_point_trees_answer_as_scipys_does():
     rng = np.random.default_rng(3)
     points, queries = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
     reference = cKDTree(points)
-    small, large = icp._SmallTree(points), icp._ScipyTree(points, workers=2)
+    trees = [icp._SmallTree(points, 1), icp._SmallTree(points, 2), icp._ScipyTree(points, workers=2)]
     for bound in (np.inf, 0.2):
         want = reference.query(queries, distance_upper_bound=bound)
-        for tree in (small, large):
+        for tree in trees:
             got = tree.query(queries, distance_upper_bound=bound)
             np.testing.assert_allclose(got[0], want[0], rtol=1e-15, atol=0)
             np.testing.assert_array_equal(got[1], want[1])
-    np.testing.assert_array_equal(small.query(queries, k=20)[1], reference.query(queries, k=20)[1])
+    np.testing.assert_array_equal(trees[1].query(queries, k=20)[1], reference.query(queries, k=20)[1])
     assert isinstance(icp.nearest_points(points), icp._SmallTree)
     assert isinstance(icp.nearest_points(rng.normal(size=(icp.PARALLEL_MIN_TARGET, 3))), icp._ScipyTree)
 
