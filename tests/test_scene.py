@@ -127,17 +127,24 @@ class _ByContent(_Registrar):
         return super().register_pairs(originals, batch_size, on_pair)
 
 
+def _scan_files(folder, n: int):
+    """n views of the room (:func:`_views`) written to ``folder`` as PLY files: (clouds, truth, paths, the
+    clouds read back)."""
+    from dit_jax import io
+
+    clouds, truth = _views(n)
+    paths = [str(folder / f"scan{k}.ply") for k in range(n)]
+    for path, cloud in zip(paths, clouds):
+        io.write(path, cloud)
+    return clouds, truth, paths, [io.read(p) for p in paths]
+
+
 def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path, monkeypatch, capsys):
     import json
 
     from dit_jax import cli, io, registration
 
-    clouds, truth = _views(4)
-    paths = []
-    for k, cloud in enumerate(clouds):
-        paths.append(str(tmp_path / f"scan{k}.ply"))
-        io.write(paths[-1], cloud)
-    read_back = [io.read(p) for p in paths]
+    clouds, truth, paths, read_back = _scan_files(tmp_path, 4)
     wrong = {}
     monkeypatch.setattr(
         registration, "load", lambda *a, **k: _ByContent(read_back, np.stack([_pose(k) for k in range(4)]), wrong)
@@ -259,14 +266,9 @@ def test_a_resumed_scene_takes_the_pairs_it_has_and_builds_the_same_scene():
 def test_dit_register_scene_resumes_from_its_results_file_after_a_kill(tmp_path, monkeypatch, capsys):
     import json
 
-    from dit_jax import cli, io, registration
+    from dit_jax import cli, registration
 
-    clouds, truth = _views(5)
-    paths = []
-    for k, cloud in enumerate(clouds):
-        paths.append(str(tmp_path / f"scan{k}.ply"))
-        io.write(paths[-1], cloud)
-    read_back = [io.read(p) for p in paths]
+    _, truth, paths, read_back = _scan_files(tmp_path, 5)
     registrars = []
 
     def load(*_, **__):
