@@ -57,9 +57,14 @@ def test_a_second_dit_register_reuses_the_first_ones_programs(tmp_path):
     assert [p.name for p in (cache / "exported").iterdir() if p.name.startswith("register-")], (
         "the network's traced program is kept too"
     )
-    second = _register(["--compile-cache", str(cache)])
+    moved = tmp_path / "moved.ply"
+    second = _register(["--compile-cache", str(cache), "--out", str(moved)])
     assert {p.relative_to(cache) for p in cache.rglob("*")} == entries
     assert second == first
+    # The console script leaves without Python's shutdown (cli._console_script): its output is whole.
+    from dit_jax import io
+
+    assert io.read(str(moved)).shape == io.read("examples/chair_src.ply").shape
 
 
 def test_no_compile_cache_writes_nothing(tmp_path, monkeypatch):
