@@ -214,11 +214,9 @@ class _SmallTree:
 
 
 class _Run(NamedTuple):
-    """One ICP run of :func:`_runs_side_by_side`: where it starts (R (3, 3), t (3,)) and how it runs: ``method``,
-    its stages' pairing ``distances`` (the clouds' units) and ``trim``, as :func:`icp` takes them."""
+    """How the runs of :func:`_runs_side_by_side` run: ``method``, their stages' pairing ``distances`` (the
+    clouds' units) and ``trim``, as :func:`icp` takes them."""
 
-    rotation: np.ndarray
-    translation: np.ndarray
     method: str
     distances: tuple[float, ...]
     trim: float | None
@@ -274,7 +272,7 @@ def icp(
     tree = tree if tree is not None else nearest_points(tgt)
     if method == "point_to_plane" and normals is None:
         normals = estimate_normals(tgt, normal_neighbours, tree if isinstance(tree, (_ScipyTree, _SmallTree)) else None)
-    run = _Run(rotation, translation, method, stages, trim)
+    run = _Run(method, stages, trim)
     rotations, translations, iterations = _runs_side_by_side(
         src,
         tgt,
@@ -301,7 +299,7 @@ def _runs_side_by_side(
     max_iterations: int,
     tolerance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """K runs of one ICP (``run``'s method, stages and trim; its start unused) of one (already thinned) src
+    """K runs of one ICP (``run``'s method, stages and trim) of one (already thinned) src
     (N, 3) onto tgt (M, 3), from K starts, rotation (K, 3, 3) and translation (K, 3), each iterating as
     :func:`icp` describes, side by side: each step pairs the points of every run still going in one query of
     ``tree`` and solves their motions at once, so the Python work of a step is shared (on a few hundred points
@@ -604,7 +602,7 @@ def _descents(
     for _ in range(rounds):
         improved = set()
         for method, distances, trim in REFINE_CANDIDATES:
-            run = _Run(None, None, method, tuple(scale * d for d in distances), trim)
+            run = _Run(method, tuple(scale * d for d in distances), trim)
             found = _runs_side_by_side(
                 runs_src, tgt, tree, normals, [best[k][0] for k in going], [best[k][1] for k in going], run,
                 max_iterations=REFINE_ITERATIONS, tolerance=REFINE_TOLERANCE,

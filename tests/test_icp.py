@@ -400,7 +400,7 @@ def test_runs_side_by_side_end_where_each_ends_alone(method, trim):
     starts = [(euler_zyx_to_matrix(rng.uniform(-20, 20, 3)), rng.uniform(-0.2, 0.2, 3)) for _ in range(4)]
     starts.append((np.eye(3), np.full(3, 50.0)))  # nothing within reach: no pairs, the start comes back
     tree, normals = icp.nearest_points(tgt), icp.estimate_normals(tgt)
-    run = icp._Run(None, None, method, (0.3, 0.1, 0.05), trim)
+    run = icp._Run(method, (0.3, 0.1, 0.05), trim)
     rotations, translations, iterations = icp._runs_side_by_side(
         src, tgt, tree, normals, [r for r, _ in starts], [t for _, t in starts], run, max_iterations=30, tolerance=1e-4
     )
