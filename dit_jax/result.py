@@ -182,8 +182,8 @@ class Result:
         }
 
     def to_record(self) -> dict:
-        """Every field, for JSON, so that :meth:`from_record` gives this result back exactly (arrays as
-        ``[dtype, nested lists]``, NaN as None): a results file a run resumes from (:mod:`dit_jax.scene`)."""
+        """Every field, for JSON, so that :meth:`from_record` gives this result back exactly (an array as
+        ``{"dtype", "shape", "values"}``, NaN as None): a results file a run resumes from (:mod:`dit_jax.scene`)."""
         return {field.name: _to_plain(getattr(self, field.name)) for field in dataclasses.fields(self)}
 
     @classmethod
