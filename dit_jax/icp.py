@@ -68,6 +68,8 @@ GRID_POINTS = 500
 #: (docs/benchmarks.md, "Dense scans").
 TARGET_POINTS = 50_000
 
+#: small_gicp's k-d tree (:func:`nearest_points`) queries in threads only batches of at least this many points.
+THREADED_QUERY = 20_000
 #: :func:`nearest_points` uses scipy's k-d tree on clouds of at least this many points (it stops searching at
 #: the pairing distance and releases the GIL, so two directions also refine in threads,
 #: :func:`dit_jax.refinement.refine_pair`); on smaller ones small_gicp's, whose query of a few hundred points
@@ -206,7 +208,10 @@ class _SmallTree:
         x = np.ascontiguousarray(x, np.float64).reshape(-1, 3)
         if self.tree is None:
             return np.full((len(x), k), np.inf).squeeze(1), np.full((len(x), k), 0, np.intp).squeeze(1)
-        found, squared = self.tree.batch_knn_search(x, k, self.workers)
+        # Threads only for large batches: on a few thousand points they gain little, and where other processes
+        # share the cores, OpenMP's waiting threads cost more than they gain (docs/refinement.md).
+        threads = self.workers if len(x) >= THREADED_QUERY else 1
+        found, squared = self.tree.batch_knn_search(x, k, threads)
         idx, gap = found.astype(np.intp), np.sqrt(squared)
         far = ~(gap < distance_upper_bound)
         gap[far], idx[far] = np.inf, len(self.points)
