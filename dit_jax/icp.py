@@ -175,7 +175,8 @@ def nearest_points(points: np.ndarray, *, workers: int | None = None):
     neighbour: ``query(x, distance_upper_bound=inf)`` gives (distances, indices), inf and M where none lies
     below the bound. Below :data:`PARALLEL_MIN_TARGET` points, small_gicp's k-d tree, whose query of a few
     hundred points takes a third of scipy's; from there, scipy's, which stops searching at the bound (far
-    faster on large scans). Either queries in ``workers`` threads (default: the machine's cores)."""
+    faster on large scans). scipy's queries in ``workers`` threads (default: the machine's cores),
+    small_gicp's only batches of at least :data:`THREADED_QUERY` points."""
     points = np.asarray(points, np.float64)
     workers = max(1, int(workers or os.cpu_count() or 1))
     if len(points) >= PARALLEL_MIN_TARGET:
@@ -196,7 +197,8 @@ class _ScipyTree:
 
 
 class _SmallTree:
-    """:func:`nearest_points` on a small cloud: small_gicp's k-d tree, queried in ``workers`` threads."""
+    """:func:`nearest_points` on a small cloud: small_gicp's k-d tree, large batches queried in ``workers``
+    threads."""
 
     def __init__(self, points: np.ndarray, workers: int = 1):
         import small_gicp
@@ -206,13 +208,14 @@ class _SmallTree:
 
     def query(self, x: np.ndarray, distance_upper_bound: float = np.inf, k: int = 1):
         x = np.ascontiguousarray(x, np.float64).reshape(-1, 3)
-        if self.tree is None:
-            return np.full((len(x), k), np.inf).squeeze(1), np.full((len(x), k), 0, np.intp).squeeze(1)
-        # Threads only for large batches: on a few thousand points they gain little, and where other processes
-        # share the cores, OpenMP's waiting threads cost more than they gain (docs/refinement.md).
-        threads = self.workers if len(x) >= THREADED_QUERY else 1
-        found, squared = self.tree.batch_knn_search(x, k, threads)
-        idx, gap = found.astype(np.intp), np.sqrt(squared)
+        if self.tree is None:  # nothing to find: every point's nearest is "none"
+            idx, gap = np.zeros((len(x), k), np.intp), np.full((len(x), k), np.inf)
+        else:
+            # Threads only for large batches: on each step's few thousand points they gain a fifth alone, but
+            # where another process shares the cores OpenMP's waiting threads double the time (refinement.md).
+            threads = self.workers if len(x) >= THREADED_QUERY else 1
+            found, squared = self.tree.batch_knn_search(x, k, threads)
+            idx, gap = found.astype(np.intp), np.sqrt(squared)
         far = ~(gap < distance_upper_bound)
         gap[far], idx[far] = np.inf, len(self.points)
         return (gap[:, 0], idx[:, 0]) if k == 1 else (gap, idx)
