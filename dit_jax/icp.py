@@ -600,27 +600,40 @@ def _descents(
     rounds in which every :data:`REFINE_CANDIDATES` ICP in turn runs from the best motion so far and is kept
     where ``score`` (lower is better) improves and it moves src no further than ``max_shift`` times ``scale``
     from ``start``; a descent stops after a round that keeps nothing. The runs move ``runs_src``, a subset
-    of src. Returns, for each start, the
-    best motion (R, t, the iterations of the run that found it; 0: the start itself), its score and all its
-    runs' iterations."""
+    of src. A candidate runs once from any one motion: where it comes to a motion it ran from before (the
+    next round, after another candidate improved; two descents at one motion), its run is taken as it was.
+    Returns, for each start, the best motion (R, t, the iterations of the run that found it; 0: the start
+    itself), its score and the iterations of the runs it ran."""
+
+    def runs_from(candidate, motions):  # each run's R, t, iterations and score (None: it moved too far)
+        method, distances, trim = candidate
+        run = _Run(method, tuple(scale * d for d in distances), trim)
+        found = _runs_side_by_side(
+            runs_src, tgt, tree, normals, [r for r, _ in motions], [t for _, t in motions], run,
+            max_iterations=REFINE_ITERATIONS, tolerance=REFINE_TOLERANCE,
+        )  # fmt: skip
+        for rotation, translation, run_iterations in zip(*found):
+            too_far = max_shift is not None and mean_shift(src, rotation, translation, *start) > max_shift * scale
+            yield rotation, translation, int(run_iterations), None if too_far else score(rotation, translation)
+
     best = [(r, t, 0) for r, t in starts]
     best_score = [score(r, t) for r, t in starts]
     iterations = [0] * len(starts)
+    ran = {}  # (candidate, the motion's bytes) -> runs_from's record of that run
     going = list(range(len(starts)))
     for _ in range(rounds):
         improved = set()
-        for method, distances, trim in REFINE_CANDIDATES:
-            run = _Run(method, tuple(scale * d for d in distances), trim)
-            found = _runs_side_by_side(
-                runs_src, tgt, tree, normals, [best[k][0] for k in going], [best[k][1] for k in going], run,
-                max_iterations=REFINE_ITERATIONS, tolerance=REFINE_TOLERANCE,
-            )  # fmt: skip
-            for k, rotation, translation, run_iterations in zip(going, *found):
-                iterations[k] += run_iterations
-                if max_shift is not None and mean_shift(src, rotation, translation, *start) > max_shift * scale:
-                    continue
-                run_score = score(rotation, translation)
-                if run_score < best_score[k]:
+        for candidate in REFINE_CANDIDATES:
+            keys = {k: (candidate, best[k][0].tobytes(), best[k][1].tobytes()) for k in going}
+            new = {}  # the motions this candidate has not run from, each with the first descent at it
+            for k, key in keys.items():
+                if key not in ran:
+                    new.setdefault(key, k)
+            ran.update(zip(new, runs_from(candidate, [best[k][:2] for k in new.values()])))
+            for k in going:
+                rotation, translation, run_iterations, run_score = ran[keys[k]]
+                iterations[k] += run_iterations if new.get(keys[k]) == k else 0
+                if run_score is not None and run_score < best_score[k]:
                     best[k], best_score[k] = (rotation, translation, run_iterations), run_score
                     improved.add(k)
         going = [k for k in going if k in improved]

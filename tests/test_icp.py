@@ -412,3 +412,50 @@ def test_runs_side_by_side_end_where_each_ends_alone(method, trim):
         assert iterations[k] == alone.iterations
     assert iterations[-1] == 0 and np.array_equal(translations[-1], np.full(3, 50.0))
     assert len(set(iterations[:-1].tolist())) > 1, "the runs end at different steps"
+
+
+def _naive_descent(src, tgt, tree, normals, score, start, scale, rounds, max_shift):
+    """The descent of :func:`icp._descents` from one start, each candidate run by icp() every time it is asked."""
+    best, best_score, iterations = (*start, 0), score(*start), 0
+    for _ in range(rounds):
+        improved = False
+        for method, distances, trim in icp.REFINE_CANDIDATES:
+            found = icp.icp(src, tgt, best[0], best[1], distances=[scale * d for d in distances], method=method,
+                            trim=trim, max_iterations=icp.REFINE_ITERATIONS, tolerance=icp.REFINE_TOLERANCE,
+                            max_points=None, tree=tree, normals=normals)  # fmt: skip
+            iterations += found.iterations
+            if icp.mean_shift(src, found.rotation, found.translation, *start) > max_shift * scale:
+                continue
+            found_score = score(found.rotation, found.translation)
+            if found_score < best_score:
+                best, best_score, improved = (found.rotation, found.translation, found.iterations), found_score, True
+        if not improved:
+            break
+    return best, best_score, iterations
+
+
+def test_descents_run_each_candidate_once_from_a_motion_and_end_as_each_descent_alone(monkeypatch):
+    """Side by side, a candidate asked again from a motion it ran from (the next round; two descents at one
+    motion) takes its earlier run: every run is new, and each descent ends as it does alone."""
+    src, tgt, truth, t = _box_views(2)
+    tree, normals = icp.nearest_points(tgt), icp.estimate_normals(tgt)
+    score = lambda r, tt: icp.trimmed_fit(src, tree, r, tt)  # noqa: E731
+    start = (euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0])
+    starts = [start, start, (start[0], start[1] + [0.0, 0.1, 0.0])]  # the first two descents are one
+    ran, side_by_side = [], icp._runs_side_by_side
+
+    def recording(src_, tgt_, tree_, normals_, rotations, translations, run, **kw):
+        ran.extend((run, r.tobytes(), np.asarray(tt).tobytes()) for r, tt in zip(rotations, translations))
+        return side_by_side(src_, tgt_, tree_, normals_, rotations, translations, run, **kw)
+
+    monkeypatch.setattr(icp, "_runs_side_by_side", recording)
+    descents = icp._descents(src, src, tgt, tree, normals, score, start, starts, 1.0, 2, icp.MAX_SHIFT)
+    assert len(ran) == len(set(ran)) and len(ran) > len(icp.REFINE_CANDIDATES)
+    monkeypatch.setattr(icp, "_runs_side_by_side", side_by_side)
+    alone = [_naive_descent(src, tgt, tree, normals, score, s, 1.0, 2, icp.MAX_SHIFT) for s in starts]
+    for (best, best_score, _), (found, found_score, _) in zip(descents, alone):
+        np.testing.assert_allclose(best[0], found[0], atol=1e-12)
+        np.testing.assert_allclose(best[1], found[1], atol=1e-12)
+        assert best_score == pytest.approx(found_score, rel=1e-12) and best[2] == found[2]
+    assert descents[0][2] == alone[0][2], "the first descent's runs are all its own"
+    assert descents[1][2] == 0, "the second descent, at the first one's motions, ran nothing of its own"
