@@ -23,7 +23,8 @@ recipe for rooms in metres as it stands; open3d_room_full, the same at full stre
 RANSAC to confidence 0.9999, ICP within 4 cm); and features, the pipeline's registration by local features alone. A folder of
 3DMatch scenes gives the benchmark's registration recall per list and per scene (dit_jax.data.scans). With
 --scenes, the one baseline is open3d_multiway, Open3D's multiway registration of the whole scene at full
-strength.
+strength; its pairs are logged in --out as they finish (open3d_multiway_SCENE.jsonl), and a run given the same
+--out takes the logged ones and registers the rest.
 
 Writes results.md, results.json, success_ratio.png, registrations.png and worst_<setting>.png (each method's
 worst pair) to --out.

@@ -110,10 +110,21 @@ def test_open3d_multiway_places_views_of_one_surface_in_the_first_one_s_frame():
         pose[:3, :3], pose[:3, 3] = euler_zyx_to_matrix([20.0 * k, 5.0 * k, -10.0 * k]), [0.2 * k, 0.0, 0.1]
         poses.append(pose)
         clouds.append((surface - pose[:3, 3]) @ pose[:3, :3])  # the surface seen from pose k
-    counted = []
-    found = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append)
+    counted, pairs = [], []
+    found = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append, on_result=pairs.append)
     assert found.shape == (3, 4, 4) and sum(counted) == 3
     for k in range(3):
         expected = np.linalg.inv(poses[0]) @ poses[k]
         assert rotation_angle_deg(found[k][:3, :3].T @ expected[:3, :3]) < 2.0
         assert np.linalg.norm(found[k][:3, 3] - expected[:3, 3]) < 0.05
+    # A stopped run resumes: the pairs it logged (as JSON and back) are taken as they are, the rest registered.
+    assert sorted((p.source, p.target) for p in pairs) == [(0, 1), (0, 2), (1, 2)]
+    logged = [baselines.MultiwayPair.from_record(json.loads(json.dumps(p.to_record()))) for p in pairs[:2]]
+    assert all(np.array_equal(a.information, b.information) and a.seconds == b.seconds for a, b in zip(logged, pairs))
+    counted, more = [], []
+    known = {(p.source, p.target): p for p in logged}
+    again = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append, known=known, on_result=more.append)
+    assert counted == [2, 1] and [(p.source, p.target) for p in more] == [(pairs[2].source, pairs[2].target)]
+    for k in range(3):  # RANSAC runs in threads: the pair registered again may differ in its last digits
+        assert rotation_angle_deg(again[k][:3, :3].T @ found[k][:3, :3]) < 0.1
+        assert np.linalg.norm(again[k][:3, 3] - found[k][:3, 3]) < 0.005

@@ -471,10 +471,26 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     # A whole-scene baseline that places every fragment right but fragment 2, half a metre off.
     off = np.linalg.inv(truth[0]) @ truth
     off[2, :3, 3] += [0.5, 0.0, 0.0]
-    monkeypatch.setitem(baselines.SCENE_BASELINES, "open3d_multiway", lambda clouds, on_pair=None: off)
-    results = scenes.evaluate_scenes(
+    asked = []
+
+    def multiway(clouds, on_pair=None, known=None, on_result=None):  # each pair a second, as logged
+        for source, target in [(s, t) for s in range(len(clouds)) for t in range(s + 1, len(clouds))]:
+            if (source, target) not in known:
+                asked.append((source, target))
+                on_result(baselines.MultiwayPair(source, target, off[target], 0.5, np.eye(6), 1.0))
+        return off
+
+    monkeypatch.setitem(baselines.SCENE_BASELINES, "open3d_multiway", multiway)
+    evaluate = lambda: scenes.evaluate_scenes(  # noqa: E731
         None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar, baselines=["open3d_multiway"]
     )
+    log = scenes.baseline_log(tmp_path / "out", "open3d_multiway", tmp_path / "room")
+    log.parent.mkdir()
+    log.write_text(json.dumps(baselines.MultiwayPair(0, 2, off[2], 0.5, np.eye(6), 1.0).to_record()) + '\n{"cut')
+    results = evaluate()
+    assert len(asked) == 5 and (0, 2) not in asked, "the logged pair is taken as it is"
+    lines = log.read_text().splitlines()
+    assert len(lines) == 7 and lines[1] == '{"cut', "appended after the cut line, which stays"
     (row,) = results["scenes"]
     assert row["scene"] == "room" and row["placed"] == 4 and row["left_out"] == []
     counts = row["lists"]["3DMatch"]
@@ -487,6 +503,11 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     multiway = row["baselines"]["open3d_multiway"]
     assert multiway["lists"]["3DMatch"]["scene"] == 3 and multiway["position_max"] == pytest.approx(0.5)
     assert "| 3 | 0.250 / 0.500 |" in table
+    # Its seconds: this run's own, with the logged pairs' as they were logged (the fake takes no time).
+    assert 1.0 <= multiway["seconds"] < 2.0 and multiway["pairs_logged_before"] == 1
+    again = evaluate()["scenes"][0]["baselines"]["open3d_multiway"]
+    assert len(asked) == 5 and again["pairs_logged_before"] == 6 and len(log.read_text().splitlines()) == 7
+    assert again["lists"] == multiway["lists"] and 6.0 <= again["seconds"] < 7.0
     assert (tmp_path / "out" / "scene_room.png").stat().st_size > 10_000, "a picture of the scene"
     with pytest.raises(ValueError, match="no 3DMatch scene"):
         scenes.scene_folders(tmp_path / "out")

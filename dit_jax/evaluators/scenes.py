@@ -132,7 +132,8 @@ def evaluate_scenes(
     (untimed), and all scored by :func:`score_scene`. Writes ``results.json`` and ``results.md`` to
     ``out_dir``, and a picture of each scene (``scene_NAME.png``); returns the results with their ``table``.
     ``baselines``: names of :data:`dit_jax.baselines.SCENE_BASELINES` placed and scored beside (each fragment
-    in scan 0's frame, one group), under each row's ``baselines``."""
+    in scan 0's frame, one group), under each row's ``baselines``; their pairs are logged in ``out_dir`` and a
+    run given the same ``out_dir`` resumes them (:func:`baseline_log`)."""
     from dit_jax import io, registration, scene
 
     registrar = registrar or registration.load(checkpoint_dir, **(inference or {}))
@@ -150,7 +151,7 @@ def evaluate_scenes(
         pairwise = _pairwise(registrar, folder, fragments, clouds, built)
         rows.append(score_scene(folder, fragments, built, seconds, pairwise))
         rows[-1]["baselines"] = {
-            name: _baseline(name, folder, fragments, clouds, pairwise, progress) for name in baselines
+            name: _baseline(name, folder, fragments, clouds, pairwise, progress, out_dir) for name in baselines
         }
         os.makedirs(out_dir, exist_ok=True)
         picture = os.path.join(out_dir, f"scene_{folder.name}.png")
@@ -171,21 +172,69 @@ def evaluate_scenes(
     return results
 
 
-def _baseline(name: str, folder: pathlib.Path, fragments: list[int], clouds: list, pairwise: dict, progress: bool):
-    """The figures of :data:`dit_jax.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene."""
+def _baseline(
+    name: str, folder: pathlib.Path, fragments: list[int], clouds: list, pairwise: dict, progress: bool, out_dir
+):
+    """The figures of :data:`dit_jax.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene. Its
+    pairs go to a log in ``out_dir`` (:func:`baseline_log`) as they finish; a run given a log that holds some
+    takes them as they are and registers the rest. Its seconds are its pairs' own, as logged, and the rest of
+    this run's (features of scans whose pairs were all logged are not computed again)."""
     from dit_jax import baselines, scene
 
+    log = baseline_log(out_dir, name, folder)
+    known = _logged_pairs(log, fragments)
     count = len(clouds) * (len(clouds) - 1) // 2
     bar = progress_bar(progress, count, f"{name} {folder.name}")
+    new = []
     started = time.perf_counter()
-    poses = baselines.SCENE_BASELINES[name](clouds, on_pair=bar.update if bar else None)
-    seconds = time.perf_counter() - started
+    os.makedirs(out_dir, exist_ok=True)
+    with open(log, "a") as f:
+        if f.tell() and not log.read_bytes().endswith(b"\n"):
+            f.write("\n")  # a killed run's cut last line stays, ended, and is skipped on reading
+
+        def logged(pair):
+            new.append(pair)
+            record = pair._replace(source=fragments[pair.source], target=fragments[pair.target]).to_record()
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+
+        poses = baselines.SCENE_BASELINES[name](
+            clouds, on_pair=bar.update if bar else None, known=known, on_result=logged
+        )
+    seconds = (
+        time.perf_counter() - started - sum(p.seconds for p in new) + sum(p.seconds for p in (*known.values(), *new))
+    )
     if bar is not None:
         bar.close()
     placed = scene.Scene(poses, (), (), (tuple(range(len(clouds))),))
     row = score_scene(folder, fragments, placed, seconds, pairwise)
     keep = ("lists", "position_rmse", "position_max", "rotation_median_deg", "rotation_max_deg", "seconds")
-    return {key: row[key] for key in (*keep, "seconds_per_fragment")}
+    return {key: row[key] for key in (*keep, "seconds_per_fragment")} | {"pairs_logged_before": len(known)}
+
+
+def baseline_log(out_dir, name: str, folder: pathlib.Path) -> pathlib.Path:
+    """The log of a scene baseline's pairs (:class:`dit_jax.baselines.MultiwayPair` records, one JSON line each,
+    scans by fragment number): ``out_dir/NAME_SCENE.jsonl``. Appended to, never rewritten; delete it to
+    register every pair again."""
+    return pathlib.Path(out_dir) / f"{name}_{folder.name}.jsonl"
+
+
+def _logged_pairs(log: pathlib.Path, fragments: list[int]) -> dict:
+    """The pairs a :func:`baseline_log` holds, by (source, target) index into ``fragments`` (a cut line, a
+    killed run's last, is skipped; a pair of fragments this scene lacks is refused)."""
+    from dit_jax import baselines
+
+    at = {fragment: k for k, fragment in enumerate(fragments)}
+    known = {}
+    for number, line in enumerate(log.read_text().splitlines() if log.exists() else (), 1):
+        try:
+            pair = baselines.MultiwayPair.from_record(json.loads(line))
+        except (ValueError, KeyError, TypeError):
+            continue
+        if pair.source not in at or pair.target not in at:
+            raise ValueError(f"{log}:{number}: fragments {pair.source} and {pair.target} are not both in the scene")
+        known[at[pair.source], at[pair.target]] = pair._replace(source=at[pair.source], target=at[pair.target])
+    return known
 
 
 def _pairwise(registrar, folder: pathlib.Path, fragments: list[int], clouds: list, built) -> dict:
