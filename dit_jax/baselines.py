@@ -32,6 +32,7 @@ import dataclasses
 import functools
 import importlib.resources
 import json
+import time
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -357,14 +358,12 @@ def open3d_multiway(
                 on_result(pair)
             if on_pair is not None:
                 on_pair(1)
-    return _multiway_graph(len(clouds), [known[pair] for pair in wanted], voxel)
+    return _multiway_graph([known[pair] for pair in wanted], voxel)
 
 
 def _multiway_pairs(clouds, voxel: float, draws: int, pairs: list[tuple[int, int]]):
     """:func:`open3d_multiway`'s registrations of ``pairs`` (source, target) of ``clouds``, one
     :class:`MultiwayPair` at a time (each scan's features computed once, when first needed)."""
-    import time
-
     o3d = _o3d()
     reg = o3d.pipelines.registration
     options = dataclasses.replace(room_options(voxel, confidence=0.9999, face_origin=True), ransac_iterations=draws)
@@ -388,9 +387,9 @@ def _multiway_pairs(clouds, voxel: float, draws: int, pairs: list[tuple[int, int
         yield MultiwayPair(source, target, motion, float(icp.fitness), np.asarray(info, np.float64), seconds)
 
 
-def _multiway_graph(count: int, pairs: list[MultiwayPair], voxel: float) -> np.ndarray:
-    """:func:`open3d_multiway`'s pose graph over ``count`` scans from its ``pairs`` (in the order source, then
-    target), optimised: the poses (count, 4, 4) into scan 0's frame."""
+def _multiway_graph(pairs: list[MultiwayPair], voxel: float) -> np.ndarray:
+    """:func:`open3d_multiway`'s pose graph from every pair of its K scans (in the order source, then target),
+    optimised: the poses (K, 4, 4) into scan 0's frame."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
     graph = reg.PoseGraph()
@@ -414,7 +413,6 @@ def _multiway_graph(count: int, pairs: list[MultiwayPair], voxel: float) -> np.n
         reg.global_optimization(
             graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
         )
-    assert len(graph.nodes) == count
     return np.stack([np.asarray(node.pose, np.float64) for node in graph.nodes])
 
 
