@@ -188,14 +188,16 @@ def _baseline(
     new = []
     started = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
-    with open(log, "a") as f:
-        if f.tell() and not log.read_bytes().endswith(b"\n"):
-            f.write("\n")  # a killed run's cut last line stays, ended, and is skipped on reading
+    with open(log, "a+b") as f:
+        if f.tell():  # a killed run's cut last line stays, ended, and is skipped on reading
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                f.write(b"\n")
 
         def logged(pair):
             new.append(pair)
             record = pair._replace(source=fragments[pair.source], target=fragments[pair.target]).to_record()
-            f.write(json.dumps(record) + "\n")
+            f.write(json.dumps(record).encode() + b"\n")
             f.flush()
 
         poses = baselines.SCENE_BASELINES[name](
