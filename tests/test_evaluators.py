@@ -320,6 +320,18 @@ def test_reuse_takes_baselines_scored_on_the_same_pairs(tmp_path, monkeypatch, p
         )
 
 
+def test_reuse_reads_an_option_a_record_predates_at_its_default():
+    """Scores stored before an option existed ran at its default: reused; a changed or vanished option is not."""
+    now = synthetic._options("icp", "clean")
+    predates = {k: v for k, v in now.items() if k != "face_origin"}
+    assert not now["face_origin"]  # the default, which the stored run used
+    assert synthetic._same_options(predates, "icp", "clean")
+    assert not synthetic._same_options(predates | {"face_origin": True}, "icp", "clean")
+    assert not synthetic._same_options(now | {"distance": now["distance"] * 2}, "icp", "clean")
+    assert not synthetic._same_options(now | {"an_option_since_removed": 1}, "icp", "clean")
+    assert not synthetic._same_options(None, "icp", "clean")
+
+
 def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_path, prepared_dir):
     """The shipped weights on clean pairs (DIT alone exact to about 1e-3 degrees): ICP after them makes no
     pair worse on average, and every baseline row records the options it ran with (tuned for the setting)."""

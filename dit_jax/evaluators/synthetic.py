@@ -277,7 +277,7 @@ def _run_baselines(baselines: Sequence[str], setting: str, ds, indices: np.ndarr
     reused = {}
     for name in baselines:
         old = earlier.get(name)
-        if old is not None and old["pairs"] == len(indices) and old.get("options") == _options(name, setting):
+        if old is not None and old["pairs"] == len(indices) and _same_options(old.get("options"), name, setting):
             reused[name] = old
             if bar is not None:
                 bar.update(len(indices))
@@ -301,6 +301,15 @@ def _registrar(checkpoint_dir: str | None, inference: dict | None):
 def _options(name: str, setting: str) -> dict:
     """A baseline's tuned options for ``setting``, as stored beside its scores."""
     return baselines_lib.tuned_options(name, setting).to_dict()
+
+
+def _same_options(stored: dict | None, name: str, setting: str) -> bool:
+    """Whether options ``stored`` beside earlier scores are those ``name`` runs with now for ``setting``; an
+    option the record predates counts at its default, which the earlier run used."""
+    try:
+        return stored is not None and baselines_lib.Options.from_dict(stored).to_dict() == _options(name, setting)
+    except TypeError:  # an option that no longer exists
+        return False
 
 
 def _dit_estimates(registrar, ds, indices: np.ndarray, batch_size: int, bar, setting: str) -> dict[str, Estimates]:
