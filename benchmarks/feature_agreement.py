@@ -7,7 +7,7 @@ max_rival_features and max_twin_features).
         --max-pairs 0 --record docs/feature_agreement.jsonl
 
 For each folder of scans with known poses and each of its pair sets (a seeded sample of --max-pairs per
-benchmark list, the first pairs of a series): dit_jax.feature_match.register_both_ways as the pipeline calls
+benchmark list, the first pairs of a series): dit_jax.features.matching.register_both_ways as the pipeline calls
 it; the kept direction (the larger overlap) is right by the data's criterion (3DMatch: the benchmark's RMSE
 at most 0.2 m; otherwise within 5 degrees). For each pair of bounds (degrees, point spacings): how many results
 the bounds trust, how many of those are right, and how many of the wrong ones they leave flagged, per pair
@@ -101,16 +101,17 @@ def main() -> None:
     parser.add_argument("--pairs-out", default=None, help="also write one JSON line per pair (its evidence)")
     args = parser.parse_args()
 
-    from dit_jax import feature_match, geometry
+    from dit_jax import geometry
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import sample_pairs
+    from dit_jax.features import matching
 
     records, benchmark_rows = [], []
     for folder in args.scans:
         for set_name, found in scans_lib.load_pair_sets(folder).items():
             rows = []
             for pair in sample_pairs(found, args.max_pairs or None, args.seed):
-                estimate = feature_match.register_both_ways(pair.source, pair.target, seed=args.seed)
+                estimate = matching.register_both_ways(pair.source, pair.target, seed=args.seed)
                 if estimate is None:
                     rows.append(
                         dict(scene=pair.scene, right=False, right_15=False, disagreement=np.inf, offset=np.inf)

@@ -3,9 +3,9 @@
     python benchmarks/global_estimator.py ../shared/data/3dmatch --max-pairs 40
 
 For each pair set of a folder of scans with known poses (a seeded sample of --max-pairs per benchmark list),
-one direction per pair (source onto target), each step of dit_jax.feature_match timed on its own: both clouds'
+one direction per pair (source onto target), each step of dit_jax.features.matching timed on its own: both clouds'
 normals and FPFH features (``features``), the nearest-feature matches (``matching``), the compatibility
-estimator (``compatibility``: dit_jax.compatibility.estimate_motions, its tables, seeds and hypotheses), the choice
+estimator (``compatibility``: dit_jax.features.compatibility.estimate_motions, its tables, seeds and hypotheses), the choice
 among its hypotheses on the thinned clouds with the rival (``scoring``), ICP, and the turned twins (``twin``).
 Beside it, on the same features, Open3D's ``registration_ransac_based_on_feature_matching`` (mutual filter,
 1,000,000 draws, confidence 0.999, edge check 0.9, distance 1.5 voxels: the tutorial's RANSAC). A motion counts
@@ -52,8 +52,8 @@ def open3d_ransac(source, target, voxel: float) -> np.ndarray:
 def timed_steps(pair) -> tuple[dict, np.ndarray, np.ndarray] | None:
     """Each step's seconds for one direction of ``pair``, the chosen motion before ICP, and Open3D's: or None
     where the clouds have too few features."""
-    from dit_jax import compatibility
-    from dit_jax import feature_match as fm
+    from dit_jax.features import compatibility
+    from dit_jax.features import matching as fm
 
     src, tgt, _, voxel, enough = fm._prepare(pair.source, pair.target, None, 0, fm.VOXEL_SPACINGS)
     if not enough:

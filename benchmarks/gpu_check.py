@@ -17,10 +17,10 @@ out still leaves what was measured):
    two that ``train_precision="auto"`` chooses between), and the device's peak bytes in use after them.
 4. ``training``: ``python train.py``'s loop on the quick recipe for 200 steps (no validation before the
    first step), its final validation.
-5. ``estimator``: the rooms' global estimator (``dit_jax.compatibility.estimate``) on synthetic matches, 5 %
+5. ``estimator``: the rooms' global estimator (``dit_jax.features.compatibility.estimate``) on synthetic matches, 5 %
    of them right, at each padded size: seconds per call after its compilation, and whether the best motion is
    the true one; with ``--rooms DIR`` (the 3DMatch scenes) also one room pair registered by local features
-   both ways (``dit_jax.feature_match.register_both_ways``), its seconds and rotation error.
+   both ways (``dit_jax.features.matching.register_both_ways``), its seconds and rotation error.
 
 Compiled programs go to the persistent cache (``--compile-cache``, default ``OUT/xla_cache``): carry it into
 the next lease and the same shapes load instead of compiling. ``--smoke`` runs every part at sizes a CPU
@@ -79,7 +79,7 @@ FULL = Sizes(
     training_recipe="configs/quick.py",
     training_steps=200,
     training_overrides={},
-    estimator_buckets=(512, 1024, 2048),  # dit_jax.compatibility.BUCKETS
+    estimator_buckets=(512, 1024, 2048),  # dit_jax.features.compatibility.BUCKETS
 )
 SMOKE = Sizes(
     network="tiny",
@@ -198,8 +198,9 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
     """The compatibility estimator per padded size on synthetic matches (5 % right), and one room pair."""
     import jax
 
-    from dit_jax import compatibility, geometry
+    from dit_jax import geometry
     from dit_jax.data.pairs import euler_zyx_to_matrix
+    from dit_jax.features import compatibility
 
     rng = np.random.default_rng(0)
     rotation, translation = euler_zyx_to_matrix([120.0, 40.0, -70.0]), np.array([3.0, -7.0, 1.5])
@@ -225,13 +226,13 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
         )
     record = {"buckets": buckets}
     if rooms:
-        from dit_jax import feature_match
         from dit_jax.data import scans
+        from dit_jax.features import matching
 
         pair = scans.load_pair_sets(rooms)["3DMatch"].pairs[0]
-        feature_match.register_both_ways(pair.source, pair.target)  # compiles
+        matching.register_both_ways(pair.source, pair.target)  # compiles
         t0 = time.perf_counter()
-        estimate = feature_match.register_both_ways(pair.source, pair.target)
+        estimate = matching.register_both_ways(pair.source, pair.target)
         record["room_pair"] = {
             "pair": pair.name,
             "seconds": time.perf_counter() - t0,

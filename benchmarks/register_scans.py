@@ -114,6 +114,9 @@ def main() -> None:
     parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
     parser.add_argument("--record", default=None, help="also write the per-set records to this file (JSON lines)")
     parser.add_argument("--viewpoint", choices=("origin", "none"), default=None, help="the pipeline's viewpoint")
+    parser.add_argument(
+        "--descriptor", choices=("auto", "histograms", "fpfh"), default=None, help="the pipeline's descriptor"
+    )
     args = parser.parse_args()
     baseline = args.baseline
 
@@ -121,7 +124,8 @@ def main() -> None:
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import register_baseline, sample_pairs
 
-    model = registration.load(**({"viewpoint": args.viewpoint} if args.viewpoint else {}))
+    changes = {name: getattr(args, name) for name in ("viewpoint", "descriptor") if getattr(args, name)}
+    model = registration.load(**changes)
     done = {}
     if args.pairs_out and os.path.exists(args.pairs_out):
         with open(args.pairs_out) as f:

@@ -424,7 +424,7 @@ SCENE_BASELINES = {"open3d_multiway": open3d_multiway}
 #: Baselines at a fixed recipe in the data's own units (metres), not tuned and not scaled into the unit sphere:
 #: ``{name: (src, tgt) -> (R, t)}``.
 RECIPES = {"open3d_room_5cm": room_recipe, "open3d_room_full": room_full_strength}
-#: The registration pipeline's first stage on scans alone (:func:`dit_jax.feature_match.register_both_ways`,
+#: The registration pipeline's first stage on scans alone (:func:`dit_jax.features.matching.register_both_ways`,
 #: as the pipeline calls it, the better fitting direction kept, whatever the verdict): a row the real-scan
 #: evaluation can put beside the baselines.
 FEATURE_CANDIDATE = "features"

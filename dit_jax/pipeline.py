@@ -4,7 +4,7 @@ A batch of pairs goes through these stages, each a function that takes and retur
 
 0. :func:`by_features` (where :attr:`InferenceSettings.feature_candidate` says so; dense scans by default):
    local features register the source onto the target and the target onto the source
-   (:func:`dit_jax.feature_match.register_both_ways`). Such a pair's result is theirs (:func:`features_result`),
+   (:func:`dit_jax.features.matching.register_both_ways`). Such a pair's result is theirs (:func:`features_result`),
    and the network does not run: on the shared room scans it registered no pair the features missed, and
    its confirmations of their motions were right less often than the features' own agreement
    (docs/verdict.md);
@@ -38,7 +38,7 @@ from dit_jax.sampling import Normalised, check_cloud, check_pair, sample_and_nor
 from dit_jax.settings import InferenceSettings
 
 if TYPE_CHECKING:
-    from dit_jax.feature_match import FeatureEstimate
+    from dit_jax.features.matching import FeatureEstimate
 
 #: A result found without the network counts a source point as landing on the target within this many
 #: point spacings of a target point (its ``confidence`` and ``inlier_ratio``).
@@ -106,7 +106,7 @@ def register_pairs(
 class ScanSet(NamedTuple):
     """Scans registered in many pairs among themselves (:func:`prepare_scans`): the checked ``clouds`` (K of
     (N_k, 3) float64); where the settings register them by local features, their features
-    (:class:`dit_jax.feature_match.Scans`, scan k at row ``feature_rows[k]``; -1: none for it); and each
+    (:class:`dit_jax.features.matching.Scans`, scan k at row ``feature_rows[k]``; -1: none for it); and each
     one's point ``spacings`` (:func:`dit_jax.icp.point_spacing`)."""
 
     clouds: list
@@ -117,7 +117,7 @@ class ScanSet(NamedTuple):
 
 def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequence) -> ScanSet:
     """K ``clouds`` checked, and the features of those the settings register by local features first
-    (:func:`dit_jax.feature_match.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
+    (:func:`dit_jax.features.matching.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
     :func:`register_scan_pairs`. Raises :class:`~dit_jax.sampling.InputError` naming a cloud DIT cannot use."""
     from dit_jax import icp
 
@@ -130,14 +130,15 @@ def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequen
     ]  # fmt: skip
     rows, features = [-1] * len(checked), None
     if len(by_features) >= 2:
-        from dit_jax import feature_match
+        from dit_jax.features import matching
 
-        viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
-        features = feature_match.prepare_scans(
+        viewpoint = matching.VIEWPOINT if settings.viewpoint == "origin" else None
+        features = matching.prepare_scans(
             [checked[k] for k in by_features],
             seed=settings.seed,
             viewpoint=viewpoint,
             spacings=[spacings[k] for k in by_features],
+            descriptor=settings.descriptor,
         )
         for row, k in enumerate(by_features):
             rows[k] = row
@@ -158,13 +159,13 @@ def register_scan_pairs(
     (:func:`prepare_scans`): a pair of scans with features registers from them (as many pairs as a scene has
     make the features the larger cost, so each scan's are computed once); the other pairs, and those whose
     features find too little, go through :func:`register_pairs`."""
-    from dit_jax import feature_match
+    from dit_jax.features import matching
 
     clouds, rows = scans.clouds, scans.feature_rows
     found = {}
     for s, t in pairs:
         if rows[s] >= 0 and rows[t] >= 0:
-            found[(s, t)] = feature_match.register_scans(scans.features, rows[s], rows[t], seed=settings.seed)
+            found[(s, t)] = matching.register_scans(scans.features, rows[s], rows[t], seed=settings.seed)
             if found[(s, t)] is not None and on_pair is not None:
                 on_pair(1)
     rest = [(s, t) for s, t in pairs if found.get((s, t)) is None]
@@ -285,17 +286,19 @@ def _matrix(motion: Motion) -> np.ndarray:
 
 
 def features_first(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings) -> FeatureEstimate | None:
-    """Stage 0 for one pair: :func:`dit_jax.feature_match.register_both_ways` on the caller's clouds src (N, 3)
+    """Stage 0 for one pair: :func:`dit_jax.features.matching.register_both_ways` on the caller's clouds src (N, 3)
     and tgt (M, 3) where the settings register such clouds by local features first (and refine at all), else
     None; None too where the clouds have too few features."""
     if settings.refinement_for(len(src), len(tgt)) == "none":
         return None
     if not settings.runs_feature_candidate(len(src), len(tgt)):
         return None
-    from dit_jax import feature_match
+    from dit_jax.features import matching
 
-    viewpoint = feature_match.VIEWPOINT if settings.viewpoint == "origin" else None
-    return feature_match.register_both_ways(src, tgt, seed=settings.seed, viewpoint=viewpoint)
+    viewpoint = matching.VIEWPOINT if settings.viewpoint == "origin" else None
+    return matching.register_both_ways(
+        src, tgt, seed=settings.seed, viewpoint=viewpoint, descriptor=settings.descriptor
+    )
 
 
 def features_result(pair: Pair, settings: InferenceSettings, config: DITConfig) -> Result:

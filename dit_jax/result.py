@@ -64,7 +64,7 @@ class Result:
       refinement: the refinement that refined the network's estimate ("icp" or "gicp"), else None.
       refine_seconds: wall time of the refinement (0 without one; both directions under the agreement verdict).
       candidate: which estimate the result is: "network" (refined where ``refinement`` says), or "features",
-        registration by local features (:mod:`dit_jax.feature_match`; the network did not run).
+        registration by local features (:mod:`dit_jax.features.matching`; the network did not run).
       candidate_seconds: wall time of the registration by local features, both directions and their ICP (0
         where it did not run).
       verdict: True ("trusted") where the model's own evidence confirms the result, else False.
@@ -79,11 +79,11 @@ class Result:
         translations in point spacings; NaN otherwise.
       max_offset: the verdict's bound on ``offset`` (point spacings); NaN where none applied.
       rival, max_rival: where local features ran, the strongest rival motion among their hypotheses, as a
-        share of the winner's matches (:attr:`dit_jax.feature_match.FeatureEstimate.rival`), and the bound past which the
+        share of the winner's matches (:attr:`dit_jax.features.matching.FeatureEstimate.rival`), and the bound past which the
         features do not settle the pair alone; NaN otherwise.
       twin, max_twin: where local features ran, how many points the best quarter- or half-turned twin of the
         features' motion (the one the result lies on) lays on the target, as a share of the motion's own
-        (:func:`dit_jax.feature_match.twin_fit`), and the bound past which it is not trusted; NaN otherwise.
+        (:func:`dit_jax.features.matching.twin_fit`), and the bound past which it is not trusted; NaN otherwise.
       direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
         ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's

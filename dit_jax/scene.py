@@ -325,7 +325,7 @@ def optimise(
     over the ``edges`` between them, from ``poses`` (K, 4, 4), each edge's information from its clouds'
     correspondences within :data:`GRAPH_SPACINGS` times ``spacing``: (the poses with those of ``scans``
     optimised, ``edges`` with ``kept`` as the line process left them)."""
-    from dit_jax.feature_match import _o3d
+    from dit_jax.features.matching import _o3d
 
     o3d = _o3d()
     reg = o3d.pipelines.registration

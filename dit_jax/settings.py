@@ -14,6 +14,7 @@ import dataclasses
 from collections.abc import Callable
 
 from dit_jax.configs import PRECISIONS, DITConfig, Record
+from dit_jax.features.descriptors import DESCRIPTORS
 
 #: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
 #: (:func:`refinement_for`).
@@ -66,7 +67,7 @@ class InferenceSettings(Record):
         (:func:`dit_jax.icp.refine_gicp`: faster by far on large scans; its verdict borrows ICP's thresholds and
         bands); "auto" picks one of the two by the clouds' size (:func:`refinement_for`); "none" does not.
       feature_candidate: with a refinement, register the pair by local features first, both ways
-        (:func:`dit_jax.feature_match.register_both_ways`), and the network does not run: the result is their
+        (:func:`dit_jax.features.matching.register_both_ways`), and the network does not run: the result is their
         better fitting direction, trusted where the two directions agree (within ``max_disagreement_features``
         degrees and ``max_offset_features`` point spacings, neither with a rival past ``max_rival_features``
         nor a turned twin past ``max_twin_features``), else "probably wrong". "on", "off", or "auto": where both clouds have
@@ -76,6 +77,9 @@ class InferenceSettings(Record):
         scan in its own frame has its sensor (range scans, RGB-D fragments, LiDAR sweeps), so that one wall gets
         one description in two scans; "none": as estimated, each normal's sign arbitrary (for clouds moved out
         of their sensor's frame). Measured on rooms, the dragon, the kitchen and LiDAR (docs/refinement.md).
+      descriptor: what local features match each keypoint by: "histograms", FPFH at four radii, square-rooted
+        and joined; "fpfh", FPFH at one radius; "auto", the histograms where normals face the viewpoint, else
+        FPFH (:mod:`dit_jax.features.descriptors`; measured in docs/features.md).
       rotation_search: start the network from the 24 turns of :data:`dit_jax.network_stage.SEARCH_TURNS` (clouds at
         any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
@@ -94,11 +98,11 @@ class InferenceSettings(Record):
         docs/verdict.md).
       max_rival_features: the features' two directions settle the pair only where neither's estimator kept a
         rival motion backed by more than this share of its own matches
-        (:attr:`dit_jax.feature_match.FeatureEstimate.rival`): on rooms, the two directions share their
+        (:attr:`dit_jax.features.matching.FeatureEstimate.rival`): on rooms, the two directions share their
         matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,
         docs/verdict.md).
       max_twin_features: a motion the features found is trusted only where none of its quarter- or half-turned twins lays more than this share of its own count of
-        points on the target (:func:`dit_jax.feature_match.twin_fit`): a box-shaped room fits itself turned,
+        points on the target (:func:`dit_jax.features.matching.twin_fit`): a box-shaped room fits itself turned,
         and no evidence from matches tells the two apart (calibrated on the 3DMatch scenes, docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
         the validation results in its agreement band were right, else "probably wrong" (:func:`dit_jax.verdict.level`).
@@ -117,6 +121,7 @@ class InferenceSettings(Record):
     refine: str = "auto"
     feature_candidate: str = "auto"
     viewpoint: str = "origin"
+    descriptor: str = "auto"
     rotation_search: bool = False
     verdict_rule: str = "agreement"
     best_direction: bool = True
@@ -140,6 +145,7 @@ class InferenceSettings(Record):
             ("verdict_rule", VERDICTS),
             ("feature_candidate", FEATURE_CANDIDATES),
             ("viewpoint", VIEWPOINTS),
+            ("descriptor", DESCRIPTORS),
         ):
             value = getattr(self, name)
             if value not in allowed:
@@ -283,6 +289,14 @@ FLAGS = {
             "local features: origin turns each cloud's normals to face its origin, where a scan in its own "
             "frame has its sensor; none leaves their signs as estimated (clouds moved out of the sensor's frame)",
             choices=VIEWPOINTS,
+        ),
+        Flag(
+            "--descriptor",
+            ("descriptor",),
+            "local features: what keypoints are matched by: histograms (FPFH at four radii, square-rooted and "
+            "joined), fpfh (FPFH at one radius, as Open3D's recipes), or auto (histograms where normals face the "
+            "viewpoint, else fpfh)",
+            choices=DESCRIPTORS,
         ),
         Flag(
             "--any-rotation",

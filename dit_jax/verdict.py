@@ -26,7 +26,7 @@ from dit_jax import geometry
 from dit_jax.settings import InferenceSettings
 
 if TYPE_CHECKING:
-    from dit_jax.feature_match import FeatureEstimate
+    from dit_jax.features.matching import FeatureEstimate
 
 #: A :class:`Band` is quoted only where at least this many validation results fell in it.
 MIN_BAND_PAIRS = 10

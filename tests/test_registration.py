@@ -435,10 +435,11 @@ def test_a_room_the_walls_let_turn_a_half_is_not_trusted(rooms_dir):
     the room's walls allow; each direction's estimator kept a rival far from its winner backed by over 0.6 of
     its matches, and the pose turned by a quarter or half fits as well, so the pipeline does not trust it."""
     pytest.importorskip("open3d")
-    from dit_jax import feature_match, io
+    from dit_jax import io
+    from dit_jax.features import matching
 
     src, tgt = (io.read(rooms_dir / "hotel3" / f"cloud_bin_{k}.ply") for k in (35, 32))
-    found = feature_match.register_both_ways(src, tgt)
+    found = matching.register_both_ways(src, tgt)
     model = registration.load()
     s = model.settings
     assert min(found.rival) > s.max_rival_features and min(found.twin) > s.max_twin_features
@@ -451,10 +452,11 @@ def test_a_room_that_fits_itself_turned_a_quarter_is_not_trusted(rooms_dir):
     turn from the truth (measured); but that pose turned a quarter about one of the room's main directions lays
     over 0.9 as many points on the target, so the pipeline does not trust it."""
     pytest.importorskip("open3d")
-    from dit_jax import feature_match, io
+    from dit_jax import io
+    from dit_jax.features import matching
 
     src, tgt = (io.read(rooms_dir / "hotel3" / f"cloud_bin_{k}.ply") for k in (33, 30))
-    found = feature_match.register_both_ways(src, tgt)
+    found = matching.register_both_ways(src, tgt)
     s = registration.load().settings
     assert verdict.features_agree(found, s.max_disagreement_features, s.max_offset_features)
     assert min(found.twin) > s.max_twin_features

@@ -46,7 +46,7 @@ def test_agreement_bands_are_quoted_only_from_enough_results():
 
 @dataclasses.dataclass
 class _Found:
-    """The evidence of :class:`dit_jax.feature_match.FeatureEstimate` that the features' rule reads."""
+    """The evidence of :class:`dit_jax.features.matching.FeatureEstimate` that the features' rule reads."""
 
     disagreement: float = 0.2
     offset: float = 0.5

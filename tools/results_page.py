@@ -20,6 +20,8 @@ Tables:
   pair of the 3DMatch scenes' lists, as benchmarks/register_scans.py measured them side by side
   (docs/rooms_full_lists.jsonl): the benchmark's recall, the share within the lists' criterion, seconds, how
   often exit 0 was right and how many wrong results were flagged.
+* ``descriptors`` (docs/features.md): per 3DMatch scene and list, each descriptor's inlier ratio and
+  feature-match recall, as benchmarks/descriptors.py measured them (docs/descriptors.jsonl).
 * ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
@@ -70,6 +72,7 @@ PAGES = {
     "results": DOCS / "results.md",
     "rooms": DOCS / "results.md",
     "rooms_full": (DOCS / "results.md", ROOT / "README.md"),
+    "descriptors": DOCS / "features.md",
     "levels": DOCS / "verdict.md",
     "rival": DOCS / "verdict.md",
     "left_out": DOCS / "verdict.md",
@@ -82,8 +85,12 @@ EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "ev
 ROOMS_SOURCE = "eval_3dmatch"
 #: The records of benchmarks/feature_agreement.py: the features' verdict under each bound.
 FEATURE_AGREEMENT = DOCS / "feature_agreement.jsonl"
-#: The records of benchmarks/register_scans.py on the scenes' whole lists.
+#: The records of benchmarks/register_scans.py on the scenes' whole lists: the default, and the pipeline with
+#: FPFH at one radius for its descriptor (``--descriptor fpfh``).
 ROOMS_FULL = DOCS / "rooms_full_lists.jsonl"
+ROOMS_FPFH = DOCS / "rooms_full_lists_fpfh.jsonl"
+#: The records of benchmarks/descriptors.py.
+DESCRIPTORS = DOCS / "descriptors.jsonl"
 
 
 def _load(name: str) -> dict | None:
@@ -346,35 +353,78 @@ def rooms_table() -> list[str]:
 BASELINE_LABELS = {"open3d_room_5cm": "Open3D's tutorial recipe", "open3d_room_full": "Open3D at full strength"}
 
 
+def _records(path: pathlib.Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+
+
 def rooms_full_table() -> list[str]:
     """Per list of the 3DMatch scenes, every pair: the default pipeline beside the baseline it was measured
-    with, from :data:`ROOMS_FULL`."""
-    if not ROOMS_FULL.exists():
+    with, from :data:`ROOMS_FULL`, and the pipeline with FPFH at one radius (:data:`ROOMS_FPFH`) where measured."""
+    records = _records(ROOMS_FULL)
+    if not records:
         return ["(no full-list measurement in docs/rooms_full_lists.jsonl yet)"]
-    records = [json.loads(line) for line in ROOMS_FULL.read_text().splitlines() if line.strip()]
+    fpfh = {r["set"]: r["figures"]["pipeline"] for r in _records(ROOMS_FPFH)}
     baseline = [m for m in records[0]["figures"] if m != "pipeline"][0]
     label = BASELINE_LABELS.get(baseline, baseline)
+    with_fpfh = ", FPFH only" if fpfh else ""
     lines = [
-        f"| list | pairs | recall: default, {label} | within 15 deg and 0.3 m: default, {label} | s / pair: default, "
-        f"{label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
-        f"one only: default, {label} |",
+        f"| list | pairs | recall: default{with_fpfh}, {label} | within 15 deg and 0.3 m: default{with_fpfh}, {label} "
+        f"| s / pair: default{with_fpfh}, {label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong "
+        f"results flagged | registered by one only: default, {label} |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         ours, theirs = r["figures"]["pipeline"], r["figures"][baseline]
         verdict = r["verdict"]
+        mid = [fpfh[r["set"]]] if r["set"] in fpfh else []
 
         def share(pair: list) -> str:
             return f"{pair[1]} of {pair[0]} ({100 * pair[1] / pair[0]:.0f} %)" if pair[0] else "none"
 
+        def cells(key: str, scale: float, digits: int, unit: str) -> str:
+            return ", ".join(f"{scale * f[key]:.{digits}f}{unit}" for f in [ours, *mid, theirs])
+
         lines.append(
-            f"| {r['set']} | {r['pairs']} | {100 * ours['recall']:.1f} %, {100 * theirs['recall']:.1f} % | "
-            f"{100 * ours['criterion_share']:.1f} %, {100 * theirs['criterion_share']:.1f} % | "
-            f"{ours['seconds_median']:.2f}, {theirs['seconds_median']:.2f} | "
+            f"| {r['set']} | {r['pairs']} | {cells('recall', 100, 1, ' %')} | {cells('criterion_share', 100, 1, ' %')} | "
+            f"{cells('seconds_median', 1, 2, '')} | "
             f"{share(verdict['rmse']['exit_0'])}; {share(verdict['criterion']['exit_0'])} | "
             f"{share(verdict['rmse']['flagged'])} | "
             f"{len(r['only']['pipeline'])}, {len(r['only'][baseline])} |"
         )
+    return lines
+
+
+def descriptors_table() -> list[str]:
+    """Per scene and list of :data:`DESCRIPTORS`, each descriptor's mean inlier ratio and feature-match recall
+    over the matches the estimator keeps, and the pairs of all scenes together."""
+    records = _records(DESCRIPTORS)
+    if not records:
+        return ["(no measurement in docs/descriptors.jsonl yet)"]
+    names = [n for n in ("fpfh", "fpfh_sqrt", "histograms") if n in records[0]]
+    labels = {"fpfh": "FPFH", "fpfh_sqrt": "FPFH, square-rooted", "histograms": "joined histograms (default)"}
+    lines = [
+        "| scene | list | pairs | "
+        + " | ".join(f"{labels[n]}: inlier ratio, FMR" for n in names)
+        + " | default / FPFH |",
+        "|---|---|---|" + "---|" * (len(names) + 1),
+    ]
+
+    def row(scene: str, group: list[dict]) -> str:
+        pairs = sum(r["pairs"] for r in group)
+        mean = {n: {k: sum(r[n][k] * r["pairs"] for r in group) / pairs for k in ("kept_inlier_ratio", "kept_fmr")}
+                for n in names}  # fmt: skip
+        cells = " | ".join(f"{mean[n]['kept_inlier_ratio']:.3f}, {100 * mean[n]['kept_fmr']:.0f} %" for n in names)
+        gain = mean["histograms"]["kept_inlier_ratio"] / mean["fpfh"]["kept_inlier_ratio"]
+        return f"| {scene} | {group[0]['set']} | {pairs} | {cells} | {gain:.2f}x |"
+
+    for set_name in sorted({r["set"] for r in records}, key=lambda n: n != "3DMatch"):
+        group = [r for r in records if r["set"] == set_name]
+        lines += [row(r["scene"], [r]) for r in group] + [row("all three", group)]
+    seconds = records[0]["seconds"]
+    lines += [
+        "",
+        "Seconds a fragment: " + ", ".join(f"{labels[n]} {seconds[n]:.3f}" for n in names if n != "fpfh_sqrt"),
+    ]
     return lines
 
 
@@ -476,6 +526,7 @@ TABLES = {
     "results": results_tables,
     "rooms": rooms_table,
     "rooms_full": rooms_full_table,
+    "descriptors": descriptors_table,
     "rival": rival_table,
     "left_out": left_out_table,
     "levels": levels_table,

@@ -37,9 +37,9 @@ def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.n
     (:func:`dit_jax.sampling.normalise`), in the data's units for a recipe and the feature candidate."""
     started = time.perf_counter()
     if name == baselines_lib.FEATURE_CANDIDATE:
-        from dit_jax import feature_match
+        from dit_jax.features import matching
 
-        found = feature_match.register_both_ways(src, tgt)
+        found = matching.register_both_ways(src, tgt)
         rotation, translation = found.kept if found is not None else (np.eye(3), np.zeros(3))
         return rotation, translation, time.perf_counter() - started
     if name in baselines_lib.RECIPES:

@@ -17,7 +17,7 @@ noise. The estimator reads the whole K x K table of that test at once, which is 
    weighted Procrustes; each motion is then re-fitted twice on every match it brings within ``distance``,
    weighted by how close (a truncated quadratic), which is `vmap` over seeds.
 5. Each hypothesis counts the matches it brings within ``distance`` (:func:`score`). The caller ranks them on
-   the dense clouds (:mod:`dit_jax.feature_match`), and the runner-up far from the winner is the evidence of
+   the dense clouds (:mod:`dit_jax.features.matching`), and the runner-up far from the winner is the evidence of
    an ambiguity (a quarter-turned room, a slide along a corridor).
 
 Shapes are fixed by padding the matches to a bucket of :data:`BUCKETS` (``valid`` marks the real ones), so a

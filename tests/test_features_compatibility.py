@@ -1,11 +1,11 @@
-"""dit_jax.compatibility: the second-order compatibility estimator on putative matches."""
+"""dit_jax.features.compatibility: the second-order compatibility estimator on putative matches."""
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dit_jax import compatibility
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.features import compatibility
 from dit_jax.geometry import rotation_angle_deg
 
 

@@ -4,7 +4,7 @@ Both clouds are thinned on a voxel grid; each kept point gets a normal, turned t
 (its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
 Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours. Each source point is matched
 to its nearest target point in feature space, the most distinctive matches kept (:func:`_matches`), and the
-compatibility-graph estimator (:mod:`dit_jax.compatibility`: second-order spatial compatibility, seeds, a
+compatibility-graph estimator (:mod:`dit_jax.features.compatibility`: second-order spatial compatibility, seeds, a
 consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays
 the most thinned source points on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on
 about :data:`ICP_POINTS` of larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
@@ -34,7 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from dit_jax import compatibility
+from dit_jax.features import compatibility, descriptors
+from dit_jax.features.descriptors import _o3d
 
 #: The voxel of the features, in point spacings: Open3D's room recipe uses 5 cm on 3DMatch fragments, whose
 #: point spacing is about 1.3 cm.
@@ -65,6 +66,8 @@ TWIN_TURNS = (90.0, 180.0, 270.0)
 VIEWPOINT = (0.0, 0.0, 0.0)
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
+#: What each keypoint is described by (:data:`dit_jax.features.descriptors.DESCRIPTORS`).
+DESCRIPTOR = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,16 +155,6 @@ def occupied_voxels(points: np.ndarray, voxel: float) -> int:
     return len(np.unique((cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]))
 
 
-def _o3d():
-    try:
-        import open3d
-    except ImportError as error:  # the wheel loads libusb, which slim Debian images lack
-        raise ImportError(
-            f"registration by local features needs Open3D ({error}); on Debian: apt-get install libusb-1.0-0"
-        ) from None
-    return open3d
-
-
 def _capped_voxel(points: np.ndarray, voxel: float, most: int) -> float:
     """``voxel``, grown until ``points`` (N, 3) occupy at most about ``most`` of its cells (a surface's count
     falls with the square of the voxel; a few rounds settle clouds whose density varies)."""
@@ -181,9 +174,12 @@ def icp_voxel(spacing: float, points: int) -> float | None:
 
 class _Cloud:
     """One cloud as Open3D holds it: its points with normals for ICP (thinned on ``thin``, where given), and the
-    points of the features' voxel grid with FPFH."""
+    points of the features' voxel grid with their ``descriptor`` (:func:`dit_jax.features.descriptors.describe`:
+    ``features``, (N, D) float32)."""
 
-    def __init__(self, points: np.ndarray, voxel: float, thin: float | None = None, viewpoint=VIEWPOINT):
+    def __init__(
+        self, points: np.ndarray, voxel: float, thin: float | None = None, viewpoint=VIEWPOINT, descriptor=DESCRIPTOR
+    ):
         o3d = _o3d()
         search = o3d.geometry.KDTreeSearchParamHybrid
         self.full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -197,9 +193,7 @@ class _Cloud:
         self.thinned.estimate_normals(search(radius=2 * voxel, max_nn=30))
         if viewpoint is not None:
             self.thinned.orient_normals_towards_camera_location(np.asarray(viewpoint, np.float64))
-        self.features = o3d.pipelines.registration.compute_fpfh_feature(
-            self.thinned, search(radius=5 * voxel, max_nn=100)
-        )
+        self.features = descriptors.describe(self.thinned, voxel, descriptor, viewpoint)
 
     @functools.cached_property
     def tree(self):
@@ -268,9 +262,7 @@ def _matches(src: _Cloud, tgt: _Cloud) -> tuple[np.ndarray, np.ndarray]:
     No mutual filter: at low overlap it discards most of the right matches, and the compatibility estimator
     needs no help telling them from the wrong ones. The two directions' sets differ, so each is some
     evidence for the other."""
-    src_features = np.asarray(src.features.data, np.float32).T
-    tgt_features = np.asarray(tgt.features.data, np.float32).T
-    there, back = _two_nearest(src_features, tgt_features), _two_nearest(tgt_features, src_features)
+    there, back = _two_nearest(src.features, tgt.features), _two_nearest(tgt.features, src.features)
 
     def capped(found: Nearest):
         rows = np.sort(np.argsort(found.ratio, kind="stable")[:MAX_MATCHES])
@@ -289,7 +281,7 @@ def _brought_within(
 
 def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tuple[np.ndarray, int, float]:
     """The global motion from (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival
-    share). :func:`dit_jax.compatibility.estimate_motions` gives one motion per seed, ranked by the matches each brings
+    share). :func:`dit_jax.features.compatibility.estimate_motions` gives one motion per seed, ranked by the matches each brings
     within :data:`MATCH_VOXELS` voxels; :func:`_choose` picks one."""
     if len(matches) < 3:
         return np.eye(4), 0, np.inf
@@ -302,7 +294,7 @@ def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tu
 
 
 def _choose(src: _Cloud, tgt: _Cloud, src_matched, tgt_matched, found, voxel: float) -> tuple[np.ndarray, int, float]:
-    """The winner among the hypotheses ``found`` (:class:`dit_jax.compatibility.Hypotheses`) of matches
+    """The winner among the hypotheses ``found`` (:class:`dit_jax.features.compatibility.Hypotheses`) of matches
     src_matched <-> tgt_matched (K, 3) each: (4 x 4 motion, inliers, rival share).
 
     Of the :data:`FINALISTS` with the most matches, the one that lays the most thinned source points within 1.5
@@ -411,6 +403,7 @@ def match_one_way(
     seed: int = 0,
     voxel_spacings: float = VOXEL_SPACINGS,
     viewpoint: tuple | None = VIEWPOINT,
+    descriptor: str = DESCRIPTOR,
 ) -> FeatureMatch:
     """Registers src (N, 3) onto tgt (M, 3) by FPFH matches and the compatibility estimator at the voxel of
     :func:`feature_voxel`, without ICP.
@@ -421,6 +414,7 @@ def match_one_way(
       seed: the spacing's subset.
       voxel_spacings: the voxel's point spacings (see :func:`feature_voxel`).
       viewpoint: where the normals are turned to face (:data:`VIEWPOINT`); None leaves them as estimated.
+      descriptor: what the keypoints are matched by (:data:`dit_jax.features.descriptors.DESCRIPTORS`).
 
     Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the estimator finds no motion or a cloud
     occupies fewer than :data:`MIN_VOXELS` voxels.
@@ -428,7 +422,8 @@ def match_one_way(
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
-    source, target = _Cloud(src, voxel, viewpoint=viewpoint), _Cloud(tgt, voxel, viewpoint=viewpoint)
+    source = _Cloud(src, voxel, viewpoint=viewpoint, descriptor=descriptor)
+    target = _Cloud(tgt, voxel, viewpoint=viewpoint, descriptor=descriptor)
     motion, inliers, _ = _estimate(source, target, _matches(source, target)[0], voxel)
     if inliers == 0 or not np.all(np.isfinite(motion)):
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
@@ -436,21 +431,27 @@ def match_one_way(
 
 
 def register_both_ways(
-    src: np.ndarray, tgt: np.ndarray, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT
+    src: np.ndarray,
+    tgt: np.ndarray,
+    *,
+    seed: int = 0,
+    viewpoint: tuple | None = VIEWPOINT,
+    descriptor: str = DESCRIPTOR,
 ) -> FeatureEstimate | None:
     """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by the estimator then
     point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
     (the larger of the two, :func:`dit_jax.icp.point_spacing`); ``seed``: the spacing's
     subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
     direction the estimator finds nothing for starts ICP from the identity and counts 0 inliers; ``viewpoint``:
-    where the normals face (:data:`VIEWPOINT`, None: as estimated)."""
+    where the normals face (:data:`VIEWPOINT`, None: as estimated); ``descriptor``: what the keypoints are matched
+    by (:data:`dit_jax.features.descriptors.DESCRIPTORS`)."""
     started = time.perf_counter()
     src, tgt, spacing, voxel, enough = _prepare(src, tgt, None, seed, VOXEL_SPACINGS)
     if not enough:
         return None
     # Open3D computes each cloud's normals and features on every core already: the clouds are built in turn.
     thin = icp_voxel(spacing, max(len(src), len(tgt)))
-    source, target = _Cloud(src, voxel, thin, viewpoint), _Cloud(tgt, voxel, thin, viewpoint)
+    source, target = _Cloud(src, voxel, thin, viewpoint, descriptor), _Cloud(tgt, voxel, thin, viewpoint, descriptor)
     return _both_ways(Scan(src, source), Scan(tgt, target), spacing, voxel, seed, started)
 
 
@@ -473,7 +474,12 @@ class Scans:
 
 
 def prepare_scans(
-    clouds, *, seed: int = 0, viewpoint: tuple | None = VIEWPOINT, spacings: list[float] | None = None
+    clouds,
+    *,
+    seed: int = 0,
+    viewpoint: tuple | None = VIEWPOINT,
+    spacings: list[float] | None = None,
+    descriptor: str = DESCRIPTOR,
 ) -> Scans:
     """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
     computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
@@ -489,7 +495,7 @@ def prepare_scans(
     scans = []
     for p in points:
         enough = occupied_voxels(p[:: max(1, len(p) // 4096)], voxel) >= MIN_VOXELS
-        scans.append(Scan(p, _Cloud(p, voxel, thin, viewpoint)) if enough else None)
+        scans.append(Scan(p, _Cloud(p, voxel, thin, viewpoint, descriptor)) if enough else None)
     return Scans(tuple(scans), spacing, voxel)
 
 

@@ -1,11 +1,12 @@
-"""dit_jax.feature_match: registration by local features (FPFH, the compatibility estimator, Open3D's ICP)."""
+"""dit_jax.features.matching: registration by local features (FPFH, the compatibility estimator, Open3D's ICP)."""
 
 import numpy as np
 import pytest
 from conftest import box_room
 
-from dit_jax import feature_match, verdict
+from dit_jax import verdict
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.features import matching
 from dit_jax.geometry import rotation_angle_deg
 
 pytest.importorskip("open3d")
@@ -27,12 +28,12 @@ def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_u
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     tgt = other @ truth.T + t_truth
-    coarse = feature_match.match_one_way(src, tgt, viewpoint=None)
+    coarse = matching.match_one_way(src, tgt, viewpoint=None)
     assert coarse.inliers > 0
     assert rotation_angle_deg(coarse.rotation.T @ truth) < 10.0
     assert np.linalg.norm(coarse.translation - t_truth) < 5 * coarse.voxel
-    metres = feature_match.register_both_ways(src, tgt, viewpoint=None)
-    millimetres = feature_match.register_both_ways(src * 1000, tgt * 1000, viewpoint=None)
+    metres = matching.register_both_ways(src, tgt, viewpoint=None)
+    millimetres = matching.register_both_ways(src * 1000, tgt * 1000, viewpoint=None)
     assert rotation_angle_deg(metres.kept[0].T @ truth) < 0.5
     assert rotation_angle_deg(millimetres.kept[0].T @ metres.kept[0]) < 0.1
     np.testing.assert_allclose(millimetres.kept[1] / 1000, metres.kept[1], atol=0.01)
@@ -40,9 +41,9 @@ def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_u
 
 
 def test_the_voxel_follows_the_spacing_and_grows_with_the_cloud():
-    assert feature_match.feature_voxel(0.01, 5_000) == pytest.approx(0.01 * feature_match.VOXEL_SPACINGS)
-    big = 100 * feature_match.FEATURE_POINTS
-    assert feature_match.feature_voxel(0.01, big) == pytest.approx(0.1)  # sqrt(100) spacings
+    assert matching.feature_voxel(0.01, 5_000) == pytest.approx(0.01 * matching.VOXEL_SPACINGS)
+    big = 100 * matching.FEATURE_POINTS
+    assert matching.feature_voxel(0.01, big) == pytest.approx(0.1)  # sqrt(100) spacings
 
 
 def test_a_cloud_without_features_gives_the_identity_and_no_nan():
@@ -50,7 +51,7 @@ def test_a_cloud_without_features_gives_the_identity_and_no_nan():
     failure reads as no inliers and the identity."""
     rng = np.random.default_rng(0)
     plane = np.c_[rng.uniform(-1, 1, (3000, 2)), np.zeros(3000)]
-    found = feature_match.match_one_way(plane, plane + [0.1, 0.0, 0.0])
+    found = matching.match_one_way(plane, plane + [0.1, 0.0, 0.0])
     assert np.all(np.isfinite(found.rotation)) and np.all(np.isfinite(found.translation))
     np.testing.assert_allclose(found.rotation @ found.rotation.T, np.eye(3), atol=1e-5)
     if found.inliers == 0:
@@ -61,10 +62,10 @@ def test_a_few_points_give_no_estimate_instead_of_a_crash():
     """Clouds that occupy fewer than MIN_VOXELS voxels have too few features to match: no estimate."""
     rng = np.random.default_rng(0)
     few = rng.normal(size=(3, 3))
-    found = feature_match.match_one_way(few, few + 0.1)
+    found = matching.match_one_way(few, few + 0.1)
     assert found.inliers == 0 and np.array_equal(found.rotation, np.eye(3))
-    assert feature_match.register_both_ways(few, few + 0.1) is None
-    assert feature_match.occupied_voxels(few, 10.0) == 1
+    assert matching.register_both_ways(few, few + 0.1) is None
+    assert matching.occupied_voxels(few, 10.0) == 1
 
 
 def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_sphere():
@@ -73,7 +74,7 @@ def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_spher
     no motion to trust, and no NaN either."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
-    found = feature_match.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
+    found = matching.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
     assert verdict.features_agree(found, 1.0, 2.0) and min(found.inliers) > 0 and found.seconds > 0
     rotation, translation = found.kept
     assert rotation_angle_deg(rotation.T @ truth) < 2.0 and np.linalg.norm(translation - t_truth) < 4 * found.spacing
@@ -82,7 +83,7 @@ def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_spher
     sphere = d / np.linalg.norm(d, axis=1, keepdims=True)
     e = np.random.default_rng(4).normal(size=(8000, 3))
     turned = (e / np.linalg.norm(e, axis=1, keepdims=True)) @ euler_zyx_to_matrix([40.0, 0.0, 0.0]).T
-    spun = feature_match.register_both_ways(sphere, turned)
+    spun = matching.register_both_ways(sphere, turned)
     assert spun is not None and np.isfinite(spun.disagreement) and np.isfinite(spun.offset)
 
 
@@ -92,15 +93,15 @@ def test_the_estimate_repeats_exactly_and_each_feature_finds_its_two_nearest_bot
     blocks of rows too."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     tgt = other @ euler_zyx_to_matrix([150.0, -30.0, 20.0]).T
-    runs = [feature_match.match_one_way(src, tgt) for _ in range(2)]
+    runs = [matching.match_one_way(src, tgt) for _ in range(2)]
     np.testing.assert_array_equal(runs[0].rotation, runs[1].rotation)
     assert runs[0].inliers == runs[1].inliers > 0
     rng = np.random.default_rng(0)
     queries, pool = rng.normal(size=(70, 33)).astype(np.float32), rng.normal(size=(45, 33)).astype(np.float32)
     distances = np.linalg.norm(queries[:, None].astype(np.float64) - pool[None], axis=2)
     for found, table in (
-        (feature_match._two_nearest(queries, pool, block=16), distances),
-        (feature_match._two_nearest(pool, queries, block=16), distances.T),
+        (matching._two_nearest(queries, pool, block=16), distances),
+        (matching._two_nearest(pool, queries, block=16), distances.T),
     ):
         ranked = np.sort(table, axis=1)
         np.testing.assert_array_equal(found.index, np.argmin(table, axis=1))
@@ -114,21 +115,17 @@ def test_matches_past_the_cap_keep_the_most_distinctive(monkeypatch):
     """Where a direction has more matches than the cap, those whose nearest feature stands out from the second
     nearest are kept, not the closest: a target feature repeated twice is an ambiguous match however close."""
 
-    class Features:
-        def __init__(self, rows):
-            self.data = np.asarray(rows, np.float64).T
-
     class Cloud:
         def __init__(self, rows):
-            self.features = Features(rows)
+            self.features = np.asarray(rows, np.float32)
 
     rng = np.random.default_rng(3)
     pool = rng.normal(size=(40, 33))
     pool[20:30] = pool[10:20]  # features 10-19 each have a twin: two nearest at one distance
     queries = pool[:30] + 0.01 * rng.normal(size=(30, 33))
     queries[10:20] = pool[10:20] + 0.001 * rng.normal(size=(10, 33))  # the closest matches, but ambiguous
-    monkeypatch.setattr(feature_match, "MAX_MATCHES", 10)
-    there, _ = feature_match._matches(Cloud(queries), Cloud(pool))
+    monkeypatch.setattr(matching, "MAX_MATCHES", 10)
+    there, _ = matching._matches(Cloud(queries), Cloud(pool))
     np.testing.assert_array_equal(there, np.stack([np.arange(10), np.arange(10)], axis=1))
 
 
@@ -137,11 +134,11 @@ def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
     points on the target as the motion itself (share about 1); a blob with no symmetry (near a sphere, so its
     twins still lay 0.6 of its points within RANSAC's distance) stays under the pipeline's bound of 0.8."""
     truth, t_truth = euler_zyx_to_matrix([30.0, 0.0, 0.0]), np.array([0.3, -0.2, 0.0])
-    room = feature_match.register_both_ways(box_room(30000, 1), box_room(30000, 2) @ truth.T + t_truth)
+    room = matching.register_both_ways(box_room(30000, 1), box_room(30000, 2) @ truth.T + t_truth)
     assert room.twin_fit((truth, t_truth)) > 0.95 and min(room.twin) > 0.95
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
-    bumpy = feature_match.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
+    bumpy = matching.register_both_ways(src, other @ truth.T + t_truth, viewpoint=None)
     assert bumpy.twin_fit((truth, t_truth)) < 0.75 and max(bumpy.twin) < 0.75
     assert verdict.features_agree(bumpy, 1.0, 2.0, max_twin=0.8) and not verdict.features_agree(
         room, 1.0, 2.0, max_twin=0.8
@@ -153,21 +150,21 @@ def test_icp_on_tensor_clouds_gives_the_legacy_motion_and_large_clouds_are_thinn
     on the same motion. Clouds over ICP_POINTS are thinned for ICP, smaller ones not."""
     from dit_jax.icp import point_spacing
 
-    o3d = feature_match._o3d()
+    o3d = matching._o3d()
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth = euler_zyx_to_matrix([10.0, -5.0, 3.0])
     voxel = 0.08
-    source, target = feature_match._Cloud(src, voxel), feature_match._Cloud(other @ truth.T + 0.05, voxel)
+    source, target = matching._Cloud(src, voxel), matching._Cloud(other @ truth.T + 0.05, voxel)
     start = np.eye(4)
     reg = o3d.pipelines.registration
     legacy = reg.registration_icp(
         source.full, target.full, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane()
     ).transformation
-    np.testing.assert_allclose(feature_match._icp(source, target, start, voxel), legacy, atol=1e-6)
-    assert feature_match.icp_voxel(0.01, feature_match.ICP_POINTS) is None
-    assert feature_match.icp_voxel(0.01, 4 * feature_match.ICP_POINTS) == pytest.approx(0.02)
-    big = _surface(4 * feature_match.ICP_POINTS, seed=3)
-    thinned = feature_match._Cloud(big, voxel, feature_match.icp_voxel(point_spacing(big), len(big)))
+    np.testing.assert_allclose(matching._icp(source, target, start, voxel), legacy, atol=1e-6)
+    assert matching.icp_voxel(0.01, matching.ICP_POINTS) is None
+    assert matching.icp_voxel(0.01, 4 * matching.ICP_POINTS) == pytest.approx(0.02)
+    big = _surface(4 * matching.ICP_POINTS, seed=3)
+    thinned = matching._Cloud(big, voxel, matching.icp_voxel(point_spacing(big), len(big)))
     # A scan's even sampling keeps about ICP_POINTS (the kitchen fragments: 58,000 of 260,000); a random one more.
     assert len(thinned.full.points) < 0.75 * len(big) and len(source.full.points) == len(src)
 
@@ -177,29 +174,29 @@ def test_normals_face_the_viewpoint_before_features_and_are_left_alone_without_o
     with ``viewpoint=None`` the signs are Open3D's, and some face away."""
     src = box_room(20000, 1)  # the origin lies inside the room, as a scanner's would
     voxel = 0.1
-    facing = feature_match._Cloud(src, voxel)
+    facing = matching._Cloud(src, voxel)
     towards = -np.asarray(facing.thinned.points)  # from each point to the origin
     assert np.all(np.einsum("ij,ij->i", np.asarray(facing.thinned.normals), towards) >= 0)
-    as_estimated = feature_match._Cloud(src, voxel, viewpoint=None)
+    as_estimated = matching._Cloud(src, voxel, viewpoint=None)
     signs = np.einsum("ij,ij->i", np.asarray(as_estimated.thinned.normals), towards)
     assert np.mean(signs < 0) > 0.05
 
 
 def test_scans_prepared_once_register_each_pair_as_the_pair_alone_does():
-    """A scene's scans are prepared once (:func:`feature_match.prepare_scans`); a pair of them then registers
+    """A scene's scans are prepared once (:func:`matching.prepare_scans`); a pair of them then registers
     exactly as :func:`register_both_ways` registers the two clouds alone, where the two share the scene's
     spacing and voxel (as two scans of one set do)."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     tgt = other @ truth.T + t_truth
-    prepared = feature_match.prepare_scans([src, tgt], viewpoint=None)
-    alone = feature_match.register_both_ways(src, tgt, viewpoint=None)
-    from_scans = feature_match.register_scans(prepared, 0, 1)
+    prepared = matching.prepare_scans([src, tgt], viewpoint=None)
+    alone = matching.register_both_ways(src, tgt, viewpoint=None)
+    from_scans = matching.register_scans(prepared, 0, 1)
     assert prepared.voxel == pytest.approx(alone.voxel) and prepared.spacing == pytest.approx(alone.spacing)
     for mine, theirs in ((from_scans.forward, alone.forward), (from_scans.backward, alone.backward)):
         np.testing.assert_allclose(mine[0], theirs[0], atol=1e-9)
         np.testing.assert_allclose(mine[1], theirs[1], atol=1e-9)
     assert from_scans.inliers == alone.inliers
     few = np.random.default_rng(0).normal(size=(3, 3))
-    with_few = feature_match.prepare_scans([src, few])
-    assert with_few.scans[1] is None and feature_match.register_scans(with_few, 0, 1) is None
+    with_few = matching.prepare_scans([src, few])
+    assert with_few.scans[1] is None and matching.register_scans(with_few, 0, 1) is None
