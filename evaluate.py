@@ -111,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
             "refine",
             "features",
             "viewpoint",
+            "descriptor",
             "verdict",
             "best_direction",
         ),

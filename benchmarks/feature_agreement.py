@@ -19,7 +19,8 @@ rival table in docs/verdict.md is generated from (python tools/results_page.py).
 Calibration with a scene left out: over every pair of the benchmark lists at once, for each scene, the rival
 and twin bounds of :data:`GRID` (at the settings' degrees and spacings) that trust the most right results of
 the other scenes while at least :data:`PRECISION` of the results they trust there are right; then what those
-bounds do on the scene left out (``left_out`` in the last record, and a table).
+bounds do on the scene left out (``left_out`` in the last record, and a table); ``all_scenes`` in that record:
+the bounds the same rule chooses on every scene, the ones the settings ship.
 """
 
 import argparse
@@ -32,7 +33,7 @@ import numpy as np
 BOUNDS = (
     *((d, s, np.inf, np.inf) for d, s in ((1.0, 2.0), (1.0, 3.0), (2.0, 4.0), (2.0, 6.0), (3.0, 8.0), (4.0, 12.0))),
     *((1.0, 2.0, r, np.inf) for r in (1.0, 0.6, 0.5, 0.4, 0.3)),
-    *((1.0, 2.0, r, t) for r in (0.5, 0.4) for t in (1.0, 0.9, 0.8, 0.7)),
+    *((1.0, 2.0, r, t) for r in (0.5, 0.4, 0.3) for t in (1.0, 0.9, 0.8, 0.7, 0.6)),
 )
 #: The (rival, twin) bounds the calibration with a scene left out chooses from, and the share of trusted results
 #: that must be right on the scenes it calibrates on.
@@ -51,42 +52,49 @@ def _finite(row: dict) -> dict:
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
 
 
+def _counts(subset: list[dict], degrees: float, spacings: float, rival: float, twin: float) -> dict:
+    trusted = [r for r in subset if _trusted(r, degrees, spacings, rival, twin)]
+    return {
+        "trusted": len(trusted),
+        "trusted_right": sum(r["right"] for r in trusted),
+        "wrong": sum(not r["right"] for r in subset),
+        "wrong_flagged": sum(not r["right"] and not _trusted(r, degrees, spacings, rival, twin) for r in subset),
+    }
+
+
+def calibrate(rows: list[dict], degrees: float, spacings: float) -> tuple[float, float, dict] | None:
+    """The (rival, twin) bounds of :data:`GRID` that trust the most right results of ``rows`` while at least
+    :data:`PRECISION` of those they trust are right (ties: the first, the stricter), with their counts; None
+    where no bounds reach the precision."""
+    best = None
+    for rival, twin in GRID:
+        c = _counts(rows, degrees, spacings, rival, twin)
+        if c["trusted"] and c["trusted_right"] >= PRECISION * c["trusted"]:
+            if best is None or c["trusted_right"] > best[2]["trusted_right"]:
+                best = (rival, twin, c)
+    return best
+
+
+def _bound(value: float) -> float | None:
+    return None if np.isinf(value) else value
+
+
 def leave_one_scene_out(rows: list[dict], degrees: float, spacings: float) -> list[dict]:
-    """For each scene of ``rows`` (pair rows of every list, each with its ``scene``): the bounds of :data:`GRID`
-    chosen on the other scenes (the most right results trusted at :data:`PRECISION` or better; ties: the
-    stricter) and the counts they give on that scene and on the others."""
+    """For each scene of ``rows`` (pair rows of every list, each with its ``scene``): the bounds :func:`calibrate`
+    chooses on the other scenes and the counts they give on that scene and on the others."""
     out = []
     for scene in sorted({r["scene"] for r in rows}):
-        calibration = [r for r in rows if r["scene"] != scene]
-        held = [r for r in rows if r["scene"] == scene]
-
-        def counts(subset, rival, twin):
-            trusted = [r for r in subset if _trusted(r, degrees, spacings, rival, twin)]
-            return {
-                "trusted": len(trusted),
-                "trusted_right": sum(r["right"] for r in trusted),
-                "wrong": sum(not r["right"] for r in subset),
-                "wrong_flagged": sum(
-                    not r["right"] and not _trusted(r, degrees, spacings, rival, twin) for r in subset
-                ),
-            }
-
-        best = None
-        for rival, twin in GRID:
-            c = counts(calibration, rival, twin)
-            if c["trusted"] and c["trusted_right"] >= PRECISION * c["trusted"]:
-                if best is None or c["trusted_right"] > best[2]["trusted_right"]:
-                    best = (rival, twin, c)
+        best = calibrate([r for r in rows if r["scene"] != scene], degrees, spacings)
         if best is None:
             continue
         rival, twin, on_calibration = best
         out.append(
             {
                 "left_out": scene,
-                "rival": None if np.isinf(rival) else rival,
-                "twin": None if np.isinf(twin) else twin,
+                "rival": _bound(rival),
+                "twin": _bound(twin),
                 "calibration": on_calibration,
-                "held_out": counts(held, rival, twin),
+                "held_out": _counts([r for r in rows if r["scene"] == scene], degrees, spacings, rival, twin),
             }
         )
     return out
@@ -187,7 +195,9 @@ def main() -> None:
         else []
     )
     if left_out:
-        records.append({"left_out": left_out, "date": datetime.date.today().isoformat()})
+        chosen = calibrate(benchmark_rows, settings.max_disagreement_features, settings.max_offset_features)
+        on_all = {"rival": _bound(chosen[0]), "twin": _bound(chosen[1]), "counts": chosen[2]} if chosen else None
+        records.append({"left_out": left_out, "all_scenes": on_all, "date": datetime.date.today().isoformat()})
         print(json.dumps(records[-1]), flush=True)
     if args.record:
         with open(args.record, "w") as f:

@@ -114,9 +114,7 @@ def main() -> None:
     parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
     parser.add_argument("--record", default=None, help="also write the per-set records to this file (JSON lines)")
     parser.add_argument("--viewpoint", choices=("origin", "none"), default=None, help="the pipeline's viewpoint")
-    parser.add_argument(
-        "--descriptor", choices=("auto", "histograms", "fpfh"), default=None, help="the pipeline's descriptor"
-    )
+    parser.add_argument("--descriptor", choices=("fpfh", "histograms"), default=None, help="the pipeline's descriptor")
     args = parser.parse_args()
     baseline = args.baseline
 

@@ -620,7 +620,7 @@ def _add_many_scans_flags(parser: argparse.ArgumentParser, *, plot: tuple[str, s
     (``suspect``: when it would be 3) and the compilation cache."""
     parser.add_argument("--plot", default=None, metavar=plot[0], help=plot[1])
     parser.add_argument("--json", action="store_true", help=f"print {shows} as JSON")
-    settings.add_flags(parser, ("refine", "viewpoint", "seed"))
+    settings.add_flags(parser, ("refine", "viewpoint", "descriptor", "seed"))
     _add_reading_flags(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-verdict-status", action="store_true", help=f"exit 0 even {suspect} (else {EXIT_SUSPECT})")

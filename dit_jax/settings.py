@@ -77,9 +77,9 @@ class InferenceSettings(Record):
         scan in its own frame has its sensor (range scans, RGB-D fragments, LiDAR sweeps), so that one wall gets
         one description in two scans; "none": as estimated, each normal's sign arbitrary (for clouds moved out
         of their sensor's frame). Measured on rooms, the dragon, the kitchen and LiDAR (docs/refinement.md).
-      descriptor: what local features match each keypoint by: "histograms", FPFH at four radii, square-rooted
-        and joined; "fpfh", FPFH at one radius; "auto", the histograms where normals face the viewpoint, else
-        FPFH (:mod:`dit_jax.features.descriptors`; measured in docs/features.md).
+      descriptor: what local features match each keypoint by: "fpfh", FPFH at one radius; "histograms", FPFH at
+        four radii, square-rooted and joined, for normals that face a viewpoint
+        (:mod:`dit_jax.features.descriptors`; measured on rooms in docs/features.md).
       rotation_search: start the network from the 24 turns of :data:`dit_jax.network_stage.SEARCH_TURNS` (clouds at
         any rotation).
       verdict_rule: "agreement": register the target onto the source too and trust the result where the two
@@ -121,7 +121,7 @@ class InferenceSettings(Record):
     refine: str = "auto"
     feature_candidate: str = "auto"
     viewpoint: str = "origin"
-    descriptor: str = "auto"
+    descriptor: str = "fpfh"
     rotation_search: bool = False
     verdict_rule: str = "agreement"
     best_direction: bool = True
@@ -293,9 +293,8 @@ FLAGS = {
         Flag(
             "--descriptor",
             ("descriptor",),
-            "local features: what keypoints are matched by: histograms (FPFH at four radii, square-rooted and "
-            "joined), fpfh (FPFH at one radius, as Open3D's recipes), or auto (histograms where normals face the "
-            "viewpoint, else fpfh)",
+            "local features: what keypoints are matched by: fpfh (FPFH at one radius, as Open3D's recipes) or "
+            "histograms (FPFH at four radii, square-rooted and joined; needs --viewpoint origin: docs/features.md)",
             choices=DESCRIPTORS,
         ),
         Flag(

@@ -43,10 +43,10 @@ def test_histograms_join_four_unit_blocks_of_square_rooted_fpfh_and_fpfh_stays_a
     np.testing.assert_allclose(block, expected, atol=1e-5)
 
 
-def test_auto_is_the_histograms_where_normals_face_a_viewpoint_and_fpfh_where_they_do_not():
+def test_fpfh_is_the_default_and_an_unknown_descriptor_is_refused():
     cloud = _keypoints(_bumpy_room(0), 0.1)
-    assert descriptors.describe(cloud, 0.1, "auto", (0.0, 0.0, 0.0)).shape[1] == 132
-    assert descriptors.describe(cloud, 0.1, "auto", None).shape[1] == 33
+    assert descriptors.describe(cloud, 0.1).shape[1] == 33
+    assert matching.DESCRIPTOR == "fpfh" and descriptors.DESCRIPTORS[0] == "fpfh"
     with pytest.raises(ValueError, match="descriptor must be one of"):
         descriptors.describe(cloud, 0.1, "shot")
 
@@ -58,7 +58,7 @@ def test_a_point_alone_gets_zeros_not_nan():
     joined = descriptors.describe(cloud, 0.05, "histograms", (0.0, 0.0, 0.0))
     assert np.all(np.isfinite(joined))
     alone = np.argmax(np.asarray(cloud.points)[:, 2])
-    assert np.all(joined[alone, :66] == 0)  # no neighbour within the keypoints' own radii
+    assert np.all(joined[alone] == 0)  # no neighbour within any radius
 
 
 def test_the_histograms_are_the_same_in_millimetres_and_match_a_turned_copy_of_the_room_better_than_fpfh():

@@ -31,6 +31,7 @@ FIELD_CHOICES = {
     "verdict_rule": settings.VERDICTS,
     "best_direction": settings.ON_OFF,
     "viewpoint": settings.VIEWPOINTS,
+    "descriptor": settings.DESCRIPTORS,
 }
 
 

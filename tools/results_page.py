@@ -22,6 +22,8 @@ Tables:
   often exit 0 was right and how many wrong results were flagged.
 * ``descriptors`` (docs/features.md): per 3DMatch scene and list, each descriptor's inlier ratio and
   feature-match recall, as benchmarks/descriptors.py measured them (docs/descriptors.jsonl).
+* ``rooms_descriptors`` (docs/features.md): the default pipeline with each descriptor on every pair of the
+  3DMatch scenes' lists (benchmarks/register_scans.py --descriptor, docs/rooms_descriptors_*.jsonl).
 * ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
@@ -73,6 +75,7 @@ PAGES = {
     "rooms": DOCS / "results.md",
     "rooms_full": (DOCS / "results.md", ROOT / "README.md"),
     "descriptors": DOCS / "features.md",
+    "rooms_descriptors": DOCS / "features.md",
     "levels": DOCS / "verdict.md",
     "rival": DOCS / "verdict.md",
     "left_out": DOCS / "verdict.md",
@@ -85,10 +88,10 @@ EXPECT_SOURCES = ("eval_stanford_dragon", "eval_3dmatch", "eval_lidar_pair", "ev
 ROOMS_SOURCE = "eval_3dmatch"
 #: The records of benchmarks/feature_agreement.py: the features' verdict under each bound.
 FEATURE_AGREEMENT = DOCS / "feature_agreement.jsonl"
-#: The records of benchmarks/register_scans.py on the scenes' whole lists: the default, and the pipeline with
-#: FPFH at one radius for its descriptor (``--descriptor fpfh``).
+#: The records of benchmarks/register_scans.py on the scenes' whole lists.
 ROOMS_FULL = DOCS / "rooms_full_lists.jsonl"
-ROOMS_FPFH = DOCS / "rooms_full_lists_fpfh.jsonl"
+#: The same with each descriptor (``--descriptor``), measured one after the other.
+ROOMS_DESCRIPTORS = {name: DOCS / f"rooms_descriptors_{name}.jsonl" for name in ("fpfh", "histograms")}
 #: The records of benchmarks/descriptors.py.
 DESCRIPTORS = DOCS / "descriptors.jsonl"
 
@@ -359,38 +362,55 @@ def _records(path: pathlib.Path) -> list[dict]:
 
 def rooms_full_table() -> list[str]:
     """Per list of the 3DMatch scenes, every pair: the default pipeline beside the baseline it was measured
-    with, from :data:`ROOMS_FULL`, and the pipeline with FPFH at one radius (:data:`ROOMS_FPFH`) where measured."""
+    with, from :data:`ROOMS_FULL`."""
     records = _records(ROOMS_FULL)
     if not records:
         return ["(no full-list measurement in docs/rooms_full_lists.jsonl yet)"]
-    fpfh = {r["set"]: r["figures"]["pipeline"] for r in _records(ROOMS_FPFH)}
     baseline = [m for m in records[0]["figures"] if m != "pipeline"][0]
     label = BASELINE_LABELS.get(baseline, baseline)
-    with_fpfh = ", FPFH only" if fpfh else ""
     lines = [
-        f"| list | pairs | recall: default{with_fpfh}, {label} | within 15 deg and 0.3 m: default{with_fpfh}, {label} "
-        f"| s / pair: default{with_fpfh}, {label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong "
-        f"results flagged | registered by one only: default, {label} |",
+        f"| list | pairs | recall: default, {label} | within 15 deg and 0.3 m: default, {label} | s / pair: default, "
+        f"{label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
+        f"one only: default, {label} |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         ours, theirs = r["figures"]["pipeline"], r["figures"][baseline]
         verdict = r["verdict"]
-        mid = [fpfh[r["set"]]] if r["set"] in fpfh else []
-
-        def share(pair: list) -> str:
-            return f"{pair[1]} of {pair[0]} ({100 * pair[1] / pair[0]:.0f} %)" if pair[0] else "none"
-
-        def cells(key: str, scale: float, digits: int, unit: str) -> str:
-            return ", ".join(f"{scale * f[key]:.{digits}f}{unit}" for f in [ours, *mid, theirs])
-
         lines.append(
-            f"| {r['set']} | {r['pairs']} | {cells('recall', 100, 1, ' %')} | {cells('criterion_share', 100, 1, ' %')} | "
-            f"{cells('seconds_median', 1, 2, '')} | "
-            f"{share(verdict['rmse']['exit_0'])}; {share(verdict['criterion']['exit_0'])} | "
-            f"{share(verdict['rmse']['flagged'])} | "
+            f"| {r['set']} | {r['pairs']} | {100 * ours['recall']:.1f} %, {100 * theirs['recall']:.1f} % | "
+            f"{100 * ours['criterion_share']:.1f} %, {100 * theirs['criterion_share']:.1f} % | "
+            f"{ours['seconds_median']:.2f}, {theirs['seconds_median']:.2f} | "
+            f"{_share(verdict['rmse']['exit_0'])}; {_share(verdict['criterion']['exit_0'])} | "
+            f"{_share(verdict['rmse']['flagged'])} | "
             f"{len(r['only']['pipeline'])}, {len(r['only'][baseline])} |"
         )
+    return lines
+
+
+def _share(pair: list) -> str:
+    return f"{pair[1]} of {pair[0]} ({100 * pair[1] / pair[0]:.0f} %)" if pair[0] else "none"
+
+
+def rooms_descriptors_table() -> list[str]:
+    """Per list of the 3DMatch scenes, every pair: the default pipeline with each descriptor
+    (:data:`ROOMS_DESCRIPTORS`), its recall, share within 15 degrees and 0.3 m, seconds and verdict."""
+    found = {name: {r["set"]: r for r in _records(path)} for name, path in ROOMS_DESCRIPTORS.items()}
+    if not all(found.values()):
+        return ["(no measurement in docs/rooms_descriptors_*.jsonl yet)"]
+    lines = [
+        "| list | descriptor | recall | within 15 deg and 0.3 m | s / pair (median) | exit 0 right (by 15 deg / 0.3 m) "
+        "| wrong results flagged |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for set_name in found["fpfh"]:
+        for name, records in found.items():
+            r = records[set_name]
+            figures, verdict = r["figures"]["pipeline"], r["verdict"]["criterion"]
+            lines.append(
+                f"| {set_name} | {name} | {100 * figures['recall']:.1f} % | {100 * figures['criterion_share']:.1f} % | "
+                f"{figures['seconds_median']:.2f} | {_share(verdict['exit_0'])} | {_share(verdict['flagged'])} |"
+            )
     return lines
 
 
@@ -401,11 +421,11 @@ def descriptors_table() -> list[str]:
     if not records:
         return ["(no measurement in docs/descriptors.jsonl yet)"]
     names = [n for n in ("fpfh", "fpfh_sqrt", "histograms") if n in records[0]]
-    labels = {"fpfh": "FPFH", "fpfh_sqrt": "FPFH, square-rooted", "histograms": "joined histograms (default)"}
+    labels = {"fpfh": "FPFH (default)", "fpfh_sqrt": "FPFH, square-rooted", "histograms": "joined histograms"}
     lines = [
         "| scene | list | pairs | "
         + " | ".join(f"{labels[n]}: inlier ratio, FMR" for n in names)
-        + " | default / FPFH |",
+        + " | histograms / FPFH |",
         "|---|---|---|" + "---|" * (len(names) + 1),
     ]
 
@@ -527,6 +547,7 @@ TABLES = {
     "rooms": rooms_table,
     "rooms_full": rooms_full_table,
     "descriptors": descriptors_table,
+    "rooms_descriptors": rooms_descriptors_table,
     "rival": rival_table,
     "left_out": left_out_table,
     "levels": levels_table,

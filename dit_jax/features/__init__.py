@@ -1,7 +1,7 @@
 """Registration by local features: what each keypoint's neighbourhood looks like, and the motion the matches back.
 
-- :mod:`~dit_jax.features.descriptors`: per keypoint of a cloud's voxel grid, FPFH histograms at several radii,
-  square-rooted and joined (the default on scans), or FPFH at one radius.
+- :mod:`~dit_jax.features.descriptors`: what each keypoint of a cloud's voxel grid is matched by: FPFH at one
+  radius (the default), or FPFH at several radii, square-rooted and joined.
 - :mod:`~dit_jax.features.compatibility`: the compatibility-graph estimator, matches to ranked motions (JAX).
 - :mod:`~dit_jax.features.matching`: both directions of a pair, from clouds to refined motions and the evidence
   the verdict reads.

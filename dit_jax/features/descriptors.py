@@ -17,11 +17,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-#: What :func:`describe` computes: "histograms" (:func:`histograms`), "fpfh" (FPFH at one radius,
-#: :data:`FPFH_RADIUS` voxels, as Open3D's recipes match it), or "auto": the histograms where the normals face a
-#: viewpoint, else FPFH. Without a viewpoint each normal's sign is arbitrary, and the wide radii's histograms
-#: then tell a nearly symmetric shape from its turned self less often than FPFH does (docs/features.md).
-DESCRIPTORS = ("auto", "histograms", "fpfh")
+#: What :func:`describe` computes: "fpfh" (FPFH at one radius, :data:`FPFH_RADIUS` voxels, as Open3D's recipes
+#: match it; the pipeline's default) or "histograms" (:func:`histograms`). The histograms match more keypoints
+#: of rooms right but register no more of them, and need normals that face a viewpoint (docs/features.md).
+DESCRIPTORS = ("fpfh", "histograms")
 #: The radius of single-scale FPFH and its most neighbours, in voxels (Open3D's room recipe: 5 voxels, 100).
 FPFH_RADIUS = 5.0
 FPFH_NEIGHBOURS = 100
@@ -37,7 +36,7 @@ class Block(NamedTuple):
 
 
 #: The joined histograms' radii: 2.5 and 5 voxels on the keypoints' own grid, 8 and 12 on a grid twice as
-#: coarse (chosen by inlier ratio on the 3DMatch scenes, docs/features.md).
+#: coarse (of the sets measured on the 3DMatch scenes, the one that registered the most pairs; docs/features.md).
 BLOCKS = (Block(2.5, 1.0, 50), Block(5.0, 1.0, 100), Block(8.0, 2.0, 100), Block(12.0, 2.0, 200))
 
 
@@ -102,11 +101,9 @@ def histograms(cloud, voxel: float, viewpoint=None, blocks: tuple[Block, ...] = 
     return np.ascontiguousarray(np.concatenate(joined, axis=1), np.float32)
 
 
-def describe(cloud, voxel: float, descriptor: str = "auto", viewpoint=None) -> np.ndarray:
+def describe(cloud, voxel: float, descriptor: str = "fpfh", viewpoint=None) -> np.ndarray:
     """The ``descriptor`` (one of :data:`DESCRIPTORS`) of each point of ``cloud`` (an Open3D point cloud with
     normals facing ``viewpoint``, or as estimated where None; on a grid of ``voxel``): (N, D) float32."""
-    if descriptor == "auto":
-        descriptor = "fpfh" if viewpoint is None else "histograms"
     if descriptor == "histograms":
         return histograms(cloud, voxel, viewpoint)
     if descriptor == "fpfh":

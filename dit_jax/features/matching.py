@@ -2,7 +2,8 @@
 
 Both clouds are thinned on a voxel grid; each kept point gets a normal, turned to face the cloud's viewpoint
 (its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
-Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours. Each source point is matched
+Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours (or another descriptor of
+:mod:`dit_jax.features.descriptors`). Each source point is matched
 to its nearest target point in feature space, the most distinctive matches kept (:func:`_matches`), and the
 compatibility-graph estimator (:mod:`dit_jax.features.compatibility`: second-order spatial compatibility, seeds, a
 consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays
@@ -67,7 +68,7 @@ VIEWPOINT = (0.0, 0.0, 0.0)
 #: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
 MIN_VOXELS = 32
 #: What each keypoint is described by (:data:`dit_jax.features.descriptors.DESCRIPTORS`).
-DESCRIPTOR = "auto"
+DESCRIPTOR = "fpfh"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,7 +233,7 @@ class Nearest(NamedTuple):
 def _two_nearest(queries: np.ndarray, pool: np.ndarray, block: int = 512) -> Nearest:
     """The two nearest rows of ``pool`` (P >= 2, D) for each row of ``queries`` (Q, D), from the squared
     distances in blocks of rows: products on contiguous float32 arrays, in place, each block's reductions along
-    its rows (in FPFH's 33 dimensions a k-d tree gains nothing)."""
+    its rows (in these few dozen dimensions a k-d tree gains nothing)."""
     queries = np.ascontiguousarray(queries, np.float32)
     pool = np.ascontiguousarray(pool, np.float32)
     pool_squares = np.einsum("pd,pd->p", pool, pool)
