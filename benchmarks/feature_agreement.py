@@ -12,7 +12,8 @@ it; the kept direction (the larger overlap) is right by the data's criterion (3D
 at most 0.2 m; otherwise within 5 degrees). For each pair of bounds (degrees, point spacings): how many results
 the bounds trust, how many of those are right, and how many of the wrong ones they leave flagged, per pair
 set and per scene, so a bound can be read with one scene left out; ``right_15`` counts right by the lists'
-own criterion (15 degrees and 0.3 m) where the data have one. ``--max-pairs 0`` takes every pair. Prints one
+own criterion (15 degrees and 0.3 m) where the data have one. ``--max-pairs 0`` takes every pair;
+``--pairs-out`` writes each pair's evidence (both directions' rival, twin, overlap and inliers too). Prints one
 JSON record per pair set, then Markdown tables; ``--record`` writes the records to a file, which the verdict's
 rival table in docs/verdict.md is generated from (python tools/results_page.py).
 
@@ -48,8 +49,14 @@ def _trusted(row: dict, degrees: float, spacings: float, rival: float, twin: flo
 
 
 def _finite(row: dict) -> dict:
-    """A pair row for JSON: inf as None."""
-    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()}
+    """A pair row for JSON: inf as None (in lists too)."""
+
+    def finite(v):
+        if isinstance(v, list):
+            return [finite(x) for x in v]
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+
+    return {k: finite(v) for k, v in row.items()}
 
 
 def _counts(subset: list[dict], degrees: float, spacings: float, rival: float, twin: float) -> dict:
@@ -145,6 +152,11 @@ def main() -> None:
                         rival=max(estimate.rival),
                         twin=max(estimate.twin),
                         seconds=estimate.seconds,
+                        # each direction's evidence, for rules that read it whole
+                        rivals=[float(v) for v in estimate.rival],
+                        twins=[float(v) for v in estimate.twin],
+                        overlap=[float(v) for v in estimate.overlap],
+                        inliers=[int(v) for v in estimate.inliers],
                     )
                 )
             if found.kind == "gt.log":

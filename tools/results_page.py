@@ -370,9 +370,9 @@ def rooms_full_table() -> list[str]:
     label = BASELINE_LABELS.get(baseline, baseline)
     lines = [
         f"| list | pairs | recall: default, {label} | within 15 deg and 0.3 m: default, {label} | s / pair: default, "
-        f"{label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | registered by "
-        f"one only: default, {label} |",
-        "|---|---|---|---|---|---|---|---|",
+        f"{label} (median) | exit 0 right: by recall, by 15 deg / 0.3 m | wrong results flagged | right results "
+        f"given exit 0 | probably wrong results wrong | registered by one only: default, {label} |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         ours, theirs = r["figures"]["pipeline"], r["figures"][baseline]
@@ -382,10 +382,21 @@ def rooms_full_table() -> list[str]:
             f"{100 * ours['criterion_share']:.1f} %, {100 * theirs['criterion_share']:.1f} % | "
             f"{ours['seconds_median']:.2f}, {theirs['seconds_median']:.2f} | "
             f"{_share(verdict['rmse']['exit_0'])}; {_share(verdict['criterion']['exit_0'])} | "
-            f"{_share(verdict['rmse']['flagged'])} | "
+            f"{_share(verdict['rmse']['flagged'])} | {_share(_right_trusted(r))} | {_share(_flagged_wrong(r))} | "
             f"{len(r['only']['pipeline'])}, {len(r['only'][baseline])} |"
         )
     return lines
+
+
+def _right_trusted(record: dict) -> list:
+    """[right results, of them given exit 0], by the lists' criterion (15 degrees and 0.3 m)."""
+    return [record["pipeline"]["registered"], record["verdict"]["criterion"]["exit_0"][1]]
+
+
+def _flagged_wrong(record: dict) -> list:
+    """[results called probably wrong, of them wrong], by the lists' criterion."""
+    criterion = record["verdict"]["criterion"]
+    return [record["pairs"] - criterion["exit_0"][0], criterion["flagged"][1]]
 
 
 def _share(pair: list) -> str:
