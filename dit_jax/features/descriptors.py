@@ -36,7 +36,8 @@ class Block(NamedTuple):
 
 
 #: The joined histograms' radii: 2.5 and 5 voxels on the keypoints' own grid, 8 and 12 on a grid twice as
-#: coarse (of the sets measured on the 3DMatch scenes, the one that registered the most pairs; docs/features.md).
+#: coarse (of the two radius sets run through the pipeline on every 3DMatch pair, the one that registered more;
+#: docs/features.md).
 BLOCKS = (Block(2.5, 1.0, 50), Block(5.0, 1.0, 100), Block(8.0, 2.0, 100), Block(12.0, 2.0, 200))
 
 
