@@ -2,9 +2,9 @@
 
 Both clouds are thinned on a voxel grid; each kept point gets a normal, turned to face the cloud's viewpoint
 (its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
-Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours (or another descriptor of
-:mod:`dit_jax.features.descriptors`). Each source point is matched
-to its nearest target point in feature space, the most distinctive matches kept (:func:`_matches`), and the
+Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours, or another descriptor of
+:mod:`dit_jax.features.descriptors`. Each source point is matched to its nearest target point in feature
+space, the most distinctive matches kept (:func:`_matches`), and the
 compatibility-graph estimator (:mod:`dit_jax.features.compatibility`: second-order spatial compatibility, seeds, a
 consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays
 the most thinned source points on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on
