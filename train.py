@@ -1,4 +1,4 @@
-"""Train DIT.
+"""Train DIT, or the learned descriptor of room scans (configs/features.py).
 
     python train.py                                    # configs/quick.py: a short run on the embedded set
     python train.py --config configs/cpu.py --config.lr=3e-4 --config.model.n_blocks=4 --workdir runs/mine
@@ -7,6 +7,7 @@
                                                        # with the config saved in the workdir
     python train.py --config configs/cpu.py --config.setting=low_noise_partial --config.init_from=runs/mine/model
     python train.py --config configs/cpu.py "--config.settings=('clean', 'independent_clean')"   # a mix
+    python train.py --config configs/features.py --config.holdout=hotel3   # the learned descriptor of rooms
 
 Recipes are the files in configs/ (configs/shipped/ holds every run that made the shipped weights). Any field
 of dit_jax.training.TrainConfig changes with --config.FIELD=VALUE, the network's (dit_jax.configs.DITConfig)
@@ -77,6 +78,26 @@ def _usage_error(message: str):
     raise SystemExit(2)
 
 
+def _from_json(record: dict):
+    """The recipe a run's ``train_config.json`` holds: DIT's, or the learned descriptor's."""
+    from dit_jax import training
+    from dit_jax.training import descriptor
+
+    if record.get("kind") == "descriptor":
+        return descriptor.DescriptorTrainConfig.from_json(record)
+    return training.TrainConfig.from_json(record)
+
+
+def _from_config_dict(config):
+    """The recipe a ``configs/`` file gives: the learned descriptor's where it has a ``descriptor`` field."""
+    from dit_jax import training
+    from dit_jax.training import descriptor
+
+    if "descriptor" in config:
+        return descriptor.DescriptorTrainConfig.from_config_dict(config)
+    return training.TrainConfig.from_config_dict(config)
+
+
 def parse(argv=None):
     """``(options, TrainConfig, workdir)`` from command-line arguments (without the program name); exits 2
     with one line on stderr on a bad flag or value."""
@@ -99,15 +120,18 @@ def parse(argv=None):
     try:
         if FLAGS.resume and not FLAGS["config"].present and workdir and os.path.exists(saved):
             with open(saved) as f:
-                config = training.TrainConfig.from_json(json.load(f))
+                config = _from_json(json.load(f))
         else:
-            config = training.TrainConfig.from_config_dict(FLAGS.config)
+            config = _from_config_dict(FLAGS.config)
     except (TypeError, ValueError) as err:
         _usage_error(err)
-    if config.init_from:
-        config = dataclasses.replace(config, init_from=os.path.normpath(config.init_from))
     recipe = os.path.splitext(os.path.basename(config_flags.get_config_filename(FLAGS["config"])))[0]
-    workdir = workdir or f"runs/{recipe}-{'mix' if config.settings else config.setting}"
+    if isinstance(config, training.TrainConfig):
+        if config.init_from:
+            config = dataclasses.replace(config, init_from=os.path.normpath(config.init_from))
+        workdir = workdir or f"runs/{recipe}-{'mix' if config.settings else config.setting}"
+    else:
+        workdir = workdir or f"runs/{recipe}-{config.holdout or 'all'}"
     options = types.SimpleNamespace(
         **{
             name.replace("-", "_"): FLAGS[name].value
@@ -138,9 +162,14 @@ def main(argv=None) -> int:
     from dit_jax.data.shapes import DataError
 
     try:
-        result = training.train(
-            config, workdir, resume=args.resume, prepared_dir=args.prepared_dir, progress=not args.no_progress
-        )
+        if isinstance(config, training.TrainConfig):
+            result = training.train(
+                config, workdir, resume=args.resume, prepared_dir=args.prepared_dir, progress=not args.no_progress
+            )
+        else:
+            from dit_jax.training import descriptor
+
+            result = descriptor.train(config, workdir, resume=args.resume, progress=not args.no_progress)
     except (DataError, training.TrainCheckpointError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -15,7 +15,7 @@ one JSON record per pair set (``confirmed_max_s``: the slowest pair whose result
 the 1.5 s target is about), then a Markdown table.
 
 ``--pairs-out FILE`` also writes one JSON line per pair (both methods' errors, the benchmark's RMSE where the
-data define one, seconds, the pipeline's level and candidate) and resumes from the pairs FILE holds, so a run
+data define one, seconds, the pipeline's level, candidate and the evidence its verdict read) and resumes from the pairs FILE holds, so a run
 over whole benchmark lists survives an interruption; each set's record then adds the benchmark's figures
 (``figures``: dit_jax.evaluators.scans.benchmark_summary of each method) and the verdict's (``exit_0``: the
 results trusted or unconfirmed and how many were right; ``flagged``: the wrong results and how many were
@@ -23,6 +23,9 @@ results trusted or unconfirmed and how many were right; ``flagged``: the wrong r
 
     python benchmarks/register_scans.py ../shared/data/3dmatch --baseline open3d_room_5cm \\
         --pairs-out runs/rooms_pairs.jsonl --record docs/rooms_full_lists.jsonl
+
+``--descriptor runs/features-{scene}/descriptor`` registers each pair with the learned descriptor trained with
+its scene left out (benchmarks/descriptor_folds.py).
 
 ``--record`` writes the per-set records to a file: docs/rooms_full_lists.jsonl is the one the rooms' full-list
 table of docs/results.md and the README is generated from (python tools/results_page.py).
@@ -114,7 +117,11 @@ def main() -> None:
     parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
     parser.add_argument("--record", default=None, help="also write the per-set records to this file (JSON lines)")
     parser.add_argument("--viewpoint", choices=("origin", "none"), default=None, help="the pipeline's viewpoint")
-    parser.add_argument("--descriptor", choices=("fpfh", "histograms"), default=None, help="the pipeline's descriptor")
+    parser.add_argument(
+        "--descriptor",
+        default=None,
+        help="the pipeline's descriptor: fpfh, histograms, learned or a weights directory ({scene}: each pair's scene)",
+    )
     args = parser.parse_args()
     baseline = args.baseline
 
@@ -123,7 +130,19 @@ def main() -> None:
     from dit_jax.evaluators.scans import register_baseline, sample_pairs
 
     changes = {name: getattr(args, name) for name in ("viewpoint", "descriptor") if getattr(args, name)}
-    model = registration.load(**changes)
+    models = {}
+
+    def model_of(scene: str):
+        """The pipeline for a pair of ``scene``: a ``--descriptor`` naming ``{scene}`` takes that scene's
+        weights (a learned descriptor trained with the scene left out)."""
+        scene_changes = changes | ({"descriptor": args.descriptor.format(scene=scene)} if args.descriptor else {})
+        key = scene_changes.get("descriptor")
+        if key not in models:
+            models[key] = registration.load(**scene_changes)
+        return models[key]
+
+    warmed = set()
+
     done = {}
     if args.pairs_out and os.path.exists(args.pairs_out):
         with open(args.pairs_out) as f:
@@ -134,13 +153,16 @@ def main() -> None:
         for set_name, found in scans_lib.load_pair_sets(folder).items():
             data = os.path.basename(os.path.normpath(folder))
             pairs = sample_pairs(found, args.max_pairs, args.seed)
-            model.register(pairs[0].source, pairs[0].target)  # compiles (or warms) once per folder's sizes
             pipeline_s, pipeline_ok, confirmed_s, trusted, trusted_right = [], 0, [], 0, 0
             baseline_s, baseline_ok = [], 0
             lines = []
             for pair in pairs:
                 line = done.get((data, set_name, pair.name))
                 if line is None:
+                    model = model_of(pair.scene)
+                    if (id(model), folder, set_name) not in warmed:  # compiles (or warms) once per folder's sizes
+                        model.register(pair.source, pair.target)
+                        warmed.add((id(model), folder, set_name))
                     started = time.perf_counter()
                     result = model.register(pair.source, pair.target)
                     seconds = time.perf_counter() - started
@@ -148,6 +170,7 @@ def main() -> None:
                     line |= {"candidate": result.candidate, "confirmed": bool(result.verdict)}
                     line |= {"rival": _finite(result.rival), "twin": _finite(result.twin)}
                     line |= {"agreement": _finite(result.agreement), "offset": _finite(result.offset)}
+                    line |= {"fitness": _finite(result.fitness), "inlier_ratio": _finite(result.inlier_ratio)}
                     line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
                     if not args.no_baseline:
                         line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))

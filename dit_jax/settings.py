@@ -14,7 +14,7 @@ import dataclasses
 from collections.abc import Callable
 
 from dit_jax.configs import PRECISIONS, DITConfig, Record
-from dit_jax.features.descriptors import DESCRIPTORS
+from dit_jax.features.descriptors import DESCRIPTORS, is_descriptor
 
 #: What the pipeline can do after the network: nothing, ICP or GICP (:mod:`dit_jax.icp`), or "auto"
 #: (:func:`refinement_for`).
@@ -78,7 +78,8 @@ class InferenceSettings(Record):
         one description in two scans; "none": as estimated, each normal's sign arbitrary (for clouds moved out
         of their sensor's frame). Measured on rooms, the dragon, the kitchen and LiDAR (docs/refinement.md).
       descriptor: what local features match each keypoint by: "fpfh", FPFH at one radius; "histograms", FPFH at
-        four radii, square-rooted and joined, for normals that face a viewpoint
+        four radii, square-rooted and joined, for normals that face a viewpoint; "learned", the shipped network
+        over the histograms, trained on rooms, or a directory of a user's own weights of it
         (:mod:`dit_jax.features.descriptors`; measured on rooms in docs/features.md).
       rotation_search: start the network from the 24 turns of :data:`dit_jax.network_stage.SEARCH_TURNS` (clouds at
         any rotation).
@@ -145,11 +146,15 @@ class InferenceSettings(Record):
             ("verdict_rule", VERDICTS),
             ("feature_candidate", FEATURE_CANDIDATES),
             ("viewpoint", VIEWPOINTS),
-            ("descriptor", DESCRIPTORS),
         ):
             value = getattr(self, name)
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+        if not is_descriptor(self.descriptor):
+            raise ValueError(
+                f"descriptor must be one of {', '.join(map(repr, DESCRIPTORS))} or a directory of learned "
+                f"descriptor weights, got {self.descriptor!r}"
+            )
         if self.precision is not None and self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(map(repr, PRECISIONS))}, got {self.precision!r}")
         if self.compute_dtype is not None and self.compute_dtype not in COMPUTE_DTYPES:
@@ -293,9 +298,11 @@ FLAGS = {
         Flag(
             "--descriptor",
             ("descriptor",),
-            "local features: what keypoints are matched by: fpfh (FPFH at one radius, as Open3D's recipes) or "
-            "histograms (FPFH at four radii, square-rooted and joined; needs --viewpoint origin: docs/features.md)",
-            choices=DESCRIPTORS,
+            "local features: what keypoints are matched by: fpfh (FPFH at one radius, as Open3D's recipes), "
+            "histograms (FPFH at four radii, square-rooted and joined; needs --viewpoint origin: docs/features.md), "
+            "learned (a network over the histograms, trained on rooms) or the directory of your own learned "
+            "descriptor (python train.py --config configs/features.py writes WORKDIR/descriptor)",
+            metavar="{fpfh,histograms,learned,DIR}",
         ),
         Flag(
             "--any-rotation",

@@ -31,7 +31,6 @@ FIELD_CHOICES = {
     "verdict_rule": settings.VERDICTS,
     "best_direction": settings.ON_OFF,
     "viewpoint": settings.VIEWPOINTS,
-    "descriptor": settings.DESCRIPTORS,
 }
 
 
@@ -116,3 +115,13 @@ def test_the_settings_module_imports_no_jax():
 
     code = "import sys, dit_jax.settings; sys.exit('jax' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_the_descriptor_takes_a_name_or_a_weights_directory_and_refuses_anything_else(tmp_path):
+    """``--descriptor`` has no fixed choices (a directory of one's own learned weights is a value); its metavar
+    names the built-in ones, and the settings refuse what is neither in one line."""
+    assert settings.FLAGS["descriptor"].metavar == "{" + ",".join(settings.DESCRIPTORS) + ",DIR}"
+    for name in settings.DESCRIPTORS:
+        assert settings.InferenceSettings(descriptor=name).descriptor == name
+    with pytest.raises(ValueError, match="or a directory of learned descriptor weights, got .*nowhere"):
+        settings.InferenceSettings(descriptor=str(tmp_path / "nowhere"))

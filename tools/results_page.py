@@ -24,6 +24,8 @@ Tables:
   feature-match recall, as benchmarks/descriptors.py measured them (docs/descriptors.jsonl).
 * ``rooms_descriptors`` (docs/features.md): the default pipeline with each descriptor on every pair of the
   3DMatch scenes' lists (benchmarks/register_scans.py --descriptor, docs/rooms_descriptors_*.jsonl).
+* ``descriptor_folds`` (docs/features.md): the learned descriptor with each scene left out of its training,
+  on that scene, beside FPFH and the histograms (benchmarks/descriptor_folds.py, docs/descriptor_folds.jsonl).
 * ``rival`` (docs/verdict.md): on scans, how many results the features' agreement trusts under each bound on
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
@@ -76,6 +78,7 @@ PAGES = {
     "rooms_full": (DOCS / "results.md", ROOT / "README.md"),
     "descriptors": DOCS / "features.md",
     "rooms_descriptors": DOCS / "features.md",
+    "descriptor_folds": DOCS / "features.md",
     "levels": DOCS / "verdict.md",
     "rival": DOCS / "verdict.md",
     "left_out": DOCS / "verdict.md",
@@ -91,7 +94,12 @@ FEATURE_AGREEMENT = DOCS / "feature_agreement.jsonl"
 #: The records of benchmarks/register_scans.py on the scenes' whole lists.
 ROOMS_FULL = DOCS / "rooms_full_lists.jsonl"
 #: The same with each descriptor (``--descriptor``), measured one after the other.
-ROOMS_DESCRIPTORS = {name: DOCS / f"rooms_descriptors_{name}.jsonl" for name in ("fpfh", "histograms")}
+ROOMS_DESCRIPTORS = {name: DOCS / f"rooms_descriptors_{name}.jsonl" for name in ("fpfh", "histograms", "learned")}
+#: How the rooms' descriptor table names each descriptor: the learned one registers each scene with the weights
+#: trained with that scene left out.
+DESCRIPTOR_LABELS = {"fpfh": "fpfh", "histograms": "histograms", "learned": "learned (its scene left out)"}
+#: The records of benchmarks/descriptor_folds.py.
+DESCRIPTOR_FOLDS = DOCS / "descriptor_folds.jsonl"
 #: The records of benchmarks/descriptors.py.
 DESCRIPTORS = DOCS / "descriptors.jsonl"
 
@@ -407,6 +415,7 @@ def rooms_descriptors_table() -> list[str]:
     """Per list of the 3DMatch scenes, every pair: the default pipeline with each descriptor
     (:data:`ROOMS_DESCRIPTORS`), its recall, share within 15 degrees and 0.3 m, seconds and verdict."""
     found = {name: {r["set"]: r for r in _records(path)} for name, path in ROOMS_DESCRIPTORS.items()}
+    found = {name: records for name, records in found.items() if records or name == "fpfh"}
     if not all(found.values()):
         return ["(no measurement in docs/rooms_descriptors_*.jsonl yet)"]
     lines = [
@@ -419,7 +428,7 @@ def rooms_descriptors_table() -> list[str]:
             r = records[set_name]
             figures, verdict = r["figures"]["pipeline"], r["verdict"]["criterion"]
             lines.append(
-                f"| {set_name} | {name} | {100 * figures['recall']:.1f} % | {100 * figures['criterion_share']:.1f} % | "
+                f"| {set_name} | {DESCRIPTOR_LABELS[name]} | {100 * figures['recall']:.1f} % | {100 * figures['criterion_share']:.1f} % | "
                 f"{figures['seconds_median']:.2f} | {_share(verdict['exit_0'])} | {_share(verdict['flagged'])} |"
             )
     return lines
@@ -456,6 +465,35 @@ def descriptors_table() -> list[str]:
         "",
         "Seconds a fragment: " + ", ".join(f"{labels[n]} {seconds[n]:.3f}" for n in names if n != "fpfh_sqrt"),
     ]
+    return lines
+
+
+def descriptor_folds_table() -> list[str]:
+    """Per scene left out of the learned descriptor's training and list, the mean inlier ratio over all
+    nearest-descriptor matches and over the ones the estimator keeps, of FPFH, the histograms and the learned
+    descriptor (:data:`DESCRIPTOR_FOLDS`), and the three scenes summed."""
+    records = _records(DESCRIPTOR_FOLDS)
+    if not records:
+        return ["(no measurement in docs/descriptor_folds.jsonl yet)"]
+    names = ("fpfh", "histograms", "learned")
+    lines = [
+        "| left out | list | pairs | FPFH: all, kept | histograms: all, kept | learned: all, kept "
+        "| learned / FPFH (all) | learned / histograms (all) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+
+    def row(scene: str, listed: str, pairs: int, figures: dict) -> str:
+        cells = " | ".join(f"{figures[n]['inlier_ratio']:.3f}, {figures[n]['kept_inlier_ratio']:.3f}" for n in names)
+        ratio = lambda a, b: figures[a]["inlier_ratio"] / figures[b]["inlier_ratio"]  # noqa: E731
+        return f"| {scene} | {listed} | {pairs} | {cells} | {ratio('learned', 'fpfh'):.2f}x | {ratio('learned', 'histograms'):.2f}x |"
+
+    folds = [r for r in records if r["scene"] != "all"]
+    for listed in sorted({r["set"] for r in folds}, key=lambda n: n != "3DMatch"):
+        lines += [row(r["scene"], listed, r["pairs"], r) for r in folds if r["set"] == listed]
+        total = next(r for r in records if r["scene"] == "all")["summed"][listed]
+        lines.append(row("all three", listed, total["pairs"], total))
+    seconds = sorted({r["scene"]: r["train_seconds"] for r in folds}.items())
+    lines += ["", "Training seconds per fold: " + ", ".join(f"{scene} left out {s:.0f}" for scene, s in seconds)]
     return lines
 
 
@@ -559,6 +597,7 @@ TABLES = {
     "rooms_full": rooms_full_table,
     "descriptors": descriptors_table,
     "rooms_descriptors": rooms_descriptors_table,
+    "descriptor_folds": descriptor_folds_table,
     "rival": rival_table,
     "left_out": left_out_table,
     "levels": levels_table,

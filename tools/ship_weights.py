@@ -2,6 +2,7 @@
 
     python tools/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
     python tools/ship_weights.py runs/mix --command "..." --choice runs/mix/choice.json
+    python tools/ship_weights.py runs/features-all --descriptor --command "python train.py --config configs/features.py ..."
 
 Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
@@ -11,6 +12,9 @@ the run's metrics.jsonl, its last validation figures, and its inference settings
 --record`` records one.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
 history travels with the weights.
+
+``--descriptor`` ships a learned descriptor's run instead (``python train.py --config configs/features.py``):
+its ``descriptor/`` weights, with the command added to their record, as dit_jax/weights/descriptor-rooms.
 """
 
 import argparse
@@ -21,6 +25,7 @@ import shutil
 import calibrate
 
 from dit_jax import checkpoint, registration, training
+from dit_jax.features import network
 from dit_jax.settings import InferenceSettings
 
 
@@ -28,7 +33,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python tools/ship_weights.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("workdir")
     parser.add_argument("--command", required=True, help="the command(s) that trained it, for the record")
-    parser.add_argument("--out", default=registration.shipped_weights())
+    parser.add_argument("--out", default=None, help="default: where the package's shipped weights of the kind live")
+    parser.add_argument("--descriptor", action="store_true", help="ship a learned descriptor's run")
     parser.add_argument("--inference-points", type=int, default=1000)
     parser.add_argument("--note", default="", help="anything else a user should know (pauses, resumes)")
     parser.add_argument(
@@ -37,6 +43,10 @@ def main(argv: list[str] | None = None) -> None:
         help="inference settings and verdict threshold to ship (python tools/calibrate.py's output)",
     )
     args = parser.parse_args(argv)
+    if args.descriptor:
+        ship_descriptor(args.workdir, args.command, args.out or network.SHIPPED)
+        return
+    args.out = args.out or registration.shipped_weights()
 
     records = [json.loads(line) for line in open(os.path.join(args.workdir, "metrics.jsonl"))]
     train = [r for r in records if r.get("split") == "train"]
@@ -70,15 +80,30 @@ def main(argv: list[str] | None = None) -> None:
     if os.path.exists(args.out):
         shutil.rmtree(args.out)
     checkpoint.save(args.out, params, config, extra=extra)
-    # orbax's commit markers name the folder they were written in; what ships names no machine's folder.
-    for root, _, files in os.walk(args.out):
-        if "commit_success.txt" in files:
-            with open(os.path.join(root, "commit_success.txt"), "w") as f:
-                f.write("Checkpoint commit was successful")
+    _unmark(args.out)
     if args.choice:
         calibrate.record(args.out, json.load(open(args.choice)))
     size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(args.out) for f in fs)
     print(f"wrote {args.out} ({size / 2**20:.1f} MB): step {extra['step']} chosen by {extra['chosen_by']}")
+
+
+def _unmark(directory: str) -> None:
+    """orbax's commit markers name the folder they were written in; what ships names no machine's folder."""
+    for root, _, files in os.walk(directory):
+        if "commit_success.txt" in files:
+            with open(os.path.join(root, "commit_success.txt"), "w") as f:
+                f.write("Checkpoint commit was successful")
+
+
+def ship_descriptor(workdir: str, command: str, out: str) -> None:
+    """The learned descriptor of the run in ``workdir`` written to ``out``, its record naming ``command``."""
+    found = network.load(os.path.join(workdir, "descriptor"))
+    if os.path.exists(out):
+        shutil.rmtree(out)
+    network.save(out, found._replace(extra={**found.extra, "command": command}))
+    _unmark(out)
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs)
+    print(f"wrote {out} ({size / 2**20:.2f} MB): trained on {', '.join(found.extra.get('scenes', []))}")
 
 
 def portable(record, data_dir: str | None):

@@ -13,14 +13,17 @@ Every length is in voxels of the caller's grid, so the descriptors do not depend
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
 
 #: What :func:`describe` computes: "fpfh" (FPFH at one radius, :data:`FPFH_RADIUS` voxels, as Open3D's recipes
-#: match it; the pipeline's default) or "histograms" (:func:`histograms`). The histograms match more keypoints
-#: of rooms right but register no more of them, and need normals that face a viewpoint (docs/features.md).
-DESCRIPTORS = ("fpfh", "histograms")
+#: match it; the pipeline's default), "histograms" (:func:`histograms`) or "learned" (the shipped network of
+#: :mod:`dit_jax.features.network` over the histograms; a directory of a user's own weights is taken in its
+#: place, :func:`is_descriptor`). The histograms and the learned descriptor match more keypoints of rooms right
+#: but register no more of them, and need normals that face a viewpoint (docs/features.md).
+DESCRIPTORS = ("fpfh", "histograms", "learned")
 #: The radius of single-scale FPFH and its most neighbours, in voxels (Open3D's room recipe: 5 voxels, 100).
 FPFH_RADIUS = 5.0
 FPFH_NEIGHBOURS = 100
@@ -109,4 +112,17 @@ def describe(cloud, voxel: float, descriptor: str = "fpfh", viewpoint=None) -> n
         return histograms(cloud, voxel, viewpoint)
     if descriptor == "fpfh":
         return fpfh(cloud, FPFH_RADIUS * voxel, FPFH_NEIGHBOURS)
-    raise ValueError(f"descriptor must be one of {DESCRIPTORS}, got {descriptor!r}")
+    if is_descriptor(descriptor):
+        from dit_jax.features import network  # JAX and Flax: only for the learned descriptor
+
+        weights = network.from_path(None if descriptor == "learned" else descriptor)
+        return network.embed(weights, histograms(cloud, voxel, viewpoint))
+    raise ValueError(f"descriptor must be one of {DESCRIPTORS} or a learned descriptor's directory, got {descriptor!r}")
+
+
+def is_descriptor(descriptor: str) -> bool:
+    """Whether ``descriptor`` names one: one of :data:`DESCRIPTORS`, or a directory of learned descriptor
+    weights (``python train.py --config configs/features.py`` writes one as ``WORKDIR/descriptor``)."""
+    if descriptor in DESCRIPTORS:
+        return True
+    return os.path.isfile(os.path.join(os.fspath(descriptor), "config", "metadata"))

@@ -1,11 +1,14 @@
-"""Training DIT: optax, orbax checkpoints, data parallelism over a device mesh, resumable.
+"""Training DIT (optax, orbax checkpoints, data parallelism over a device mesh, resumable), and the learned
+descriptor of room scans.
 
 The package's modules, one job each: :mod:`~dit_jax.training.config` (the recipe), :mod:`~dit_jax.training.step`
 (optimiser, loss and gradients, the device mesh), :mod:`~dit_jax.training.precision` (the step's precision
 on this machine, for ``train_precision="auto"``), :mod:`~dit_jax.training.validation` (the run's pairs and
 their validation), :mod:`~dit_jax.training.checkpoints` (orbax checkpoints and the exported model),
 :mod:`~dit_jax.training.curves` (logged metrics and plots) and :mod:`~dit_jax.training.loop` (:func:`train`).
-Everything is importable from ``dit_jax.training`` itself.
+Everything is importable from ``dit_jax.training`` itself. The learned descriptor of room scans trains apart:
+:mod:`~dit_jax.training.descriptor` (its recipe, loss and loop) and :mod:`~dit_jax.training.descriptor_data`
+(keypoints of real rooms with the benchmark's truth, and its batches).
 
 :func:`train` is the whole job behind ``python train.py``. Its pieces are usable on their own:
 :func:`make_optimizer`, :func:`init_state`, :func:`make_train_step` (a jitted, sharded step that skips
