@@ -78,26 +78,6 @@ def _usage_error(message: str):
     raise SystemExit(2)
 
 
-def _from_json(record: dict):
-    """The recipe a run's ``train_config.json`` holds: DIT's, or the learned descriptor's."""
-    from dit_jax import training
-    from dit_jax.training import descriptor
-
-    if record.get("kind") == "descriptor":
-        return descriptor.DescriptorTrainConfig.from_json(record)
-    return training.TrainConfig.from_json(record)
-
-
-def _from_config_dict(config):
-    """The recipe a ``configs/`` file gives: the learned descriptor's where it has a ``descriptor`` field."""
-    from dit_jax import training
-    from dit_jax.training import descriptor
-
-    if "descriptor" in config:
-        return descriptor.DescriptorTrainConfig.from_config_dict(config)
-    return training.TrainConfig.from_config_dict(config)
-
-
 def parse(argv=None):
     """``(options, TrainConfig, workdir)`` from command-line arguments (without the program name); exits 2
     with one line on stderr on a bad flag or value."""
@@ -120,9 +100,9 @@ def parse(argv=None):
     try:
         if FLAGS.resume and not FLAGS["config"].present and workdir and os.path.exists(saved):
             with open(saved) as f:
-                config = _from_json(json.load(f))
+                config = training.recipe_from_json(json.load(f))
         else:
-            config = _from_config_dict(FLAGS.config)
+            config = training.recipe_from_config_dict(FLAGS.config)
     except (TypeError, ValueError) as err:
         _usage_error(err)
     recipe = os.path.splitext(os.path.basename(config_flags.get_config_filename(FLAGS["config"])))[0]

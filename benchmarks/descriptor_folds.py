@@ -19,10 +19,7 @@ import datetime
 import json
 import os
 import platform
-import sys
 import time
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 MEASURED = ("fpfh", "histograms", "learned")
 
@@ -38,17 +35,12 @@ def cpu_model() -> str:
 
 def run_fold(folder: str, scene: str, workdir: str, steps: int | None) -> tuple[dict, float]:
     """One fold's training result (dit_jax.training.descriptor.train) and its seconds."""
-    import importlib.util
-
+    from dit_jax import training
     from dit_jax.training import descriptor
-    from train import _from_config_dict  # the recipe as train.py reads it
 
-    spec = importlib.util.spec_from_file_location(
-        "features_recipe", os.path.join(os.path.dirname(__file__), "..", "configs", "features.py")
+    config = training.load_config(
+        os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", "features.py")
     )
-    recipe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(recipe)
-    config = _from_config_dict(recipe.get_config())
     changes = {"data_dir": folder, "holdout": scene} | ({"steps": steps} if steps else {})
     config = type(config).from_json(config.to_json() | changes)
     started = time.perf_counter()

@@ -407,9 +407,11 @@ def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path
     records the config it was trained with, readable back into the same type; a record that names the
     model by preset (as the shipped weights' older runs do) reads as that preset with its changes."""
     from dit_jax import checkpoint, configs
+    from dit_jax.training.descriptor import DescriptorTrainConfig
 
     for path in sorted((ROOT / "configs").rglob("*.py")):
-        assert isinstance(training.load_config(path), training.TrainConfig), path
+        kind = DescriptorTrainConfig if path.name == "features.py" else training.TrainConfig
+        assert isinstance(training.load_config(path), kind), path
     recorded = checkpoint.read_extra(tiny_run.result["model"])["train_config"]
     assert training.TrainConfig.from_json(recorded) == TINY
     legacy = dict(TINY.to_json(), model="cpu", model_overrides=[["n_blocks", 1]])

@@ -21,8 +21,9 @@ import numpy as np
 #: What :func:`describe` computes: "fpfh" (FPFH at one radius, :data:`FPFH_RADIUS` voxels, as Open3D's recipes
 #: match it; the pipeline's default), "histograms" (:func:`histograms`) or "learned" (the shipped network of
 #: :mod:`dit_jax.features.network` over the histograms; a directory of a user's own weights is taken in its
-#: place, :func:`is_descriptor`). The histograms and the learned descriptor match more keypoints of rooms right
-#: but register no more of them, and need normals that face a viewpoint (docs/features.md).
+#: place, :func:`is_descriptor`). Both of the last match more keypoints of rooms right than FPFH and need normals
+#: that face a viewpoint; the histograms register no more rooms, the learned descriptor registers more, but the
+#: verdict's bounds are FPFH's (docs/features.md).
 DESCRIPTORS = ("fpfh", "histograms", "learned")
 #: The radius of single-scale FPFH and its most neighbours, in voxels (Open3D's room recipe: 5 voxels, 100).
 FPFH_RADIUS = 5.0

@@ -22,6 +22,8 @@ from dit_jax.training.checkpoints import (  # noqa: F401
 from dit_jax.training.config import (  # noqa: F401
     TrainConfig,
     load_config,
+    recipe_from_config_dict,
+    recipe_from_json,
 )
 from dit_jax.training.curves import (  # noqa: F401
     plot_curves,

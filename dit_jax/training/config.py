@@ -187,8 +187,28 @@ class TrainConfig:
         return cls.from_json(d)
 
 
-def load_config(path: str | os.PathLike) -> TrainConfig:
-    """The :class:`TrainConfig` of a recipe file (``configs/quick.py``): its ``get_config()``."""
+def recipe_from_config_dict(config):
+    """The recipe a ``configs/`` file's ConfigDict gives: a :class:`TrainConfig` for DIT, or the learned
+    descriptor's :class:`dit_jax.training.descriptor.DescriptorTrainConfig` where it has a ``descriptor`` field."""
+    if "descriptor" in config:
+        from dit_jax.training.descriptor import DescriptorTrainConfig
+
+        return DescriptorTrainConfig.from_config_dict(config)
+    return TrainConfig.from_config_dict(config)
+
+
+def recipe_from_json(record: Mapping[str, Any]):
+    """The recipe a run's ``train_config.json`` holds, of either kind (:func:`recipe_from_config_dict`)."""
+    if record.get("kind") == "descriptor":
+        from dit_jax.training.descriptor import DescriptorTrainConfig
+
+        return DescriptorTrainConfig.from_json(record)
+    return TrainConfig.from_json(record)
+
+
+def load_config(path: str | os.PathLike):
+    """The recipe of a recipe file (``configs/quick.py``): its ``get_config()``, as :func:`recipe_from_config_dict`
+    reads it."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(f"recipe_{os.path.basename(path)[:-3]}", os.fspath(path))
@@ -196,4 +216,4 @@ def load_config(path: str | os.PathLike) -> TrainConfig:
         raise FileNotFoundError(f"{path}: no such recipe file")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return TrainConfig.from_config_dict(module.get_config())
+    return recipe_from_config_dict(module.get_config())
