@@ -39,7 +39,12 @@ def _define_flags() -> flags.FlagValues:
         flag_values=values,
         lock_config=True,
     )
-    flags.DEFINE_string("workdir", None, "default: runs/<recipe>-<setting>, or runs/<recipe>-mix", flag_values=values)
+    flags.DEFINE_string(
+        "workdir",
+        None,
+        "default: runs/<recipe>-<setting>, runs/<recipe>-mix, or runs/features-<holdout or all>",
+        flag_values=values,
+    )
     flags.DEFINE_bool(
         "resume",
         False,

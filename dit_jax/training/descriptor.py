@@ -187,29 +187,13 @@ def train(config: DescriptorTrainConfig, workdir: str, *, resume: bool = False, 
     weights are. Writes to ``workdir``: ``train_config.json``, ``metrics.jsonl`` (appended, never cut; a
     resumed run's records follow the old ones, the last record of a step is the one that stands),
     ``checkpoints/``, ``curves.png`` and, at the end, ``descriptor/`` (:func:`dit_jax.features.network.load`
-    reads it; ``--descriptor-weights`` passes it to the commands)."""
-    from dit_jax.training.checkpoints import TrainCheckpointError
-
+    reads it; ``--descriptor DIR`` matches by it)."""
     workdir = os.path.abspath(workdir)
     os.makedirs(workdir, exist_ok=True)
     ocp, manager = _checkpoints(workdir)
-    latest = manager.latest_step()
-    if latest is not None and not resume:
-        raise TrainCheckpointError(f"{workdir} holds checkpoints; pass --resume or choose another --workdir")
-    training, validation = load_scenes(config)
     optimizer = make_optimizer(config)
-    params = network.init(config.descriptor, config.seed)
-    opt_state, start = optimizer.init(params), 0
-    if resume and latest is not None:
-        meta = manager.restore(latest, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
-        if DescriptorTrainConfig.from_json(meta["train_config"]) != config:
-            raise TrainCheckpointError(f"{workdir}: its checkpoints were made by another config; use another --workdir")
-        abstract = {"params": params, "opt_state": opt_state}
-        state = manager.restore(latest, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
-        params, opt_state, start = state["params"], state["opt_state"], int(latest)
-    else:
-        with open(os.path.join(workdir, "train_config.json"), "w") as f:
-            json.dump(config.to_json(), f, indent=1)
+    params, opt_state, start = _start(config, workdir, manager, optimizer, resume)
+    training, validation = load_scenes(config)
     metrics = os.path.join(workdir, "metrics.jsonl")
     measured = {name: validate(lambda f, n=name: getattr(f, n), validation) for name in ("fpfh", "histograms")}
     step_fn = make_step(config, optimizer)
@@ -254,6 +238,31 @@ def train(config: DescriptorTrainConfig, workdir: str, *, resume: bool = False, 
     return {"workdir": workdir, "descriptor": out, "validated_on": validated_on, "learned": final, **measured}
 
 
+def _start(config: DescriptorTrainConfig, workdir: str, manager, optimizer, resume: bool):
+    """(params, optimiser state, step) to start from: the last checkpoint's with ``resume``, else fresh ones
+    (and the run's ``train_config.json``). A workdir with checkpoints is not started afresh, nor resumed by
+    another config."""
+    import orbax.checkpoint as ocp
+
+    from dit_jax.training.checkpoints import TrainCheckpointError
+
+    latest = manager.latest_step()
+    if latest is not None and not resume:
+        raise TrainCheckpointError(f"{workdir} holds checkpoints; pass --resume or choose another --workdir")
+    params = network.init(config.descriptor, config.seed)
+    opt_state = optimizer.init(params)
+    if latest is None:
+        with open(os.path.join(workdir, "train_config.json"), "w") as f:
+            json.dump(config.to_json(), f, indent=1)
+        return params, opt_state, 0
+    meta = manager.restore(latest, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+    if DescriptorTrainConfig.from_json(meta["train_config"]) != config:
+        raise TrainCheckpointError(f"{workdir}: its checkpoints were made by another config; use another --workdir")
+    abstract = {"params": params, "opt_state": opt_state}
+    state = manager.restore(latest, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
+    return state["params"], state["opt_state"], int(latest)
+
+
 def _progress(total: int, start: int):
     from tqdm.auto import tqdm
 
@@ -267,7 +276,8 @@ def plot_curves(workdir: str, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    records = [json.loads(line) for line in open(os.path.join(workdir, "metrics.jsonl")) if line.strip()]
+    with open(os.path.join(workdir, "metrics.jsonl")) as f:
+        records = [json.loads(line) for line in f if line.strip()]
     train = {r["step"]: r for r in records if r["split"] == "train"}  # a step's last record stands
     val = {r["step"]: r for r in records if r["split"] == "val"}
     fig, (loss_axes, ratio_axes) = plt.subplots(1, 2, figsize=(9, 3.6))

@@ -74,7 +74,7 @@ def load_scene(folder: pathlib.Path, positive_voxels: float, max_fragments: int 
     """Keypoints of every fragment of the scene in ``folder`` and its benchmark pairs (only pairs between its
     first ``max_fragments`` fragments, by name, where that is above 0)."""
     from dit_jax.data import scans as scans_lib
-    from dit_jax.features import descriptors, matching
+    from dit_jax.features import descriptors, matching, network
 
     sets = scans_lib.load_pair_sets(folder)
     clouds, listed = {}, []
@@ -88,9 +88,7 @@ def load_scene(folder: pathlib.Path, positive_voxels: float, max_fragments: int 
     fragments = []
     for scan in prepared.scans:
         if scan is None:  # too few voxels to describe: no keypoints
-            fragments.append(
-                Fragment(np.zeros((0, 3), np.float32), np.zeros((0, 132), np.float32), np.zeros((0, 33), np.float32))
-            )
+            fragments.append(Fragment(*(np.zeros((0, width), np.float32) for width in (3, network.HISTOGRAM_SIZE, 33))))
             continue
         thinned = scan.cloud.thinned
         fragments.append(
