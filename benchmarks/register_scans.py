@@ -15,7 +15,7 @@ one JSON record per pair set (``confirmed_max_s``: the slowest pair whose result
 the 1.5 s target is about), then a Markdown table.
 
 ``--pairs-out FILE`` also writes one JSON line per pair (both methods' errors, the benchmark's RMSE where the
-data define one, seconds, the pipeline's level, candidate and the evidence its verdict read) and resumes from the pairs FILE holds, so a run
+data define one, seconds, the pipeline's level, candidate, the evidence its verdict read and its motion as a 3 x 4 ``[R | t]``) and resumes from the pairs FILE holds, so a run
 over whole benchmark lists survives an interruption; each set's record then adds the benchmark's figures
 (``figures``: dit_jax.evaluators.scans.benchmark_summary of each method) and the verdict's (``exit_0``: the
 results trusted or unconfirmed and how many were right; ``flagged``: the wrong results and how many were
@@ -172,6 +172,7 @@ def main() -> None:
                     line |= {"agreement": _finite(result.agreement), "offset": _finite(result.offset)}
                     line |= {"fitness": _finite(result.fitness), "inlier_ratio": _finite(result.inlier_ratio)}
                     line["pipeline"] = pair_row(pair, result.rotation, result.translation, seconds)
+                    line["motion"] = np.c_[result.rotation, result.translation].round(7).tolist()
                     if not args.no_baseline:
                         line[baseline] = pair_row(pair, *register_baseline(baseline, pair.source, pair.target))
                     if pairs_file:
