@@ -60,10 +60,10 @@ _IGNORED_BY = {
 
 def build_parser() -> argparse.ArgumentParser:
     """evaluate.py's command line."""
-    from dit_jax import compile_cache
-    from dit_jax import settings as inference_settings
-    from dit_jax.baselines import SCAN_BASELINES, SCENE_BASELINES
     from dit_jax.data.pairs import SETTINGS
+    from dit_jax.evaluators.baselines import SCAN_BASELINES, SCENE_BASELINES
+    from dit_jax.network import compile_cache
+    from dit_jax.pipeline import settings as inference_settings
 
     parser = argparse.ArgumentParser(description="Evaluate DIT and baselines (see the module docstring).")
     parser.add_argument(
@@ -83,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--scenes",
         default=None,
         metavar="DIR",
-        help="place each 3DMatch scene's fragments by a pose graph (dit_jax.scene) and score every benchmark "
+        help="place each 3DMatch scene's fragments by a pose graph (dit_jax.scenes.scene) and score every benchmark "
         "pair from the placed poses, beside the pairwise results: a folder of scene folders, or one",
     )
     parser.add_argument(
@@ -138,9 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from dit_jax import compile_cache
-    from dit_jax import settings as inference_settings
     from dit_jax.data.pairs import AUTHORS_SETTINGS, SETTINGS
+    from dit_jax.network import compile_cache
+    from dit_jax.pipeline import settings as inference_settings
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -149,8 +149,8 @@ def main(argv=None) -> int:
         if getattr(args, dest) != parser.get_default(dest):
             flag = "--" + dest.replace("_", "-")
             parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
-    from dit_jax.baselines import NAMES as TUNED_BASELINES
-    from dit_jax.baselines import SCENE_BASELINES
+    from dit_jax.evaluators.baselines import NAMES as TUNED_BASELINES
+    from dit_jax.evaluators.baselines import SCENE_BASELINES
 
     untuned = [name for name in args.baselines if name not in TUNED_BASELINES and name not in SCENE_BASELINES]
     if untuned and not args.scans:
@@ -164,9 +164,10 @@ def main(argv=None) -> int:
     settings = tuple(dict.fromkeys(chosen))
 
     compile_cache.from_args(args)
-    from dit_jax import evaluators, registration
-    from dit_jax.checkpoint import CheckpointError
+    from dit_jax import evaluators
     from dit_jax.data.shapes import DataError
+    from dit_jax.network.checkpoint import CheckpointError
+    from dit_jax.pipeline import registration
 
     inference = inference_settings.changes(args)
     try:

@@ -10,7 +10,7 @@
     python train.py --config configs/features.py --config.holdout=hotel3   # the learned descriptor of rooms
 
 Recipes are the files in configs/ (configs/shipped/ holds every run that made the shipped weights). Any field
-of dit_jax.training.TrainConfig changes with --config.FIELD=VALUE, the network's (dit_jax.configs.DITConfig)
+of dit_jax.training.TrainConfig changes with --config.FIELD=VALUE, the network's (dit_jax.network.configs.DITConfig)
 with --config.model.FIELD=VALUE. Several processes (hosts, or GPUs): start one per host with --distributed
 and --coordinator HOST:PORT --num-processes N --process-id I (or their JAX_* variables, or a SLURM
 allocation); the batch is split over all devices of all processes.
@@ -138,7 +138,8 @@ def parse(argv=None):
 
 def main(argv=None) -> int:
     args, config, workdir = parse(argv)
-    from dit_jax import compile_cache, training
+    from dit_jax import training
+    from dit_jax.network import compile_cache
 
     if args.distributed:
         training.initialize_distributed(args.coordinator, args.num_processes, args.process_id)

@@ -7,7 +7,7 @@ Real scanners give far more points than the Stanford Dragon's 42,000 a scan. Eac
 copies of itself, every point jittered by Gaussian noise of 0.1 % of the scan's extent (roughly, a denser scan
 of the same surface), and the pairs are registered as users call it (`registration.load()`, `register(src,
 tgt)`: the network, ICP, the verdict's second registration), warm (the first call compiles and is not
-timed). Then, on the thickest clouds and ``--refine-pairs`` pairs, `icp.refine` once from the network's own
+timed). Then, on the thickest clouds and ``--refine-pairs`` pairs, `icp_refine.refine` once from the network's own
 estimate with the target thinned to each of ``--target-points`` (default: `icp.TARGET_POINTS`, as shipped,
 and 0, the whole target).
 Prints two markdown tables.
@@ -52,13 +52,14 @@ def main() -> None:
     )
     args = parser.parse_args()
 
-    from dit_jax import geometry, icp, registration
     from dit_jax.data import scans
+    from dit_jax.geometry import icp, icp_refine, rigid
+    from dit_jax.pipeline import registration
 
     pairs = scans.scan_pairs(scans.load_scans(args.scans), skip=args.skip)[: args.pairs]
     model = registration.load()
     network_only = registration.load(refine="none", verdict_rule="fitness")
-    error = lambda rotation, pair: geometry.rotation_angle_deg(rotation @ pair.rotation.T)
+    error = lambda rotation, pair: rigid.rotation_angle_deg(rotation @ pair.rotation.T)
     print(
         f"{datetime.date.today().isoformat()}, {os.cpu_count()} CPUs; {len(pairs)} pairs of "
         f"{os.path.basename(os.path.normpath(args.scans))} scans, skip {args.skip}; "
@@ -92,7 +93,7 @@ def main() -> None:
 
     if not args.refine_pairs:
         return
-    print(f"\n`icp.refine`, one direction from the network's estimate, clouds of {thickest['copies']} copies:\n")
+    print(f"\n`icp_refine.refine`, one direction from the network's estimate, clouds of {thickest['copies']} copies:\n")
     print("| pair | target points | refine s | rotation error (deg) |\n|---|---|---|---|")
     caps = args.target_points if args.target_points is not None else [icp.TARGET_POINTS, 0]
     for pair, (src, tgt) in zip(pairs[: args.refine_pairs], thickest["clouds"]):
@@ -100,7 +101,7 @@ def main() -> None:
         scale = float(np.linalg.norm(src - src.mean(axis=0), axis=1).max())
         for cap in caps:
             started = time.perf_counter()
-            refined = icp.refine(
+            refined = icp_refine.refine(
                 src, tgt, estimate.rotation, estimate.translation, scale=scale, max_target_points=cap or None
             )
             label = (

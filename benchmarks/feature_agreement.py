@@ -116,10 +116,10 @@ def main() -> None:
     parser.add_argument("--pairs-out", default=None, help="also write one JSON line per pair (its evidence)")
     args = parser.parse_args()
 
-    from dit_jax import geometry
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import sample_pairs
     from dit_jax.features import matching
+    from dit_jax.geometry import rigid
 
     records, benchmark_rows = [], []
     for folder in args.scans:
@@ -134,7 +134,7 @@ def main() -> None:
                     )
                     continue
                 rotation, translation = estimate.kept
-                degrees = geometry.rotation_angle_deg(rotation.T @ pair.rotation)
+                degrees = rigid.rotation_angle_deg(rotation.T @ pair.rotation)
                 if pair.info is not None:
                     rmse = scans_lib.benchmark_rmse(rotation, translation, pair)
                     right = bool(rmse <= scans_lib.BENCHMARK_RMSE)
@@ -198,7 +198,7 @@ def main() -> None:
             records.append(record)
             print(json.dumps(record), flush=True)
 
-    from dit_jax.settings import InferenceSettings
+    from dit_jax.pipeline.settings import InferenceSettings
 
     settings = InferenceSettings()
     left_out = (

@@ -92,9 +92,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="the sample's seed")
     args = parser.parse_args()
 
-    from dit_jax import geometry
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import sample_pairs
+    from dit_jax.geometry import rigid
 
     records = []
     for folder in args.scans:
@@ -110,7 +110,7 @@ def main() -> None:
                 seconds.append(timed[0])
                 for name, motion in zip(right, timed[1:]):
                     right[name] += bool(
-                        geometry.rotation_angle_deg(motion[:3, :3].T @ pair.rotation) <= degrees
+                        rigid.rotation_angle_deg(motion[:3, :3].T @ pair.rotation) <= degrees
                         and np.linalg.norm(motion[:3, 3] - pair.translation) <= metres
                     )
             medians = {step: float(np.median([s[step] for s in seconds])) for step in seconds[0]}

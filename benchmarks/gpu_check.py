@@ -6,7 +6,7 @@
 Parts, in this order (each is written to ``OUT/gpu_check.json`` as soon as it ends, so a lease that runs
 out still leaves what was measured):
 
-1. ``reference``: the reference check (``python -m dit_jax.reference_check``) at the default precision:
+1. ``reference``: the reference check (``python -m dit_jax.network.reference_check``) at the default precision:
    checks passed of all, and the largest error as a share of its bound.
 2. ``inference``: the paper's network (random weights: speed does not depend on them), ``model.register``
    at 1000 points, seconds per pair at batch 1 and 8 (median of the calls after a warm-up); then batch 1 at
@@ -53,7 +53,7 @@ PARTS = ("reference", "inference", "train_step", "training", "estimator")
 class Sizes:
     """What each part runs: the full check or the smoke test's stand-ins."""
 
-    network: str  # a preset of dit_jax.configs for the inference part
+    network: str  # a preset of dit_jax.network.configs for the inference part
     inference_points: int
     inference_batches: tuple[int, ...]
     memory_points: tuple[int, ...]
@@ -108,7 +108,7 @@ def device_peak_bytes() -> int | None:
 
 def check_reference(path: str) -> dict:
     """The reference check's outcome at the default precision."""
-    from dit_jax import reference_check
+    from dit_jax.network import reference_check
 
     with np.load(path) as npz:
         data = {k: npz[k] for k in npz.files}
@@ -129,7 +129,7 @@ def time_inference(sizes: Sizes) -> dict:
     """Seconds per pair by batch, then peak memory by cloud size, of ``model.register``."""
     import jax
 
-    from dit_jax import configs, model
+    from dit_jax.network import configs, model
 
     config = configs.get(sizes.network)
     params = model.init(jax.random.PRNGKey(0), config)
@@ -176,7 +176,8 @@ def time_train_steps(sizes: Sizes) -> list[dict]:
 
 def train_briefly(sizes: Sizes, workdir: str) -> dict:
     """The quick recipe's training loop for a few steps; its final validation."""
-    from dit_jax import configs, training
+    from dit_jax import training
+    from dit_jax.network import configs
 
     config = training.load_config(ROOT / sizes.training_recipe)
     overrides = dict(sizes.training_overrides)
@@ -198,9 +199,9 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
     """The compatibility estimator per padded size on synthetic matches (5 % right), and one room pair."""
     import jax
 
-    from dit_jax import geometry
     from dit_jax.data.pairs import euler_zyx_to_matrix
     from dit_jax.features import compatibility
+    from dit_jax.geometry import rigid
 
     rng = np.random.default_rng(0)
     rotation, translation = euler_zyx_to_matrix([120.0, 40.0, -70.0]), np.array([3.0, -7.0, 1.5])
@@ -220,7 +221,7 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
             jax.block_until_ready(compatibility.estimate(*args))
             times.append(time.perf_counter() - t0)
         found = compatibility.estimate_motions(src, tgt, 0.05)
-        error = geometry.rotation_angle_deg(found.rotation[0].T @ rotation)
+        error = rigid.rotation_angle_deg(found.rotation[0].T @ rotation)
         buckets.append(
             {"matches": size, "compile_s": compile_s, "seconds": statistics.median(times), "error_deg": error}
         )
@@ -236,7 +237,7 @@ def time_estimator(sizes: Sizes, rooms: str | None) -> dict:
         record["room_pair"] = {
             "pair": pair.name,
             "seconds": time.perf_counter() - t0,
-            "error_deg": geometry.rotation_angle_deg(estimate.kept[0].T @ pair.rotation),
+            "error_deg": rigid.rotation_angle_deg(estimate.kept[0].T @ pair.rotation),
         }
     return record
 
@@ -253,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    from dit_jax import compile_cache
+    from dit_jax.network import compile_cache
 
     compile_cache.enable(args.compile_cache or str(out / "xla_cache"))
     import jax

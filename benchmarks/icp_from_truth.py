@@ -1,6 +1,6 @@
-"""DIT's ICP refinement (:func:`dit_jax.icp.refine`, as ``register(refine="icp")`` runs it) started at the exact
+"""DIT's ICP refinement (:func:`dit_jax.geometry.icp_refine.refine`, as ``register(refine="icp")`` runs it) started at the exact
 truth, on ModelNet40 unseen test pairs of every setting. The refinement only leaves its start for a motion
-that fits the clouds better (:func:`dit_jax.icp.trimmed_fit`), so every pair that ends more than 1 degree
+that fits the clouds better (:func:`dit_jax.geometry.icp.trimmed_fit`), so every pair that ends more than 1 degree
 off here is one whose points prefer a pose more than 1 degree from the truth: what "ends within 1 degree"
 can ask of DIT + ICP on that setting.
 
@@ -10,7 +10,7 @@ can ask of DIT + ICP on that setting.
 Prints a markdown table: median / mean / worst rotation error after refinement and how many pairs end more
 than 1 degree off. Point count: the shipped weights' (as evaluate.py uses). ``--compare`` prints a second
 table: how many pairs each other local objective, started at the truth, leaves by more than 1 degree --
-point-to-plane ICP (coarse to fine, as in :data:`dit_jax.icp.REFINE_CANDIDATES`) and Open3D's generalized
+point-to-plane ICP (coarse to fine, as in :data:`dit_jax.geometry.icp_refine.REFINE_CANDIDATES`) and Open3D's generalized
 ICP (plane-to-plane, Segal et al. 2009; through Open3D) -- so a reader can see whether any
 of them holds the truth where the refinement's point fit does not. The last line is one JSON record of it all.
 """
@@ -21,10 +21,11 @@ import json
 
 import numpy as np
 
-from dit_jax import icp, registration
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
-from dit_jax.geometry import rotation_angle_deg
+from dit_jax.geometry import icp, icp_refine
+from dit_jax.geometry.rigid import rotation_angle_deg
+from dit_jax.pipeline import registration
 
 
 def _generalized_icp(src, tgt, rotation, translation, distances):
@@ -49,7 +50,7 @@ def _generalized_icp(src, tgt, rotation, translation, distances):
 
 #: The local objectives ``--compare`` starts at the truth: name -> (src, tgt, R, t) -> rotation (3, 3).
 OBJECTIVES = {
-    "refinement (shipped)": lambda s, g, r, t: icp.refine(s, g, r, t).rotation,
+    "refinement (shipped)": lambda s, g, r, t: icp_refine.refine(s, g, r, t).rotation,
     "point-to-plane 0.1/0.05": lambda s, g, r, t: (
         icp.icp(s, g, r, t, distances=(0.1, 0.05), method="point_to_plane").rotation
     ),

@@ -54,7 +54,7 @@ def matmul_peak(size: int = 2048, repeats: int = 5, precision: str = "highest") 
     jax = _setup_jax()
     import jax.numpy as jnp
 
-    from dit_jax.layers import dot_precision
+    from dit_jax.network.layers import dot_precision
 
     a = jax.random.normal(jax.random.PRNGKey(0), (size, size), jnp.float32)
     b = jax.random.normal(jax.random.PRNGKey(1), (size, size), jnp.float32)
@@ -94,17 +94,18 @@ def register_flops(params, config, src, tgt) -> float:
     iterations in a `lax.scan`; so this adds the target's embedding and memory, the source's kNN graph,
     and n_iters network passes with the soft head once and the GMCCE head n_iters - 1 times.
     """
-    from dit_jax import geometry, model
-    from dit_jax.head import head
+    from dit_jax.geometry import rigid
+    from dit_jax.network import model
+    from dit_jax.network.head import head
 
     # Blocked attention is a loop too (same products, counted once): count the unblocked program.
     config = config.replace(attention_chunk=0)
 
     emb = model.embed(params, tgt, config, encode=True)
-    knn = geometry.knn(src, config.k)
+    knn = rigid.knn(src, config.k)
     feats = model.features(params, src, tgt, config, tgt_embedding=emb, src_knn=knn)[1]
     total = _flops(lambda p, y: model.embed(p, y, config, encode=True), params, tgt)
-    total += _flops(lambda x: geometry.knn(x, config.k), src)
+    total += _flops(lambda x: rigid.knn(x, config.k), src)
     total += config.n_iters * _flops(
         lambda p, x, e, kn: model.features(p, x, tgt, config, tgt_embedding=e, src_knn=kn)[1].scores,
         params,
@@ -123,7 +124,7 @@ def register_flops(params, config, src, tgt) -> float:
 def time_register(config, batch: int, n_points: int, repeats: int, count_flops: bool = True) -> dict:
     """Compiles `register` for (batch, n_points), runs it once, then times ``repeats`` calls."""
     jax = _setup_jax()
-    from dit_jax import model
+    from dit_jax.network import model
 
     params = model.init(jax.random.PRNGKey(0), config)
     src, tgt = _inputs(batch, n_points)
@@ -179,7 +180,7 @@ def peak_memory() -> dict:
 
 
 def _config(args, n_iters: int):
-    from dit_jax import configs
+    from dit_jax.network import configs
 
     config = configs.get(args.config, "clean").replace(n_iters=n_iters, precision=args.precision)
     if args.dtype != "float32":
@@ -238,7 +239,7 @@ def _gb(n: float | None) -> str:
 
 
 def main() -> None:
-    from dit_jax.configs import PRECISIONS
+    from dit_jax.network.configs import PRECISIONS
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", default="paper")

@@ -44,7 +44,7 @@ def make_list(folder: pathlib.Path, count: int) -> pathlib.Path:
 
 
 def command(listing, results, checkpoint, *extra) -> list[str]:
-    found = [sys.executable, "-m", "dit_jax.cli", "--pairs", str(listing), "--results", str(results)]
+    found = [sys.executable, "-m", "dit_jax.cli.register", "--pairs", str(listing), "--results", str(results)]
     found += ["--refine", "none", "--no-progress", "--no-verdict-status", *extra]
     return found + (["--checkpoint", str(checkpoint)] if checkpoint else [])
 

@@ -1,4 +1,4 @@
-"""DIT's ICP refinement (`icp.refine`): its time on scans and on small clouds, with one query thread and with
+"""DIT's ICP refinement (`icp_refine.refine`): its time on scans and on small clouds, with one query thread and with
 the default.
 
     python benchmarks/refine.py                  # dragon scans (../shared) and ModelNet40 validation pairs
@@ -6,7 +6,7 @@ the default.
 
 One direction, from the shipped network's estimate (`register(..., refine="none")`), each pair refined with
 ``workers=1`` (one thread for the nearest-point queries) and with the default (the machine's cores, on targets
-of at least `icp.PARALLEL_MIN_TARGET` points; smaller ones use small_gicp's tree in one thread either way);
+of at least `neighbours.PARALLEL_MIN_TARGET` points; smaller ones use small_gicp's tree in one thread either way);
 prints the median seconds of each and whether every result is identical (it must be).
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 def timed_refinements(pairs, registrar, modes) -> tuple[list[list[float]], bool]:
     """Seconds per pair of the refinement with each ``workers`` value in ``modes``, and whether all agree
     exactly. ``pairs``: (src (N, 3), tgt (M, 3)) tuples."""
-    from dit_jax import icp
+    from dit_jax.geometry import icp_refine
 
     seconds, identical = [[] for _ in modes], True
     for src, tgt in pairs:
@@ -32,7 +32,7 @@ def timed_refinements(pairs, registrar, modes) -> tuple[list[list[float]], bool]
         results = []
         for workers, times in zip(modes, seconds):
             started = time.perf_counter()
-            results.append(icp.refine(src, tgt, *start, scale=scale, workers=workers))
+            results.append(icp_refine.refine(src, tgt, *start, scale=scale, workers=workers))
             times.append(time.perf_counter() - started)
         a = results[0]
         identical &= all(
@@ -57,8 +57,9 @@ def main() -> None:
     parser.add_argument("--settings", nargs="+", default=["high_noise_partial", "independent_clean", "scan_high_noise"])
     args = parser.parse_args()
 
-    from dit_jax import registration, training
+    from dit_jax import training
     from dit_jax.data import scans as scans_lib
+    from dit_jax.pipeline import registration
 
     registrar = registration.load(verdict_rule="fitness")  # the estimate only: one direction
     groups = {}
@@ -80,7 +81,7 @@ def main() -> None:
 
     modes = (1, None)
     print(
-        f"`icp.refine`, one direction, {os.cpu_count()} cores, {datetime.date.today().isoformat()}; "
+        f"`icp_refine.refine`, one direction, {os.cpu_count()} cores, {datetime.date.today().isoformat()}; "
         "median seconds per pair\n"
     )
     print("| pairs | count | one thread | default | identical |")

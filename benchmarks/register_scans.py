@@ -53,12 +53,12 @@ def _finite(value: float) -> float | None:
 
 def pair_row(pair, rotation, translation, seconds: float) -> dict:
     """One method's row for a pair, in the form dit_jax.evaluators.scans.benchmark_summary reads."""
-    from dit_jax import geometry
     from dit_jax.data import scans as scans_lib
+    from dit_jax.geometry import rigid
 
     rmse = scans_lib.benchmark_rmse(rotation, translation, pair)
     return {
-        "rot_err": float(geometry.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation)),
+        "rot_err": float(rigid.rotation_angle_deg(np.asarray(rotation).T @ pair.rotation)),
         "trans_err": float(np.linalg.norm(np.asarray(translation) - pair.translation)),
         "rmse": None if np.isnan(rmse) else float(rmse),
         "seconds": float(seconds),
@@ -111,7 +111,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("scans", nargs="+", help="folders of scans with known poses")
     parser.add_argument("--no-baseline", action="store_true", help="time the pipeline alone")
-    parser.add_argument("--baseline", default="fpfh_ransac_icp", help="a name of dit_jax.baselines.SCAN_BASELINES")
+    parser.add_argument(
+        "--baseline", default="fpfh_ransac_icp", help="a name of dit_jax.evaluators.baselines.SCAN_BASELINES"
+    )
     parser.add_argument("--max-pairs", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0, help="the sample's seed")
     parser.add_argument("--pairs-out", default=None, help="write (and resume from) one JSON line per pair")
@@ -125,9 +127,9 @@ def main() -> None:
     args = parser.parse_args()
     baseline = args.baseline
 
-    from dit_jax import registration
     from dit_jax.data import scans as scans_lib
     from dit_jax.evaluators.scans import register_baseline, sample_pairs
+    from dit_jax.pipeline import registration
 
     changes = {name: getattr(args, name) for name in ("viewpoint", "descriptor") if getattr(args, name)}
     models = {}

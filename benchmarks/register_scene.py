@@ -1,4 +1,4 @@
-"""Whole scenes placed by `dit_jax.scene.register_scene`, timed: the seconds per scan a user waits for.
+"""Whole scenes placed by `dit_jax.scenes.scene.register_scene`, timed: the seconds per scan a user waits for.
 
     python benchmarks/register_scene.py --scenes ../shared/data/3dmatch          # each scene folder in turn
     python benchmarks/register_scene.py --scenes ../shared/data/3dmatch/hotel3   # one
@@ -19,8 +19,10 @@ import json
 import os
 import time
 
-from dit_jax import io, registration, scene
+from dit_jax import io
 from dit_jax.evaluators.scenes import scene_folders
+from dit_jax.pipeline import registration
+from dit_jax.scenes import scene
 from dit_jax.training.precision import cpu_model
 
 

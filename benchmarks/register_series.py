@@ -1,5 +1,5 @@
 """A real scan series into one frame: every scan of a Stanford .conf series registered onto the one before,
-chained, and the loop closed (`dit_jax.series`), against the poses the .conf records.
+chained, and the loop closed (`dit_jax.scenes.series`), against the poses the .conf records.
 
     python benchmarks/register_series.py --scans ../shared/data/stanford_dragon_stand [--refine icp] [--plot F.png]
 
@@ -17,15 +17,17 @@ import time
 
 import numpy as np
 
-from dit_jax import geometry, registration, series
 from dit_jax.data import scans as scan_data
+from dit_jax.geometry import rigid
+from dit_jax.pipeline import registration
+from dit_jax.scenes import series
 
 
 def pose_errors(poses: np.ndarray, truth: np.ndarray, clouds) -> tuple[np.ndarray, np.ndarray]:
     """Rotation errors (degrees) of (K, 4, 4) poses against the truth, and how far each scan's points land
     from where the true pose puts them (mean distance): the merged cloud's error, which a pose's translation
     alone (at the scanner's origin, far from the object) does not measure."""
-    rotation = np.array([geometry.rotation_angle_deg(p[:3, :3].T @ q[:3, :3]) for p, q in zip(poses, truth)])
+    rotation = np.array([rigid.rotation_angle_deg(p[:3, :3].T @ q[:3, :3]) for p, q in zip(poses, truth)])
     offsets = [
         np.linalg.norm(c @ (p[:3, :3] - q[:3, :3]).T + (p[:3, 3] - q[:3, 3]), axis=1).mean()
         for p, q, c in zip(poses, truth, clouds)
@@ -104,9 +106,7 @@ def main() -> None:
         f"and {result.loop_gap:.5f} ({result.loop_gap / extent:.4f} of the first scan's diagonal)\n"
     )
     link_truth = [np.linalg.inv(truth[target]) @ truth[source] for source, target in result.pairs]
-    link_errors = [
-        geometry.rotation_angle_deg(link.rotation.T @ t[:3, :3]) for link, t in zip(result.links, link_truth)
-    ]
+    link_errors = [rigid.rotation_angle_deg(link.rotation.T @ t[:3, :3]) for link, t in zip(result.links, link_truth)]
     print(
         "| scan | link into it: verdict / its own error (deg) | chained: deg / points off | loop closed: deg / "
         "points off |\n|---|---|---|---|"

@@ -47,8 +47,9 @@ def main() -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from dit_jax import head, training
+    from dit_jax import training
     from dit_jax.data import pairs, pipeline, shapes
+    from dit_jax.network import head
 
     base = training.load_config("configs/quick.py")
     if no_tfds:  # the same shapes in the same order as the TFDS-prepared copy

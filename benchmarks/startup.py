@@ -1,12 +1,12 @@
 """What a user waits for, from Python and from the shell, on one pair: start-up, loading, the first and later
-registrations, with JAX's persistent compilation cache (dit_jax.compile_cache) empty and filled.
+registrations, with JAX's persistent compilation cache (dit_jax.network.compile_cache) empty and filled.
 
     python benchmarks/startup.py                     # the README's example pair
     python benchmarks/startup.py --src a.ply --tgt b.ply --repeats 5
 
 Three parts, each call a fresh process:
 
-* **Python API**: a session that imports JAX, imports ``dit_jax.registration``, ``load()``s the shipped
+* **Python API**: a session that imports JAX, imports ``dit_jax.pipeline.registration``, ``load()``s the shipped
   weights, reads the pair and registers it three times (the first call compiles or reads its programs from
   the cache), then once with ``refine="none"``; run with an empty cache (a machine's first-ever call), then
   twice more on it (the second of those is a warm cache's).
@@ -44,7 +44,7 @@ out = io.StringIO()
 with contextlib.redirect_stdout(out):
     status = cli.main(sys.argv[1:])
 print(json.dumps({"started": started, "returned": time.time(), "status": status, "report": out.getvalue()}), flush=True)
-os._exit(0)  # as the console script leaves (dit_jax.cli._console_script)
+os._exit(0)  # as the console script leaves (dit_jax.cli.files.console_script)
 """
 
 # A Python user's session, each step timed.

@@ -13,7 +13,7 @@ import numpy as np
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
 from dit_jax.features import matching
-from dit_jax.geometry import rotation_angle_deg
+from dit_jax.geometry.rigid import rotation_angle_deg
 
 #: The weak term's amplitude: the half turn about x is broken by this much of the radius.
 ASYMMETRY = 0.1

@@ -1,6 +1,6 @@
 """A CPU-sized network and point count that learns in hours on two cores."""
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import TrainConfig
 
 

@@ -1,7 +1,7 @@
 """The authors' recipe (docs/network.md, section 11): the paper's network, 1000 points, batch 2, Adam 3e-5,
 weight decay 1e-4, the learning rate dropped at 30, 60 and 80 % of the run."""
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import TrainConfig
 
 

@@ -1,7 +1,7 @@
 """What ``python train.py`` runs: the ``cpu`` network on the embedded set, 256 points, 4 epochs; a short run
 that ends within minutes on two CPU cores."""
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import TrainConfig
 
 

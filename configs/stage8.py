@@ -1,4 +1,4 @@
-"""A training stage from the shipped weights (dit_jax/weights/dit-cpu-modelnet40), to spend more compute on the
+"""A training stage from the shipped weights (dit_jax/network/weights/dit-cpu-modelnet40), to spend more compute on the
 network alone: run 7's mix of settings (configs/shipped/run7.py) with every cloud of more than 384 points
 thinned by a sampler drawn per cloud, clouds taken from 1000 points of each shape (so that a clean pair's two
 clouds share fewer points), fresh pairs (seed 9, never drawn by an earlier run), and wider turns: each Euler
@@ -22,7 +22,7 @@ def get_config():
     before = load_config(os.path.join(os.path.dirname(__file__), "shipped", "run7.py"))  # run 7's recipe, changed:
     return dataclasses.replace(
         before,
-        init_from="dit_jax/weights/dit-cpu-modelnet40",
+        init_from="dit_jax/network/weights/dit-cpu-modelnet40",
         seed=9,
         n_points=1000,
         max_angle=60.0,

@@ -1,7 +1,7 @@
 """The smallest network, for tests: a few steps on 64-point clouds, a mix of a clean and a partial setting
 (one cloud size for both, so one compiled train step)."""
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import TrainConfig
 
 

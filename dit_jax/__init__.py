@@ -15,12 +15,13 @@ import importlib
 
 #: Public name -> (module, attribute or None for the module itself).
 _EXPORTS = {
-    "configs": ("dit_jax.configs", None),
-    "DITConfig": ("dit_jax.configs", "DITConfig"),
-    "features": ("dit_jax.model", "features"),
-    "forward": ("dit_jax.model", "forward"),
-    "init": ("dit_jax.model", "init"),
-    "register": ("dit_jax.model", "register"),
+    "configs": ("dit_jax.network.configs", None),
+    "DITConfig": ("dit_jax.network.configs", "DITConfig"),
+    "features": ("dit_jax.network.model", "features"),
+    "forward": ("dit_jax.network.model", "forward"),
+    "init": ("dit_jax.network.model", "init"),
+    "register": ("dit_jax.network.model", "register"),
+    "registration": ("dit_jax.pipeline.registration", None),
 }
 
 __all__ = list(_EXPORTS)

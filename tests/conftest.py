@@ -38,7 +38,7 @@ if "DIT_JAX_COMPILE_CACHE" not in os.environ:
     _TEST_CACHE = tempfile.mkdtemp(prefix="dit-jax-test-xla-")
     os.environ["DIT_JAX_COMPILE_CACHE"] = os.environ["DIT_JAX_TEST_XLA_CACHE"] = _TEST_CACHE
 if os.environ.get("DIT_JAX_TEST_XLA_CACHE") == os.environ["DIT_JAX_COMPILE_CACHE"]:
-    from dit_jax import compile_cache
+    from dit_jax.network import compile_cache
 
     compile_cache.enable(os.environ["DIT_JAX_COMPILE_CACHE"])
 
@@ -110,7 +110,7 @@ def tiny_checkpoint(tmp_path_factory) -> str:
     and the file handling around the network, not of its accuracy."""
     import jax
 
-    from dit_jax import checkpoint, configs, model
+    from dit_jax.network import checkpoint, configs, model
 
     config = configs.tiny()
     path = tmp_path_factory.mktemp("ckpt") / "tiny"
@@ -143,7 +143,8 @@ def shipped():
     """(params, DITConfig) of the shipped weights, for tests that compare two compiled programs' registrations:
     trained weights on pairs they register keep GMCCE's inlier sets clear of its thresholds, where untrained
     ones keep one or two matches that the last bits of either program decide (1.5 apart in rotation)."""
-    from dit_jax import checkpoint, registration
+    from dit_jax.network import checkpoint
+    from dit_jax.pipeline import registration
 
     return checkpoint.restore(registration.shipped_weights())
 
@@ -152,7 +153,7 @@ def shared_point_pairs(seed: int, n: int, m: int, batch: int, turn_deg: float = 
     """Pairs the shipped network registers to a hundredth of a degree: ``src`` (batch, n, 3) points of a bumpy
     sphere, ``tgt`` (batch, m, 3) m of them turned by ``turn_deg`` about a random axis and moved, float32; and
     each pair's turn (batch, 3, 3) float64. GMCCE keeps half of the matches or more on them."""
-    from dit_jax import geometry
+    from dit_jax.geometry import rigid
 
     rng = np.random.default_rng(seed)
     src, tgt, turns = [], [], []
@@ -160,7 +161,7 @@ def shared_point_pairs(seed: int, n: int, m: int, batch: int, turn_deg: float = 
         directions = rng.normal(size=(n, 3))
         directions /= np.linalg.norm(directions, axis=1, keepdims=True)
         points = directions * (1.0 + 0.2 * np.sin(3 * directions[:, :1]) * np.cos(2 * directions[:, 1:2]))
-        turn = geometry.axis_angle_matrix(rng.normal(size=3), turn_deg)
+        turn = rigid.axis_angle_matrix(rng.normal(size=3), turn_deg)
         src.append(points)
         tgt.append(points[rng.permutation(n)[:m]] @ turn.T + 0.05)
         turns.append(turn)
@@ -315,7 +316,7 @@ def box_room(n: int, seed: int) -> np.ndarray:
 
 
 def rendered_legend(path) -> list[str]:
-    """The legend entries of an HTML page (dit_jax.view) as headless Chromium renders it, after its script ran;
+    """The legend entries of an HTML page (dit_jax.pictures.view) as headless Chromium renders it, after its script ran;
     skips where no Chromium is installed (Debian: apt-get install chromium)."""
     import re
     import shutil
@@ -336,19 +337,20 @@ def rendered_legend(path) -> list[str]:
 
 
 def scan_set(clouds):
-    """``clouds`` as a :class:`dit_jax.pipeline.ScanSet` without features, as a stand-in registrar's
+    """``clouds`` as a :class:`dit_jax.pipeline.stages.ScanSet` without features, as a stand-in registrar's
     ``prepare_scans`` returns them (a ScanSet is returned as it is)."""
-    from dit_jax import icp, pipeline
+    from dit_jax.geometry import neighbours
+    from dit_jax.pipeline import stages
 
-    if isinstance(clouds, pipeline.ScanSet):
+    if isinstance(clouds, stages.ScanSet):
         return clouds
-    return pipeline.ScanSet(list(clouds), None, [-1] * len(clouds), [icp.point_spacing(c) for c in clouds])
+    return stages.ScanSet(list(clouds), None, [-1] * len(clouds), [neighbours.point_spacing(c) for c in clouds])
 
 
 def exact_result(motion: np.ndarray, level: str, fitness: float = 0.9):
-    """A :class:`dit_jax.result.Result` of ``motion`` (4, 4) at the verdict's ``level``, as a stand-in
+    """A :class:`dit_jax.pipeline.result.Result` of ``motion`` (4, 4) at the verdict's ``level``, as a stand-in
     registrar returns it."""
-    from dit_jax.result import Result
+    from dit_jax.pipeline.result import Result
 
     return Result(
         motion[:3, :3],

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dit_jax import baselines, metrics
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.evaluators import baselines, metrics
 
 pytest.importorskip("open3d", reason="the baselines need Open3D (pip install 'dit-jax[baselines]')")
 
@@ -60,9 +60,9 @@ def test_every_method_and_setting_has_tuned_options_recorded_in_docs():
 
 
 def test_refine_option_refines_as_dit_does(modelnet_shapes):
-    """``icp_method="refine"`` is DIT+ICP's refinement (dit_jax.icp.refine), the schedule fields unused; the
+    """``icp_method="refine"`` is DIT+ICP's refinement (dit_jax.geometry.icp_refine.refine), the schedule fields unused; the
     shipped choice uses it only where tools/compare_baseline_refinement.py recorded why."""
-    from dit_jax import icp
+    from dit_jax.geometry import icp, icp_refine
 
     rng = np.random.default_rng(4)
     x = modelnet_shapes[5][:1000].astype(np.float64)
@@ -71,7 +71,7 @@ def test_refine_option_refines_as_dit_does(modelnet_shapes):
     start = euler_zyx_to_matrix(np.array([23.0, -8.0, 13.0])), np.array([0.12, 0.02, -0.05])
     options = baselines.Options(icp_method=baselines.REFINE, icp_distances=(0.5,), icp_iterations=1)
     rotation, translation = baselines.refine(x, y, *start, options)
-    expected = icp.refine(x, y, *start)
+    expected = icp_refine.refine(x, y, *start)
     np.testing.assert_array_equal(rotation, expected.rotation)
     np.testing.assert_array_equal(translation, expected.translation)
     assert float(metrics.rotation_error_deg(jnp.asarray(rotation), jnp.asarray(r_gt))) < 1.0
@@ -99,7 +99,7 @@ def test_dense_clouds_are_downsampled_for_features(modelnet_shapes):
 def test_open3d_multiway_places_views_of_one_surface_in_the_first_one_s_frame():
     """The scenes' baseline: three independent samplings of one bumpy surface, each in its own frame, come back
     as poses into scan 0's frame close to the truth."""
-    from dit_jax.geometry import rotation_angle_deg
+    from dit_jax.geometry.rigid import rotation_angle_deg
 
     poses, clouds = [], []
     for k in range(3):

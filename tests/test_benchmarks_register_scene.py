@@ -27,7 +27,8 @@ class _Truth:
 
 
 def test_a_scene_is_timed_and_recorded(tmp_path, monkeypatch, capsys):
-    from dit_jax import io, registration
+    from dit_jax import io
+    from dit_jax.pipeline import registration
 
     rng = np.random.default_rng(0)
     poses = write_3dmatch_scene(tmp_path / "room", rng.normal(size=(200, 3)), rng, fragments=(0, 1, 2))

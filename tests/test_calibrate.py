@@ -5,7 +5,8 @@ import calibrate
 import jax
 import numpy as np
 
-from dit_jax import checkpoint, configs, model, registration
+from dit_jax.network import checkpoint, configs, model
+from dit_jax.pipeline import registration
 
 
 def _evidence(errors, agreement, settings):

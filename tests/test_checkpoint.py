@@ -5,7 +5,7 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model
+from dit_jax.network import checkpoint, configs, model
 
 
 def test_save_restore_round_trip(tmp_path):
@@ -88,7 +88,7 @@ def test_restore_keeps_a_plain_copy_in_the_cache_and_reads_it_without_orbax(tmp_
     """With the compilation cache on, the first restore writes the params' plain copy and later ones read it
     (orbax's restore is not called), bit for bit; a damaged copy is restored through orbax again and
     rewritten; another checkpoint's params at the same path get a copy of their own."""
-    from dit_jax import compile_cache
+    from dit_jax.network import compile_cache
 
     monkeypatch.setitem(compile_cache._enabled, "directory", str(tmp_path / "cache"))
     config = configs.tiny()

@@ -11,8 +11,11 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, cli, configs, io, model, network_stage
+from dit_jax import io
+from dit_jax.cli import register
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.network import checkpoint, configs, model
+from dit_jax.pipeline import network_stage
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +34,7 @@ def pair(tmp_path_factory):
 
 
 def run(capsys, *argv):
-    code = cli.main([str(a) for a in argv])
+    code = register.main([str(a) for a in argv])
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -62,7 +65,7 @@ def test_json_output_and_icp_by_default(capsys, tiny_checkpoint, pair):
     )
     assert code == 0 and json.loads(out)["refinement"] is None and json.loads(out)["refine_seconds"] == 0
     # --help names where --best-direction's default lives: the checkpoint's inference settings.
-    option_help = " ".join(cli._parser().format_help().split()).split("--best-direction")[-1]
+    option_help = " ".join(register._parser().format_help().split()).split("--best-direction")[-1]
     assert "(default: the checkpoint's)" in option_help.split("--no-verdict-status")[0]
 
 
@@ -350,7 +353,7 @@ def test_clouds_of_different_units_warn_but_still_register(capsys, tmp_path, tin
 def test_console_script_exit_status(tmp_path):
     """The installed entry point, as a user runs it: no traceback, status 2."""
     proc = subprocess.run(
-        [sys.executable, "-m", "dit_jax.cli", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],
+        [sys.executable, "-m", "dit_jax.cli.register", str(tmp_path / "a.ply"), str(tmp_path / "b.ply")],
         capture_output=True,
         text=True,
         timeout=120,
@@ -534,7 +537,7 @@ def test_refine_and_plot_on_the_readme_example_pair(capsys, tmp_path):
     less closely than its threshold, in a band with too few validation results to vouch for it, so it is
     "probably wrong" (status 3); DIT+ICP's two directions agree within the shipped threshold, so it is
     "trusted" (status 0), as the README shows. These 400-point clouds get no second candidate."""
-    from dit_jax.geometry import rotation_angle_deg
+    from dit_jax.geometry.rigid import rotation_angle_deg
 
     examples = os.path.join(os.path.dirname(__file__), "..", "examples")
     truth = np.loadtxt(os.path.join(examples, "chair_truth.txt"))
@@ -574,7 +577,7 @@ def test_real_scans_refined_by_default_land_within_a_few_degrees(capsys, dragon_
     (both directions agree); the other with the one-direction fitness verdict, which is all this accuracy
     check needs."""
     from dit_jax.data import scans
-    from dit_jax.geometry import rotation_angle_deg
+    from dit_jax.geometry.rigid import rotation_angle_deg
 
     series = {s.name: s for s in scans.load_scans(dragon_dir)}
     for source, target, bound in (
@@ -735,7 +738,7 @@ def test_two_processes_on_one_results_file_register_each_pair_once(tmp_path, tin
     """Two shards and a duplicate of one of them, at once, on one file: every pair has exactly one record."""
     listing = _pair_list(tmp_path, pair, 8)
     results = tmp_path / "results.jsonl"
-    base = [sys.executable, "-m", "dit_jax.cli", *map(str, _list_args(listing, results, tiny_checkpoint))]
+    base = [sys.executable, "-m", "dit_jax.cli.register", *map(str, _list_args(listing, results, tiny_checkpoint))]
     runs = [
         subprocess.Popen([*base, "--shard", shard, "--no-verdict-status"], stderr=subprocess.PIPE, text=True)
         for shard in ("0/2", "1/2", "0/2")

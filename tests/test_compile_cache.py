@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from dit_jax import compile_cache
+from dit_jax.network import compile_cache
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -32,7 +32,7 @@ def _register(cache_args):
     command = [
         sys.executable,
         "-m",
-        "dit_jax.cli",
+        "dit_jax.cli.register",
         "examples/chair_src.ply",
         "examples/chair_tgt.pcd",
         "--points",
@@ -61,7 +61,7 @@ def test_a_second_dit_register_reuses_the_first_ones_programs(tmp_path):
     second = _register(["--compile-cache", str(cache), "--out", str(moved)])
     assert {p.relative_to(cache) for p in cache.rglob("*")} == entries
     assert second == first
-    # The console script leaves without Python's shutdown (cli._console_script): its output is whole.
+    # The console script leaves without Python's shutdown (dit_jax.cli.files.console_script): its output is whole.
     from dit_jax import io
 
     assert io.read(str(moved)).shape == io.read("examples/chair_src.ply").shape
@@ -172,7 +172,7 @@ def test_the_python_api_keeps_programs_and_weights_in_the_cache_by_default(tmp_p
 
 
 def test_load_turns_the_cache_on_unless_told_not_to_or_one_is_on(monkeypatch, tmp_path):
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     turned_on = []
     monkeypatch.setattr(compile_cache, "enable", lambda directory: turned_on.append(directory))

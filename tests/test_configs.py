@@ -1,6 +1,6 @@
 import pytest
 
-from dit_jax import configs
+from dit_jax.network import configs
 
 
 def test_paper_config_matches_the_paper():

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from conftest import TEST_DATA
 
-from dit_jax import checkpoint, configs, convert, model, torch_pickle
+from dit_jax.network import checkpoint, configs, convert, model, torch_pickle
 
 
 def _equal_trees(a, b):

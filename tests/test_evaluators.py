@@ -1,3 +1,4 @@
+import importlib
 import json
 import os
 
@@ -5,11 +6,12 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, registration, settings
 from dit_jax import evaluators as evaluation
 from dit_jax.data import scans as scans_lib
 from dit_jax.evaluators import common, report, synthetic
 from dit_jax.evaluators import scans as scans_evaluator
+from dit_jax.network import checkpoint, configs, model
+from dit_jax.pipeline import registration, settings
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +25,7 @@ def tiny_checkpoint(tmp_path_factory):
 
 
 def test_evaluate_end_to_end_writes_tables_json_and_plots(tiny_checkpoint, tmp_path, prepared_dir):
-    names = ["icp"] if __import__("dit_jax.baselines").baselines.available() else []
+    names = ["icp"] if importlib.import_module("dit_jax.evaluators.baselines").available() else []
     out = tmp_path / "eval"
     evaluation.evaluate(
         tiny_checkpoint,
@@ -270,7 +272,7 @@ def test_evaluate_cli_reports_a_missing_checkpoint(tmp_path, capsys):
 
 def test_evaluate_cli_uses_the_shipped_weights_by_default(tmp_path, capsys):
     import evaluate
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     assert evaluate.main(["--max-pairs", "2", "--out", str(tmp_path), "--no-progress", "--verdict", "fitness"]) == 0
     saved = json.loads((tmp_path / "results.json").read_text())
@@ -335,9 +337,9 @@ def test_reuse_reads_an_option_a_record_predates_at_its_default():
 def test_refinement_never_makes_clean_pairs_worse_and_records_tuned_options(tmp_path, prepared_dir):
     """The shipped weights on clean pairs (DIT alone exact to about 1e-3 degrees): ICP after them makes no
     pair worse on average, and every baseline row records the options it ran with (tuned for the setting)."""
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
-    baselines = __import__("dit_jax.baselines").baselines
+    baselines = importlib.import_module("dit_jax.evaluators.baselines")
     names = ["fpfh_ransac_icp"] if baselines.available() else []
     results = evaluation.evaluate(
         registration.shipped_weights(),
@@ -403,9 +405,9 @@ def test_evaluation_registers_each_pair_as_register_does(tiny_checkpoint, tmp_pa
     scored is the one ``register`` returns for that pair (the network's and the refined one)."""
     import jax.numpy as jnp
 
-    from dit_jax import metrics
     from dit_jax.data import pairs as pairs_lib
     from dit_jax.data import shapes as shapes_lib
+    from dit_jax.evaluators import metrics
 
     registrar = registration.load(tiny_checkpoint)
     results = evaluation.evaluate(
@@ -478,7 +480,7 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     truth = np.stack([poses[k] for k in range(4)])
     # Fragment 3 onto fragment 0 is found probably wrong: the scene still places 3 through 1 and 2.
     registrar = _SceneTruth(clouds, truth, wrong=[(3, 0)])
-    from dit_jax import baselines
+    from dit_jax.evaluators import baselines
 
     # A whole-scene baseline that places every fragment right but fragment 2, half a metre off.
     off = np.linalg.inv(truth[0]) @ truth
@@ -528,8 +530,9 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
 def test_a_benchmark_pair_the_scene_did_not_register_is_registered_for_the_pairwise_column(tmp_path, monkeypatch):
     from conftest import write_3dmatch_scene
 
-    from dit_jax import io, scene
+    from dit_jax import io
     from dit_jax.evaluators import scenes
+    from dit_jax.scenes import scene
 
     monkeypatch.setattr(scene, "MAX_ROUNDS", 0)  # the neighbours alone: (4, 0) is none of them
     rng = np.random.default_rng(5)

@@ -6,7 +6,7 @@ import pytest
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
 from dit_jax.features import compatibility
-from dit_jax.geometry import rotation_angle_deg
+from dit_jax.geometry.rigid import rotation_angle_deg
 
 
 def _outlier_matches(count: int, share_right: float, seed: int):

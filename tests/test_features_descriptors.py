@@ -6,7 +6,7 @@ from conftest import box_room
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
 from dit_jax.features import descriptors, matching
-from dit_jax.geometry import rotation_angle_deg
+from dit_jax.geometry.rigid import rotation_angle_deg
 
 pytest.importorskip("open3d")
 

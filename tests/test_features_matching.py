@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from conftest import box_room
 
-from dit_jax import verdict
 from dit_jax.data.pairs import euler_zyx_to_matrix
 from dit_jax.features import matching
-from dit_jax.geometry import rotation_angle_deg
+from dit_jax.geometry.rigid import rotation_angle_deg
+from dit_jax.pipeline import verdict
 
 pytest.importorskip("open3d")
 
@@ -148,7 +148,7 @@ def test_a_box_room_fits_its_quarter_turned_twin_and_a_bumpy_surface_does_not():
 def test_icp_on_tensor_clouds_gives_the_legacy_motion_and_large_clouds_are_thinned_for_it():
     """ICP runs on Open3D's tensor clouds: the same point-to-plane ICP as the legacy call, started alike, lands
     on the same motion. Clouds over ICP_POINTS are thinned for ICP, smaller ones not."""
-    from dit_jax.icp import point_spacing
+    from dit_jax.geometry.neighbours import point_spacing
 
     o3d = matching._o3d()
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)

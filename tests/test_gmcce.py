@@ -3,7 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 from conftest import random_rotation
 
-from dit_jax import gmcce
+from dit_jax.network import gmcce
 
 #: GMCCE's weights as the registration's program computes them, jitted: one compiled program for the
 #: ModelNet shapes' size, where op-by-op dispatch compiles each operation.

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax.head import TemperatureNet
+from dit_jax.network.head import TemperatureNet
 
 
 def _net_at_lower_clamp():
@@ -45,8 +45,8 @@ def test_a_gmcce_threshold_passed_as_an_array_is_the_configs_threshold():
     """``gmcce_threshold`` as an array (how settings with different thresholds share one compiled program)
     gives what the config's own threshold gives, and a threshold the confidences straddle changes the
     weights, so the array is what decides."""
-    from dit_jax import configs
-    from dit_jax.head import head
+    from dit_jax.network import configs
+    from dit_jax.network.head import head
 
     rng = np.random.default_rng(0)
     src = jnp.asarray(rng.uniform(-1, 1, (40, 3)), jnp.float32)

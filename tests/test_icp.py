@@ -1,4 +1,4 @@
-"""ICP (dit_jax.icp): the refinement after DIT and the baselines' global estimates."""
+"""ICP (dit_jax.geometry.icp): the refinement after DIT and the baselines' global estimates."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dit_jax import icp
 from dit_jax.data.pairs import euler_zyx_to_matrix
-from dit_jax.plotting import rotation_angle_deg
+from dit_jax.geometry import gicp, icp, icp_refine, neighbours
+from dit_jax.pictures.plotting import rotation_angle_deg
 
 
 def _surface(n: int, seed: int = 0) -> np.ndarray:
@@ -113,7 +113,7 @@ def test_refine_pairs_shared_points_exactly_from_a_close_start():
     truth = euler_zyx_to_matrix([10.0, 20.0, -5.0])
     tgt = src[::-1] @ truth.T + 0.2
     start = euler_zyx_to_matrix([0.03, -0.02, 0.03]) @ truth
-    result = icp.refine(src, tgt, start, np.full(3, 0.2))
+    result = icp_refine.refine(src, tgt, start, np.full(3, 0.2))
     assert rotation_angle_deg(result.rotation.T @ truth) < 1e-4 and result.iterations > 0
 
 
@@ -123,7 +123,7 @@ def test_refine_brings_independent_samples_from_eight_degrees_to_about_one():
     points = _surface(4000, seed=1) * [1.0, 0.7, 0.45]
     truth = euler_zyx_to_matrix([-15.0, 25.0, 5.0])
     start = euler_zyx_to_matrix([6.0, -4.0, 3.0]) @ truth
-    result = icp.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3))
+    result = icp_refine.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3))
     assert rotation_angle_deg(start.T @ truth) > 7
     assert rotation_angle_deg(result.rotation.T @ truth) < 1.5
 
@@ -137,13 +137,13 @@ def test_refine_thins_a_dense_target_and_lands_where_the_whole_one_does():
     truth = euler_zyx_to_matrix([20.0, -10.0, 15.0])
     start = euler_zyx_to_matrix([5.0, 3.0, -4.0]) @ truth
     src, tgt = points[:2000], points[2000:] @ truth.T
-    whole = icp.refine(src, tgt, start, np.zeros(3), max_target_points=None)
-    thinned = icp.refine(src, tgt, start, np.zeros(3), max_target_points=11000)
+    whole = icp_refine.refine(src, tgt, start, np.zeros(3), max_target_points=None)
+    thinned = icp_refine.refine(src, tgt, start, np.zeros(3), max_target_points=11000)
     assert rotation_angle_deg(whole.rotation.T @ truth) < 0.3
     assert rotation_angle_deg(thinned.rotation.T @ truth) < 0.3
     assert rotation_angle_deg(thinned.rotation.T @ whole.rotation) < 0.3
     assert not np.array_equal(thinned.rotation, whole.rotation)  # it did pair a subset
-    at_limit = icp.refine(src, tgt, start, np.zeros(3), max_target_points=len(tgt))
+    at_limit = icp_refine.refine(src, tgt, start, np.zeros(3), max_target_points=len(tgt))
     np.testing.assert_array_equal(at_limit.rotation, whole.rotation)
     assert icp.TARGET_POINTS >= 42_000  # the dragon's scans, and every ModelNet40 pair, are used whole
 
@@ -152,11 +152,11 @@ def test_refine_refuses_to_move_points_further_than_max_shift():
     points = _surface(4000, seed=1) * [1.0, 0.7, 0.45]
     truth = euler_zyx_to_matrix([-15.0, 25.0, 5.0])
     start = euler_zyx_to_matrix([6.0, -4.0, 3.0]) @ truth
-    moved = icp.mean_shift(points[:2000], start, np.zeros(3), truth, np.zeros(3))
-    kept = icp.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3), max_shift=moved / 2)
+    moved = icp_refine.mean_shift(points[:2000], start, np.zeros(3), truth, np.zeros(3))
+    kept = icp_refine.refine(points[:2000], points[2000:] @ truth.T, start, np.zeros(3), max_shift=moved / 2)
     np.testing.assert_array_equal(kept.rotation, start)
     assert kept.iterations == 0 and np.isfinite(kept.rmse)
-    scaled = icp.refine(
+    scaled = icp_refine.refine(
         points[:2000] * 10, (points[2000:] @ truth.T) * 10, start, np.zeros(3), scale=10.0, max_shift=2 * moved
     )  # the limit is in radii: 10x larger clouds, same decision
     assert rotation_angle_deg(scaled.rotation.T @ truth) < 1.5 and scaled.iterations > 0
@@ -206,7 +206,7 @@ def test_refine_brings_a_start_within_ten_degrees_to_within_one_on_noisy_partial
         off = euler_zyx_to_matrix(angle * axis / np.linalg.norm(axis))
         start = truth @ off
         assert rotation_angle_deg(start.T @ truth) > 0.5 * angle
-        result = icp.refine(src, tgt, start, t + 0.02)
+        result = icp_refine.refine(src, tgt, start, t + 0.02)
         assert rotation_angle_deg(result.rotation.T @ truth) < 1.0
 
 
@@ -215,13 +215,13 @@ def test_refine_never_hands_back_a_worse_fit_than_its_start():
     from scipy.spatial import cKDTree
 
     src, tgt, truth, t = _partial_noisy_pair(3, noise=0.0)
-    exact = icp.refine(src, tgt, truth, t)
+    exact = icp_refine.refine(src, tgt, truth, t)
     assert rotation_angle_deg(exact.rotation.T @ truth) < 1e-6
     src, tgt, truth, t = _partial_noisy_pair(4)
     tree = cKDTree(tgt)
     for angle in (0.0, 2.0, 15.0):
         start = euler_zyx_to_matrix([angle, 0.0, 0.0]) @ truth
-        result = icp.refine(src, tgt, start, t)
+        result = icp_refine.refine(src, tgt, start, t)
         assert icp.trimmed_fit(src, tree, result.rotation, result.translation) <= icp.trimmed_fit(src, tree, start, t)
 
 
@@ -246,8 +246,8 @@ def test_translation_search_pulls_back_views_slid_along_each_other(seed):
     and stops about 0.2 off; descending again from the best offsets of the translation grid finds the truth."""
     src, tgt, truth, t = _box_views(seed)
     start, shifted = euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0]
-    plain = icp.refine(src, tgt, start, shifted, translation_search=None)
-    searched = icp.refine(src, tgt, start, shifted)
+    plain = icp_refine.refine(src, tgt, start, shifted, translation_search=None)
+    searched = icp_refine.refine(src, tgt, start, shifted)
     assert np.linalg.norm(plain.translation - t) > 0.1
     assert np.linalg.norm(searched.translation - t) < 0.01
     assert rotation_angle_deg(searched.rotation.T @ truth) < 1.0
@@ -257,13 +257,13 @@ def test_refine_gives_one_result_whatever_its_query_threads():
     """On a large target the nearest points are queried in threads; the result (motion, fit, iterations)
     must be the one of a single thread."""
     src, tgt, truth, t = _box_views(2)
-    copies = -(-icp.PARALLEL_MIN_TARGET // len(tgt))  # past it: scipy's tree, queried in threads
+    copies = -(-neighbours.PARALLEL_MIN_TARGET // len(tgt))  # past it: scipy's tree, queried in threads
     tgt = np.concatenate([tgt + np.random.default_rng(k).normal(scale=1e-4, size=tgt.shape) for k in range(copies)])
-    assert len(tgt) >= icp.PARALLEL_MIN_TARGET
+    assert len(tgt) >= neighbours.PARALLEL_MIN_TARGET
     start, shifted = euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0]
-    serial = icp.refine(src, tgt, start, shifted, workers=1)
+    serial = icp_refine.refine(src, tgt, start, shifted, workers=1)
     for workers in (None, 2):
-        threaded = icp.refine(src, tgt, start, shifted, workers=workers)
+        threaded = icp_refine.refine(src, tgt, start, shifted, workers=workers)
         np.testing.assert_array_equal(threaded.rotation, serial.rotation)
         np.testing.assert_array_equal(threaded.translation, serial.translation)
         assert (threaded.fitness, threaded.rmse, threaded.iterations) == (
@@ -289,10 +289,10 @@ def test_trimmed_fit_scores_many_translations_at_once_and_caps_far_points():
 
 
 def test_best_start_keeps_the_first_unless_another_fits_clearly_better():
-    assert icp.best_start([1.0, 0.75, 2.0]) == 0  # within the margin: the unturned start stays
-    assert icp.best_start([1.0, 0.5, 0.8]) == 1
-    assert icp.best_start([1.0, 0.75, 2.0], margin=1.0) == 1
-    assert icp.best_start([0.0, 0.0]) == 0  # an exact first fit is never displaced
+    assert icp_refine.best_start([1.0, 0.75, 2.0]) == 0  # within the margin: the unturned start stays
+    assert icp_refine.best_start([1.0, 0.5, 0.8]) == 1
+    assert icp_refine.best_start([1.0, 0.75, 2.0], margin=1.0) == 1
+    assert icp_refine.best_start([0.0, 0.0]) == 0  # an exact first fit is never displaced
 
 
 def test_start_scores_rank_the_start_near_the_truth_first():
@@ -304,9 +304,9 @@ def test_start_scores_rank_the_start_near_the_truth_first():
     t = np.array([0.2, 0.1, -0.3])
     tgt = tgt @ truth.T + t
     starts = [euler_zyx_to_matrix(a) @ truth for a in ([90.0, 0.0, 0.0], [5.0, -3.0, 0.0], [0.0, 180.0, 0.0])]
-    scores = icp.start_scores(src, tgt, (np.stack(starts), np.stack([t] * 3)))
+    scores = icp_refine.start_scores(src, tgt, (np.stack(starts), np.stack([t] * 3)))
     assert scores.shape == (3,) and np.argmin(scores) == 1
-    assert icp.best_start(scores) == 1
+    assert icp_refine.best_start(scores) == 1
 
 
 def test_gicp_refinement_lands_on_an_independently_sampled_surface_in_any_units():
@@ -318,9 +318,9 @@ def test_gicp_refinement_lands_on_an_independently_sampled_surface_in_any_units(
     truth, t_truth = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([0.3, -0.1, 0.2])
     tgt = other @ truth.T + t_truth
     start = euler_zyx_to_matrix([4.0, 3.0, -3.0]) @ truth
-    metres = icp.refine_gicp(src, tgt, start, t_truth + 0.05, threads=2)
+    metres = gicp.refine_gicp(src, tgt, start, t_truth + 0.05, threads=2)
     assert rotation_angle_deg(metres.rotation.T @ truth) < 0.5 and metres.iterations > 0
-    millimetres = icp.refine_gicp(src * 1000, tgt * 1000, start, (t_truth + 0.05) * 1000, threads=2)
+    millimetres = gicp.refine_gicp(src * 1000, tgt * 1000, start, (t_truth + 0.05) * 1000, threads=2)
     assert rotation_angle_deg(millimetres.rotation.T @ metres.rotation) < 0.01
     np.testing.assert_allclose(millimetres.translation / 1000, metres.translation, atol=1e-4)
 
@@ -334,7 +334,7 @@ def test_gicp_refinement_never_fits_worse_than_its_start():
     src = _surface(3000, seed=3)
     tgt = _surface(3000, seed=4)
     start = euler_zyx_to_matrix([180.0, 0.0, 40.0])
-    result = icp.refine_gicp(src, tgt, start, np.zeros(3), threads=1)
+    result = gicp.refine_gicp(src, tgt, start, np.zeros(3), threads=1)
     tree = cKDTree(tgt)
     assert icp.trimmed_fit(src, tree, result.rotation, result.translation) <= icp.trimmed_fit(
         src, tree, start, np.zeros(3)
@@ -349,7 +349,7 @@ def test_overlap_counts_the_source_points_that_land_on_the_target():
     src, other = _surface(4000, seed=5), _surface(4000, seed=6)
     truth, t_truth = euler_zyx_to_matrix([30.0, -20.0, 10.0]), np.array([0.3, -0.1, 0.2])
     tgt = other @ truth.T + t_truth
-    radius = 2 * icp.point_spacing(tgt)
+    radius = 2 * neighbours.point_spacing(tgt)
     turned = euler_zyx_to_matrix([30.0, 0.0, 0.0]) @ truth
     shares = icp.overlap(src, tgt, [(truth, t_truth), (turned, t_truth), (truth, t_truth + 10.0)], radius)
     assert shares.shape == (3,) and np.all((shares >= 0) & (shares <= 1))
@@ -364,7 +364,7 @@ def test_both_nearest_point_trees_answer_as_scipys_does():
     rng = np.random.default_rng(3)
     points, queries = rng.normal(size=(500, 3)), rng.normal(size=(300, 3))
     reference = cKDTree(points)
-    trees = [icp._SmallTree(points, 1), icp._SmallTree(points, 2), icp._ScipyTree(points, workers=2)]
+    trees = [neighbours.SmallTree(points, 1), neighbours.SmallTree(points, 2), neighbours.ScipyTree(points, workers=2)]
     for bound in (np.inf, 0.2):
         want = reference.query(queries, distance_upper_bound=bound)
         for tree in trees:
@@ -372,8 +372,10 @@ def test_both_nearest_point_trees_answer_as_scipys_does():
             np.testing.assert_allclose(got[0], want[0], rtol=1e-15, atol=0)
             np.testing.assert_array_equal(got[1], want[1])
     np.testing.assert_array_equal(trees[1].query(queries, k=20)[1], reference.query(queries, k=20)[1])
-    assert isinstance(icp.nearest_points(points), icp._SmallTree)
-    assert isinstance(icp.nearest_points(rng.normal(size=(icp.PARALLEL_MIN_TARGET, 3))), icp._ScipyTree)
+    assert isinstance(neighbours.nearest_points(points), neighbours.SmallTree)
+    assert isinstance(
+        neighbours.nearest_points(rng.normal(size=(neighbours.PARALLEL_MIN_TARGET, 3))), neighbours.ScipyTree
+    )
 
 
 def test_quantiles_by_partial_sort_are_numpys():
@@ -399,9 +401,9 @@ def test_runs_side_by_side_end_where_each_ends_alone(method, trim):
     rng = np.random.default_rng(7)
     starts = [(euler_zyx_to_matrix(rng.uniform(-20, 20, 3)), rng.uniform(-0.2, 0.2, 3)) for _ in range(4)]
     starts.append((np.eye(3), np.full(3, 50.0)))  # nothing within reach: no pairs, the start comes back
-    tree, normals = icp.nearest_points(tgt), icp.estimate_normals(tgt)
-    run = icp._Run(method, (0.3, 0.1, 0.05), trim)
-    rotations, translations, iterations = icp._runs_side_by_side(
+    tree, normals = neighbours.nearest_points(tgt), neighbours.estimate_normals(tgt)
+    run = icp.Run(method, (0.3, 0.1, 0.05), trim)
+    rotations, translations, iterations = icp.runs_side_by_side(
         src, tgt, tree, normals, [r for r, _ in starts], [t for _, t in starts], run, max_iterations=30, tolerance=1e-4
     )
     for k, (rotation, translation) in enumerate(starts):
@@ -415,16 +417,16 @@ def test_runs_side_by_side_end_where_each_ends_alone(method, trim):
 
 
 def _naive_descent(src, tgt, tree, normals, score, start, scale, rounds, max_shift):
-    """The descent of :func:`icp._descents` from one start, each candidate run by icp() every time it is asked."""
+    """The descent of :func:`icp_refine._descents` from one start, each candidate run by icp() every time it is asked."""
     best, best_score, iterations = (*start, 0), score(*start), 0
     for _ in range(rounds):
         improved = False
-        for method, distances, trim in icp.REFINE_CANDIDATES:
+        for method, distances, trim in icp_refine.REFINE_CANDIDATES:
             found = icp.icp(src, tgt, best[0], best[1], distances=[scale * d for d in distances], method=method,
-                            trim=trim, max_iterations=icp.REFINE_ITERATIONS, tolerance=icp.REFINE_TOLERANCE,
+                            trim=trim, max_iterations=icp_refine.REFINE_ITERATIONS, tolerance=icp_refine.REFINE_TOLERANCE,
                             max_points=None, tree=tree, normals=normals)  # fmt: skip
             iterations += found.iterations
-            if icp.mean_shift(src, found.rotation, found.translation, *start) > max_shift * scale:
+            if icp_refine.mean_shift(src, found.rotation, found.translation, *start) > max_shift * scale:
                 continue
             found_score = score(found.rotation, found.translation)
             if found_score < best_score:
@@ -438,21 +440,21 @@ def test_descents_run_each_candidate_once_from_a_motion_and_end_as_each_descent_
     """Side by side, a candidate asked again from a motion it ran from (the next round; two descents at one
     motion) takes its earlier run: every run is new, and each descent ends as it does alone."""
     src, tgt, truth, t = _box_views(2)
-    tree, normals = icp.nearest_points(tgt), icp.estimate_normals(tgt)
+    tree, normals = neighbours.nearest_points(tgt), neighbours.estimate_normals(tgt)
     score = lambda r, tt: icp.trimmed_fit(src, tree, r, tt)  # noqa: E731
     start = (euler_zyx_to_matrix([3.0, -2.0, 1.0]) @ truth, t + truth @ [0.3, 0.0, 0.0])
     starts = [start, start, (start[0], start[1] + [0.0, 0.1, 0.0])]  # the first two descents are one
-    ran, side_by_side = [], icp._runs_side_by_side
+    ran, side_by_side = [], icp.runs_side_by_side
 
     def recording(src_, tgt_, tree_, normals_, rotations, translations, run, **kw):
         ran.extend((run, r.tobytes(), np.asarray(tt).tobytes()) for r, tt in zip(rotations, translations))
         return side_by_side(src_, tgt_, tree_, normals_, rotations, translations, run, **kw)
 
-    monkeypatch.setattr(icp, "_runs_side_by_side", recording)
-    descents = icp._descents(src, src, tgt, tree, normals, score, start, starts, 1.0, 2, icp.MAX_SHIFT)
-    assert len(ran) == len(set(ran)) and len(ran) > len(icp.REFINE_CANDIDATES)
-    monkeypatch.setattr(icp, "_runs_side_by_side", side_by_side)
-    alone = [_naive_descent(src, tgt, tree, normals, score, s, 1.0, 2, icp.MAX_SHIFT) for s in starts]
+    monkeypatch.setattr(icp, "runs_side_by_side", recording)
+    descents = icp_refine._descents(src, src, tgt, tree, normals, score, start, starts, 1.0, 2, icp_refine.MAX_SHIFT)
+    assert len(ran) == len(set(ran)) and len(ran) > len(icp_refine.REFINE_CANDIDATES)
+    monkeypatch.setattr(icp, "runs_side_by_side", side_by_side)
+    alone = [_naive_descent(src, tgt, tree, normals, score, s, 1.0, 2, icp_refine.MAX_SHIFT) for s in starts]
     for (best, best_score, _), (found, found_score, _) in zip(descents, alone):
         np.testing.assert_allclose(best[0], found[0], atol=1e-12)
         np.testing.assert_allclose(best[1], found[1], atol=1e-12)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from flax import linen as nn
 
-from dit_jax import layers
+from dit_jax.network import layers
 
 #: attention as a caller jits it: one compiled program per setting, where op-by-op dispatch would compile
 #: each of its operations.

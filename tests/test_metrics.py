@@ -2,8 +2,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dit_jax import metrics
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.evaluators import metrics
 
 
 def test_euler_zyx_round_trip_matches_the_spec_convention():
@@ -59,7 +59,7 @@ def _vase(n_angles: int = 36, n_heights: int = 24) -> np.ndarray:
 
 
 def test_symmetric_errors_count_as_right_and_others_do_not():
-    from dit_jax.geometry import axis_angle_matrix
+    from dit_jax.geometry.rigid import axis_angle_matrix
 
     vase = _vase()
     rng = np.random.default_rng(0)

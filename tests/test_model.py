@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from conftest import shared_point_pairs
 
-from dit_jax import configs, convert, metrics, model
+from dit_jax.evaluators import metrics
+from dit_jax.network import configs, convert, model
 
 CONFIG = configs.tiny()
 # model.features as a caller would jit it: one compiled program, where op-by-op dispatch would compile every
@@ -218,7 +219,7 @@ def test_guarded_iterations_never_lower_the_fitness(params):
     """With ``guard_iterations`` an iteration's update is kept only where it brings the source no farther from
     the target; the final alignment cost is then at most the first iteration's, and refused updates are
     reported."""
-    from dit_jax import geometry
+    from dit_jax.geometry import rigid
 
     src, tgt = _pair(5, n=64, m=64, batch=4)
     guarded = CONFIG.replace(guard_iterations=True, n_iters=3)
@@ -226,8 +227,8 @@ def test_guarded_iterations_never_lower_the_fitness(params):
     first_r, first_t, _ = model.register(params, src, tgt, CONFIG.replace(n_iters=1))
 
     def cost(r, t, b):
-        moved = geometry.apply_transform(r[b], t[b], src[b])
-        return float(geometry.alignment_cost(moved, tgt[b], CONFIG.fitness_radius * geometry.spacing(tgt[b])))
+        moved = rigid.apply_transform(r[b], t[b], src[b])
+        return float(rigid.alignment_cost(moved, tgt[b], CONFIG.fitness_radius * rigid.spacing(tgt[b])))
 
     for b in range(4):
         assert cost(rot, trans, b) <= cost(first_r, first_t, b) + 1e-6
@@ -246,16 +247,16 @@ def test_guarded_iterations_never_lower_the_fitness(params):
 
 
 def test_fitness_measures_how_much_of_the_source_lands_on_the_target():
-    from dit_jax import geometry
+    from dit_jax.geometry import rigid
 
     src, _ = _pair(6, n=200, batch=1)
     src = src[0]
-    radius = 2 * geometry.spacing(src)
-    assert float(geometry.fitness(src, src, radius)) == 1.0
-    assert float(geometry.fitness(src, src + 100.0, radius)) == 0.0
-    assert float(geometry.alignment_cost(src, src, radius)) == 0.0
-    assert float(geometry.alignment_cost(src, src + 100.0, radius)) == pytest.approx(1.0, abs=1e-6)
-    nearer = float(geometry.alignment_cost(src, src + 0.1 * radius, radius))
-    assert 0.0 < nearer < float(geometry.alignment_cost(src, src + 0.5 * radius, radius)) < 1.0
+    radius = 2 * rigid.spacing(src)
+    assert float(rigid.fitness(src, src, radius)) == 1.0
+    assert float(rigid.fitness(src, src + 100.0, radius)) == 0.0
+    assert float(rigid.alignment_cost(src, src, radius)) == 0.0
+    assert float(rigid.alignment_cost(src, src + 100.0, radius)) == pytest.approx(1.0, abs=1e-6)
+    nearer = float(rigid.alignment_cost(src, src + 0.1 * radius, radius))
+    assert 0.0 < nearer < float(rigid.alignment_cost(src, src + 0.5 * radius, radius)) < 1.0
     half = src[src[:, 0] > 0]
-    assert 0.35 < float(geometry.fitness(src, half, radius)) < 0.75, "half the source has a target nearby"
+    assert 0.35 < float(rigid.fitness(src, half, radius)) < 0.75, "half the source has a target nearby"

@@ -41,7 +41,7 @@ def test_the_wheel_holds_the_package_alone_and_no_machine_path(tmp_path):
         names = archive.namelist()
         assert {name.split("/")[0] for name in names} == {"dit_jax", "dit_jax-0.1.0.dist-info"}
         assert not [n for n in names if re.search(r"(^|/)(tools|release|benchmarks|tests)/", n)]
-        assert "dit_jax/cli.py" in names and any(n.startswith("dit_jax/weights/") for n in names)
+        assert "dit_jax/cli/register.py" in names and any(n.startswith("dit_jax/network/weights/") for n in names)
         for name in names:
             if name.endswith((".py", ".json", ".md", "metadata", "METADATA", ".txt")):
                 text = archive.read(name).decode("utf-8", "replace")

@@ -2,7 +2,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import configs, pft
+from dit_jax.network import configs, pft
 
 
 def test_annotated_layer_norm_uses_unbiased_std_plus_eps():

@@ -8,9 +8,10 @@ import jax
 import numpy as np
 import pytest
 
-from dit_jax import checkpoint, configs, model, network_stage, pipeline, refinement, registration, verdict
-from dit_jax.sampling import normalise, to_caller_units
-from dit_jax.settings import DENSE_POINTS, SCAN_POINTS, InferenceSettings, refinement_for
+from dit_jax.network import checkpoint, configs, model
+from dit_jax.pipeline import network_stage, refinement, registration, stages, verdict
+from dit_jax.pipeline.sampling import normalise, to_caller_units
+from dit_jax.pipeline.settings import DENSE_POINTS, SCAN_POINTS, InferenceSettings, refinement_for
 
 
 def test_settings_are_frozen_validated_and_round_trip_through_a_dict():
@@ -99,24 +100,24 @@ def test_normalise_keeps_far_apart_clouds_each_on_its_own_centre():
 
 
 def test_the_stages_pass_typed_records_not_dicts_or_tuples():
-    """Every stage function takes and returns records (:class:`pipeline.Pair`, ``PairEstimate``, ``Motion``,
+    """Every stage function takes and returns records (:class:`stages.Pair`, ``PairEstimate``, ``Motion``,
     ``Refined``, ``Verdict``, ``Result``) or arrays; a dict or a bare tuple between them would hide what flows."""
     import inspect
 
-    stages = [
-        pipeline.by_features,
-        pipeline.sampled,
-        pipeline.estimated,
-        pipeline.network_result,
-        pipeline.features_result,
-        pipeline.landing,
+    functions = [
+        stages.by_features,
+        stages.sampled,
+        stages.estimated,
+        stages.network_result,
+        stages.features_result,
+        stages.landing,
         network_stage.estimate_pairs,
         refinement.refine_pair,
         refinement.fitness,
         verdict.judge,
         verdict.judge_features,
     ]
-    for stage in stages:
+    for stage in functions:
         signature = inspect.signature(stage)
         # ``params`` is the network's weights (Flax's pytree), handed through untouched
         parameters = [p for name, p in signature.parameters.items() if name != "params"]
@@ -130,7 +131,7 @@ def test_the_stages_pass_typed_records_not_dicts_or_tuples():
 def test_register_pairs_reads_as_its_stages():
     import inspect
 
-    source = inspect.getsource(pipeline.register_pairs)
+    source = inspect.getsource(stages.register_pairs)
     assert len(source.splitlines()) <= 40
     positions = [
         source.index(f"{name}(") for name in ("check_pair", "by_features", "sampled", "estimated", "network_result")
@@ -139,8 +140,8 @@ def test_register_pairs_reads_as_its_stages():
 
 
 def test_the_pairs_of_one_set_of_scans_compute_each_scan_s_features_once(monkeypatch):
-    """:func:`pipeline.register_scan_pairs` builds each scan's features once however many pairs it joins, and
-    each pair's result is the one :func:`pipeline.register_pairs` gives it (the scans share a spacing)."""
+    """:func:`stages.register_scan_pairs` builds each scan's features once however many pairs it joins, and
+    each pair's result is the one :func:`stages.register_pairs` gives it (the scans share a spacing)."""
     pytest.importorskip("open3d")
     from dit_jax.features import matching
 

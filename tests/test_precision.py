@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dit_jax import configs, layers, model, training
+from dit_jax import training
+from dit_jax.network import configs, layers, model
 
 HIGHEST = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
 EXPECTED = {
@@ -50,7 +51,7 @@ def _is_geometry(eqn) -> bool:
 
 def _has_vector_operand(eqn) -> bool:
     """Products of a vector (the squeeze-and-excitation gate, the temperature net): "bfloat16" leaves them
-    float32 at the highest precision (dit_jax.layers._operands)."""
+    float32 at the highest precision (dit_jax.network.layers._operands)."""
     return any(len(v.aval.shape) == 1 for v in eqn.invars)
 
 
@@ -129,7 +130,7 @@ def test_precisions_agree_on_cpu_within_bfloat16_rounding():
 
 
 def test_the_registration_api_takes_a_precision():
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     assert registration.load().config.precision == "highest"
     assert registration.load(precision="tf32").config.precision == "tf32"

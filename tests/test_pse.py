@@ -2,7 +2,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import configs, geometry, pse
+from dit_jax.geometry import rigid
+from dit_jax.network import configs, pse
 
 
 def test_lfi_concatenates_neighbour_features_nearest_first():
@@ -16,7 +17,7 @@ def test_lfi_concatenates_neighbour_features_nearest_first():
 def test_pse_widths_follow_the_config():
     config = configs.tiny()
     points = jax.random.normal(jax.random.key(0), (30, 3))
-    idx = geometry.knn(points, config.k)
+    idx = rigid.knn(points, config.k)
     module = pse.PSE(config)
     variables = module.init(jax.random.key(1), points, idx)
     out = module.apply(variables, points, idx)

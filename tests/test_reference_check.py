@@ -3,7 +3,7 @@ import json
 import jax
 import numpy as np
 
-from dit_jax import configs, convert, model, reference_check
+from dit_jax.network import configs, convert, model, reference_check
 
 
 def test_authors_reference_file_passes(reference_file, capsys):
@@ -75,7 +75,7 @@ def test_command_line_exit_status(reference_file):
     import sys
 
     done = subprocess.run(
-        [sys.executable, "-m", "dit_jax.reference_check", str(reference_file)],
+        [sys.executable, "-m", "dit_jax.network.reference_check", str(reference_file)],
         capture_output=True,
         text=True,
         timeout=300,

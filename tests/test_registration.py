@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 from conftest import box_room
 
-from dit_jax import checkpoint, configs, icp, model, network_stage, registration, sampling, verdict
-from dit_jax import settings as settings_lib
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.geometry import icp, icp_refine
+from dit_jax.network import checkpoint, configs, model
+from dit_jax.pipeline import network_stage, registration, sampling, verdict
+from dit_jax.pipeline import settings as settings_lib
 
 
 @pytest.fixture(scope="module")
@@ -261,7 +263,7 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
     """With ``best_direction`` the result is the better fitting of the two refined registrations; the
     agreement between them, and so the verdict, does not depend on which is kept. ICP is replaced here by
     one that returns a motion 20 degrees off forward and the exact one backward, so the choice is known."""
-    from dit_jax import icp
+    from dit_jax.geometry import icp
 
     rng = np.random.default_rng(0)
     src = rng.normal(size=(300, 3)) * [1.0, 0.6, 0.3]
@@ -274,7 +276,7 @@ def test_best_direction_keeps_the_better_fitting_direction_and_the_same_verdict(
             return icp.ICPResult(off, offset, 1.0, 0.0, 1)
         return icp.ICPResult(truth.T, -truth.T @ offset, 1.0, 0.0, 1)  # backward: exact
 
-    monkeypatch.setattr(icp, "refine", fake_refine)
+    monkeypatch.setattr(icp_refine, "refine", fake_refine)
     results = {}
     bands = [[1.0, 50, 45], [10.0, 5, 1], [30.0, 20, 6], [None, 40, 2]]  # how often right, by agreement
     for best in (False, True):
@@ -321,7 +323,7 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     each estimate must come back as a motion of the source itself. With a stand-in network that returns the
     exact motion of each pair it is handed (the clouds are used whole and in order, so rows correspond),
     whichever start is kept, the result is the truth and ``start_turn`` names that start's turn."""
-    from dit_jax import geometry
+    from dit_jax.geometry import rigid
 
     def exact_network(params, src, tgt, config):
         rotations, translations = zip(
@@ -343,10 +345,10 @@ def test_rotation_search_maps_every_turned_start_back_to_the_source(tiny_registr
     monkeypatch.setattr(network_stage, "_register", exact_network)
     turns = []
     for kept in (0, 5, 23):
-        monkeypatch.setattr(icp, "best_start", lambda scores, kept=kept: kept)
+        monkeypatch.setattr(icp_refine, "best_start", lambda scores, kept=kept: kept)
         result = tiny_registrar.register(src, tgt, rotation_search=True)
         np.testing.assert_allclose(result.apply(src), tgt, atol=1e-6)
-        assert result.start_turn == pytest.approx(geometry.rotation_angle_deg(network_stage.SEARCH_TURNS[kept]))
+        assert result.start_turn == pytest.approx(rigid.rotation_angle_deg(network_stage.SEARCH_TURNS[kept]))
         turns.append(result.start_turn)
     assert turns[0] == 0.0 and turns[1] > 0.0
 

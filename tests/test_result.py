@@ -1,4 +1,4 @@
-"""A registration's result (:mod:`dit_jax.result`): its full record, read back exactly."""
+"""A registration's result (:mod:`dit_jax.pipeline.result`): its full record, read back exactly."""
 
 import dataclasses
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import exact_result
 
-from dit_jax.result import Result, Stage
+from dit_jax.pipeline.result import Result, Stage
 
 
 def _same(a, b) -> bool:

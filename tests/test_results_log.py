@@ -1,9 +1,9 @@
-"""dit_jax.results_log: the --pairs results file is a log that is read, appended to and locked, never cut."""
+"""dit_jax.cli.results_log: the --pairs results file is a log that is read, appended to and locked, never cut."""
 
 import json
 import multiprocessing
 
-from dit_jax import results_log
+from dit_jax.cli import results_log
 
 
 def test_lines_that_do_not_parse_are_skipped_by_number_and_a_cut_line_is_left_alone(tmp_path):

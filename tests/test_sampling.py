@@ -1,9 +1,9 @@
-"""dit_jax.sampling: the checks every cloud passes before the pipeline takes it."""
+"""dit_jax.pipeline.sampling: the checks every cloud passes before the pipeline takes it."""
 
 import numpy as np
 import pytest
 
-from dit_jax import sampling
+from dit_jax.pipeline import sampling
 
 
 def test_a_cloud_in_any_unit_passes_the_checks_and_one_beyond_float64_is_named():

@@ -1,12 +1,12 @@
-"""A scene from its scans (:mod:`dit_jax.scene`): candidate pairs, edges by the verdict, the spanning tree's
+"""A scene from its scans (:mod:`dit_jax.scenes.scene`): candidate pairs, edges by the verdict, the spanning tree's
 first poses, the pose graph's optimisation that switches a wrong loop edge off, and scans that join nothing."""
 
 import numpy as np
 import pytest
 from conftest import exact_result, scan_set
 
-from dit_jax import scene
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.scenes import scene
 
 pytest.importorskip("open3d", reason="the pose graph is Open3D's")
 
@@ -142,7 +142,10 @@ def _scan_files(folder, n: int):
 def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path, monkeypatch, capsys):
     import json
 
-    from dit_jax import cli, io, registration
+    from dit_jax import io
+    from dit_jax.cli import files
+    from dit_jax.cli import scene as scene_command
+    from dit_jax.pipeline import registration
 
     clouds, truth, paths, read_back = _scan_files(tmp_path, 4)
     wrong = {}
@@ -153,7 +156,7 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
     out, poses, kitti, tum, page = (str(tmp_path / name) for name in names)
     args = [*paths, "--out", out, "--voxel", "0.05", "--poses", poses, "--kitti", kitti, "--tum", tum, "--no-progress"]
     args += ["--plot", page]
-    assert cli.scene_main(args) == 0
+    assert scene_command.main(args) == 0
     report = json.loads(open(poses).read())
     assert report["scans"] == paths and report["placed"] == [True] * 4 and len(report["edges"]) == 6
     np.testing.assert_allclose(report["poses"], truth, atol=1e-5)
@@ -169,10 +172,10 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
     )
 
     wrong.update({(3, t): (90.0 + 60.0 * t, "probably wrong", 0.2) for t in range(3)})
-    assert cli.scene_main([*paths, "--no-progress"]) == cli.EXIT_SUSPECT
+    assert scene_command.main([*paths, "--no-progress"]) == files.EXIT_SUSPECT
     err = capsys.readouterr().err
     assert f"{paths[3]} joins no scan of the scene: left out" in err and "form 2 groups (3, 1 scans)" in err
-    assert cli.scene_main([*paths, "--no-progress", "--no-verdict-status"]) == 0
+    assert scene_command.main([*paths, "--no-progress", "--no-verdict-status"]) == 0
 
     for bad, message in (
         ([paths[0]], "a scene needs at least 2 scans"),
@@ -182,7 +185,7 @@ def test_dit_register_scene_writes_the_scene_and_says_what_it_left_out(tmp_path,
         ([*paths, "--plot", str(tmp_path / "scene.jpg")], "expected a .html or .png file name"),
     ):
         capsys.readouterr()
-        assert cli.scene_main(bad) == 2
+        assert scene_command.main(bad) == 2
         err = capsys.readouterr().err
         assert err.startswith("dit-register-scene: error:") and message in err, err
 
@@ -266,7 +269,8 @@ def test_a_resumed_scene_takes_the_pairs_it_has_and_builds_the_same_scene():
 def test_dit_register_scene_resumes_from_its_results_file_after_a_kill(tmp_path, monkeypatch, capsys):
     import json
 
-    from dit_jax import cli, registration
+    from dit_jax.cli import scene as scene_command
+    from dit_jax.pipeline import registration
 
     _, truth, paths, read_back = _scan_files(tmp_path, 5)
     registrars = []
@@ -278,18 +282,18 @@ def test_dit_register_scene_resumes_from_its_results_file_after_a_kill(tmp_path,
     monkeypatch.setattr(registration, "load", load)
     log, poses = str(tmp_path / "pairs.jsonl"), str(tmp_path / "poses.json")
     args = [*paths, "--results", log, "--poses", poses, "--no-progress"]
-    assert cli.scene_main(args) == 0
+    assert scene_command.main(args) == 0
     whole = json.loads(open(poses).read())
     lines = open(log).read().splitlines()
     assert len(lines) == len(registrars[0].asked) and json.loads(lines[0])["level"] == "trusted"
 
-    assert cli.scene_main(args) == 0 and registrars[1].asked == [], "every pair is taken from the file"
+    assert scene_command.main(args) == 0 and registrars[1].asked == [], "every pair is taken from the file"
     assert open(log).read().splitlines() == lines, "nothing is added for pairs the file holds"
 
     # A run killed mid-write: the first three records and half of the fourth.
     open(log, "w").write("\n".join(lines[:3]) + "\n" + lines[3][:40])
     capsys.readouterr()
-    assert cli.scene_main(args) == 0
+    assert scene_command.main(args) == 0
     assert "its last line is cut short; left as it is" in capsys.readouterr().err
     assert registrars[2].asked == registrars[0].asked[3:]
     again = open(log).read().splitlines()
@@ -304,7 +308,7 @@ def test_dit_register_scene_resumes_from_its_results_file_after_a_kill(tmp_path,
         ([*paths, "--reuse-results"], "--reuse-results goes with --results"),
     ):
         capsys.readouterr()
-        assert cli.scene_main(bad) == 2
+        assert scene_command.main(bad) == 2
         assert message in capsys.readouterr().err
-    assert cli.scene_main([*paths[:3], "--results", log, "--reuse-results", "--no-progress"]) == 0
+    assert scene_command.main([*paths[:3], "--results", log, "--reuse-results", "--no-progress"]) == 0
     assert registrars[-1].asked == [], "the pairs of the three scans are in the file"

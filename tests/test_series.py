@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 from conftest import exact_result
 
-from dit_jax import cli, geometry, io, series
+from dit_jax import io
+from dit_jax.cli import series as series_command
 from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.geometry import rigid
+from dit_jax.scenes import series
 
 
 def _pose(angles, translation):
@@ -28,7 +31,7 @@ def _turntable(k=8):
 
 
 def _rotation_errors(poses, truth):
-    return np.array([geometry.rotation_angle_deg(p[:3, :3].T @ q[:3, :3]) for p, q in zip(poses, truth)])
+    return np.array([rigid.rotation_angle_deg(p[:3, :3].T @ q[:3, :3]) for p, q in zip(poses, truth)])
 
 
 def test_exact_motions_chain_to_the_true_poses_and_close_with_no_gap():
@@ -124,7 +127,7 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
         path = tmp_path / f"scan{k}.ply"
         io.write(path, surface @ euler_zyx_to_matrix([10.0 * k, 0.0, 0.0]).T + [k, 0.0, 0.0])
         paths.append(str(path))
-    code = cli.series_main(
+    code = series_command.main(
         paths
         + [
             "--checkpoint",
@@ -161,18 +164,18 @@ def test_dit_register_series_prints_poses_and_verdicts_and_writes_the_merged_clo
     np.testing.assert_allclose(report["poses"][0], np.eye(4), atol=1e-12)
     assert io.read(tmp_path / "merged.ply").shape == (1200, 3)
     suspect = [link for link in report["links"] if link["level"] == "probably wrong"]
-    assert code == (3 if suspect or report["loop_gap_deg"] > cli.LOOP_GAP_WARNING_DEG else 0), err
-    code = cli.series_main(paths[:2] + ["--loop"])
+    assert code == (3 if suspect or report["loop_gap_deg"] > series_command.LOOP_GAP_WARNING_DEG else 0), err
+    code = series_command.main(paths[:2] + ["--loop"])
     assert code == 2 and "--loop needs at least 3 scans" in capsys.readouterr().err
-    code = cli.series_main(paths + ["--plot", str(tmp_path / "series.jpg")])
+    code = series_command.main(paths + ["--plot", str(tmp_path / "series.jpg")])
     assert code == 2 and "expected a .png file name" in capsys.readouterr().err
-    code = cli.series_main(paths + ["--out-dir", str(tmp_path)])
+    code = series_command.main(paths + ["--out-dir", str(tmp_path)])
     assert code == 2 and f"it holds {paths[0]}, which the moved scan would overwrite" in capsys.readouterr().err
-    code = cli.series_main([paths[0], str(tmp_path / "missing.ply")])
+    code = series_command.main([paths[0], str(tmp_path / "missing.ply")])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"dit-register-series: error: {tmp_path / 'missing.ply'}: no such file")
     io.write(tmp_path / "scan1_mm.ply", io.read(paths[1]) * 1000.0)  # a unit slip: one line naming both scans
-    cli.series_main([paths[0], str(tmp_path / "scan1_mm.ply"), "--checkpoint", tiny_checkpoint, "--refine", "none"])
+    series_command.main([paths[0], str(tmp_path / "scan1_mm.ply"), "--checkpoint", tiny_checkpoint, "--refine", "none"])
     warned = [line for line in capsys.readouterr().err.splitlines() if "times the size" in line]
     assert warned and all(
         line.startswith(f"dit-register-series: warning: {tmp_path / 'scan1_mm.ply'} is 1,0")

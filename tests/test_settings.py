@@ -1,4 +1,4 @@
-"""dit_jax.settings: the pipeline's settings have one flag each, with the setting's choices, in every CLI."""
+"""dit_jax.pipeline.settings: the pipeline's settings have one flag each, with the setting's choices, in every CLI."""
 
 import argparse
 import dataclasses
@@ -9,12 +9,13 @@ import tune_baselines
 
 import evaluate
 import train
-from dit_jax import cli, settings
+from dit_jax.cli import register, scene, series
+from dit_jax.pipeline import settings
 
 PARSERS = {
-    "dit-register": cli._parser,
-    "dit-register-series": cli._series_parser,
-    "dit-register-scene": cli._scene_parser,
+    "dit-register": register._parser,
+    "dit-register-series": series._parser,
+    "dit-register-scene": scene._parser,
     "evaluate.py": evaluate.build_parser,
     "tools/tune_baselines.py": tune_baselines.build_parser,
 }
@@ -93,7 +94,7 @@ def test_train_py_defines_no_flag_of_the_settings_under_another_meaning():
 
 
 def test_parsed_flags_become_settings_changes_and_unset_ones_none():
-    parser = cli._parser()
+    parser = register._parser()
     args = parser.parse_args(
         ["a", "b", "--points", "512", "--best-direction", "off", "--any-rotation", "--max-disagreement", "4.5"]
     )
@@ -113,7 +114,7 @@ def test_the_settings_module_imports_no_jax():
     import subprocess
     import sys
 
-    code = "import sys, dit_jax.settings; sys.exit('jax' in sys.modules)"
+    code = "import sys, dit_jax.pipeline.settings; sys.exit('jax' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 

@@ -41,7 +41,8 @@ def test_the_varied_copy_resamples_every_cloud_and_keeps_correspondences_true():
 def test_both_checkpoints_run_the_shipped_weights_model_options():
     """A candidate exported from training stores the authors' GMCCE defaults in its config; the rule must
     run it with the options the shipped weights run under, not those."""
-    from dit_jax import configs, registration
+    from dit_jax.network import configs
+    from dit_jax.pipeline import registration
 
     shipped_config = configs.DITConfig().replace(gmcce_threshold=0.9, gmcce_min_keep=0.3, guard_iterations=True)
     shipped = registration.Registrar({}, shipped_config)

@@ -14,7 +14,7 @@ def test_the_shipped_weights_as_candidate_score_as_the_shipped_weights(tmp_path,
     out = tmp_path / "targets.json"
     network_targets.main(
         [
-            str(ROOT / "dit_jax" / "weights" / "dit-cpu-modelnet40"),
+            str(ROOT / "dit_jax" / "network" / "weights" / "dit-cpu-modelnet40"),
             "--data-dir", str(MODELNET_DIR),
             "--dragon", str(dragon_dir),
             "--prepared-dir", str(prepared_dir),

@@ -98,7 +98,7 @@ def test_calibration_chooses_agreement_thresholds_on_validation_pairs(tmp_path):
 
     out = tmp_path / "choice.json"
     assert calibrate.main(
-        [str(ROOT / "dit_jax" / "weights" / "dit-cpu-modelnet40"), "--pairs", "2", "--verdict-only",
+        [str(ROOT / "dit_jax" / "network" / "weights" / "dit-cpu-modelnet40"), "--pairs", "2", "--verdict-only",
          "--verdict-settings", "clean", "--out", str(out)]
     ) == 0  # fmt: skip
     choice = json.loads(out.read_text())

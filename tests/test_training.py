@@ -16,7 +16,9 @@ import numpy as np
 import pytest
 from conftest import random_rotation, shared_point_pairs
 
-from dit_jax import losses, metrics, model, training
+from dit_jax import training
+from dit_jax.evaluators import metrics
+from dit_jax.network import losses, model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 TINY_RECIPE = training.load_config(ROOT / "configs" / "tiny.py")
@@ -70,7 +72,7 @@ def test_a_few_dozen_steps_learn_to_match_held_out_pairs(prepared):
     from dit_jax.data import prefetch
 
     steps = 30
-    from dit_jax import configs
+    from dit_jax.network import configs
 
     base = dataclasses.replace(
         TINY_RECIPE, model=configs.cpu().replace(n_blocks=1), settings=(), n_points=128, max_steps=steps, train_iters=1
@@ -149,7 +151,7 @@ def test_training_writes_checkpoints_and_metrics(tiny_run, prepared):
     # step and one validation program for both settings, each with its own GMCCE threshold.
     assert lowered.count("jit(step)") == 1 and lowered.count("jit(register)") == 1, lowered
     assert set(TINY.settings) <= {key.split("/")[0] for key in result["val"] if "/" in key}
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     _, config = checkpoint.restore(result["model"])
     assert config == TINY.model_config()
@@ -197,7 +199,7 @@ def test_a_run_can_skip_the_validation_before_its_first_step(tmp_path, tiny_run)
         names = tar.getnames()
         tar.extractall(tmp_path / "back", filter="data")
     assert any(n.startswith("checkpoints/12") for n in names) and not any(n.startswith("best") for n in names)
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     assert (
         checkpoint.read_extra(training.export_params(str(tmp_path / "back"), str(tmp_path / "model")))["chosen_by"]
@@ -292,7 +294,7 @@ def test_a_checkpoint_with_the_optimiser_state_per_array_says_how_to_go_on(tmp_p
             progress=False,
         )
     assert "\n" not in str(error.value) and "--config.init_from" in str(error.value)
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     checkpoint_params, _ = checkpoint.restore(
         training.export_params(str(tmp_path / "run"), str(tmp_path / "model"), latest=True)
@@ -406,7 +408,7 @@ def test_every_recipe_file_loads_and_a_checkpoint_reads_back_its_config(tmp_path
     """Every file in configs/ (the shipped weights' runs included) gives a valid TrainConfig; a trained model
     records the config it was trained with, readable back into the same type; a record that names the
     model by preset (as the shipped weights' older runs do) reads as that preset with its changes."""
-    from dit_jax import checkpoint, configs
+    from dit_jax.network import checkpoint, configs
     from dit_jax.training.descriptor import DescriptorTrainConfig
 
     for path in sorted((ROOT / "configs").rglob("*.py")):
@@ -423,7 +425,8 @@ def test_the_shipped_recipe_files_are_what_trained_the_shipped_weights():
     ``train_config``, each earlier one under ``trained_from``), up to where the weights started from: the
     records hold that path as it was on the training machine. The records name the ModelNet40 folder
     ``$MODELNET40``; the recipes give its place beside a clone."""
-    from dit_jax import checkpoint, registration
+    from dit_jax.network import checkpoint
+    from dit_jax.pipeline import registration
 
     extra, records = checkpoint.read_extra(registration.shipped_weights()), []
     while extra:
@@ -448,7 +451,8 @@ def test_the_shipped_weights_record_holds_no_absolute_path_and_commands_that_run
     import shlex
 
     import train
-    from dit_jax import checkpoint, registration
+    from dit_jax.network import checkpoint
+    from dit_jax.pipeline import registration
 
     extra = checkpoint.read_extra(registration.shipped_weights())
     assert not [v for v in jax.tree.leaves(extra) if isinstance(v, str) and os.path.isabs(v)]
@@ -472,7 +476,7 @@ def test_ship_weights_exports_a_run_with_its_record(tmp_path, tiny_run):
     command, the steps run and the last validation, with no absolute path in it."""
     import ship_weights
 
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     out = tmp_path / "shipped"
     ship_weights.main(
@@ -498,7 +502,7 @@ def test_unseen_split_validates_on_held_out_training_categories(prepared):
 
 
 def test_init_from_starts_at_a_model_checkpoint(tmp_path, prepared):
-    from dit_jax import checkpoint, configs, model
+    from dit_jax.network import checkpoint, configs, model
 
     config = TINY
     source = tmp_path / "source"
@@ -552,7 +556,7 @@ def test_a_network_grown_in_depth_registers_as_the_checkpoint_it_grew_from(shipp
     equal on another). Measured on the shipped weights over four pairs and XLA's AVX2 and AVX-512 code paths,
     each iteration's rotation and translation differ by at most 1e-6: the bound is ten times that.
     """
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     params, shipped_config = shipped
     config = dataclasses.replace(TINY, model=shipped_config)

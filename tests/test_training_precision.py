@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from dit_jax import compile_cache, training
+from dit_jax import training
+from dit_jax.network import compile_cache
 from dit_jax.training import precision
 
 TINY = dataclasses.replace(

@@ -1,4 +1,4 @@
-"""The verdict (:mod:`dit_jax.verdict`): the network's agreement or fitness rule, the features' rule, and the
+"""The verdict (:mod:`dit_jax.pipeline.verdict`): the network's agreement or fitness rule, the features' rule, and the
 level a user reads."""
 
 import dataclasses
@@ -6,9 +6,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from dit_jax import verdict
-from dit_jax.result import VERDICT_LEVELS
-from dit_jax.settings import InferenceSettings
+from dit_jax.pipeline import verdict
+from dit_jax.pipeline.result import VERDICT_LEVELS
+from dit_jax.pipeline.settings import InferenceSettings
 
 
 def test_the_verdict_stage_judges_by_agreement_or_fitness():

@@ -1,10 +1,10 @@
-"""Pages a user can turn (:mod:`dit_jax.view`): self-contained, thinned, rendered by a browser."""
+"""Pages a user can turn (:mod:`dit_jax.pictures.view`): self-contained, thinned, rendered by a browser."""
 
 import numpy as np
 import pytest
 from conftest import rendered_legend
 
-from dit_jax import view
+from dit_jax.pictures import view
 
 
 def test_a_page_renders_one_trace_per_cloud_and_holds_at_most_its_points(tmp_path):
@@ -34,7 +34,7 @@ def test_a_page_renders_one_trace_per_cloud_and_holds_at_most_its_points(tmp_pat
 
 
 def test_a_pair_result_writes_a_page_of_target_source_and_the_source_moved(tmp_path):
-    from dit_jax import result as result_lib
+    from dit_jax.pipeline import result as result_lib
 
     motion = np.eye(4)
     motion[:3, 3] = [1.0, 0.0, 0.0]

@@ -1,10 +1,10 @@
 """Calibration: a checkpoint's inference settings and verdict thresholds, chosen on validation pairs (never
 test pairs) through the registration pipeline, and recorded in the checkpoint's
-:class:`~dit_jax.settings.InferenceSettings`.
+:class:`~dit_jax.pipeline.settings.InferenceSettings`.
 
     python tools/calibrate.py runs/mix/model --data-dir /data/modelnet40_ply_hdf5_1024 --unseen --out choice.json
-    python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
-    python tools/calibrate.py dit_jax/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
+    python tools/calibrate.py dit_jax/network/weights/dit-cpu-modelnet40 --verdict-only --record --data-dir ... --pairs 128 --out v.json
+    python tools/calibrate.py dit_jax/network/weights/dit-cpu-modelnet40 --rechoose v.json --record --out v2.json
 
 Validation pairs come from the training split's held-out shapes (the ones training validates on). Every
 combination of the GMCCE grid (:data:`GRID`, and ``--iters``) registers them, the network alone; the one
@@ -29,12 +29,15 @@ import os
 
 import numpy as np
 
-from dit_jax import checkpoint, geometry, registration, training
-from dit_jax import settings as settings_lib
+from dit_jax import training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
-from dit_jax.settings import REFINEMENTS, InferenceSettings
-from dit_jax.verdict import MIN_BAND_PAIRS
+from dit_jax.geometry import rigid
+from dit_jax.network import checkpoint
+from dit_jax.pipeline import registration
+from dit_jax.pipeline import settings as settings_lib
+from dit_jax.pipeline.settings import REFINEMENTS, InferenceSettings
+from dit_jax.pipeline.verdict import MIN_BAND_PAIRS
 
 #: The settings the inference options are chosen on.
 SETTINGS = ("clean", "low_noise_partial", "high_noise_partial", "independent_clean", "scan_high_noise")
@@ -60,7 +63,7 @@ def largest_threshold(errors: np.ndarray, agreement: np.ndarray) -> float | None
 def fallback_threshold(curve: list[dict]) -> float:
     """The :data:`AGREEMENT_GRID` threshold whose trusted results are most often right on ``curve`` (one
     :func:`dit_jax.evaluators.common.verdict_summary` per grid value), the smaller on a tie. One that trusts
-    none counts as always right; one that trusts fewer than :data:`dit_jax.verdict.MIN_BAND_PAIRS` is not
+    none counts as always right; one that trusts fewer than :data:`dit_jax.pipeline.verdict.MIN_BAND_PAIRS` is not
     taken (too few to say how often they are right), unless every threshold is such, when the smallest is."""
     candidates = [
         (1.0 if row["passed"] == 0 else row["passed_right"], -t)
@@ -80,7 +83,7 @@ def gather_agreement(registrar: registration.Registrar, batches: dict) -> dict:
         found = common.run_dit(agreement_registrar, list(zip(b["src"], b["tgt"])))
         for refine, method in (("none", common.METHOD_DIT), ("icp", common.METHOD_DIT_ICP)):
             est = found[method]
-            errors = [geometry.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, b["R"])]
+            errors = [rigid.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, b["R"])]
             per_pair[refine]["setting"] += [setting] * len(errors)
             per_pair[refine]["rot_err"] += np.round(errors, 5).tolist()
             per_pair[refine]["agreement"] += np.round(est.agreement, 5).tolist()
@@ -150,7 +153,7 @@ def choose_inference(registrar: registration.Registrar, batches: dict, grid: dic
         row = {"changes": changes, "settings": {}}
         for setting, b in batches.items():
             est = common.run_dit(run, list(zip(b["src"], b["tgt"])))[common.METHOD_DIT]
-            errors = np.array([geometry.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, b["R"])])
+            errors = np.array([rigid.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, b["R"])])
             row["settings"][setting] = {
                 "within_5": float(np.mean(errors <= 5)),
                 "median": float(np.median(errors)),

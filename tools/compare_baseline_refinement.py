@@ -1,7 +1,7 @@
 """The baselines' refinement against DIT's, after the same global estimates, on validation pairs.
 
 ``fpfh_ransac_icp`` and ``fgr_icp`` refine their global estimate with the single ICP schedule tuned for them
-per setting (``python tools/tune_baselines.py``); DIT + ICP uses :func:`dit_jax.icp.refine`, the best fit among
+per setting (``python tools/tune_baselines.py``); DIT + ICP uses :func:`dit_jax.geometry.icp_refine.refine`, the best fit among
 several ICP runs. This asks whether the baselines would be stronger with DIT's refinement: each global
 estimate (tuned options per setting) is refined both ways and scored as the tuning scores (success,
 share within 5 degrees and 0.05, median rotation error). Validation pairs of training shapes only.
@@ -11,7 +11,7 @@ share within 5 degrees and 0.05, median rotation error). Validation pairs of tra
 Prints a markdown table. ``--write`` also makes it the last tuning stage: per setting, each of
 ``fpfh_ransac_icp`` and ``fgr_icp`` keeps whichever refinement scores better there (ties keep the single
 ICP, the cheaper), and ``any`` the one better summed over the settings; the choice goes into
-``dit_jax/baselines_tuned.json`` (as ``icp_method: "refine"``, with the single ICP's method kept beside it so
+``dit_jax/evaluators/baselines_tuned.json`` (as ``icp_method: "refine"``, with the single ICP's method kept beside it so
 the comparison can be run again) and the table into ``docs/baselines_refinement.md``.
 """
 
@@ -23,11 +23,13 @@ import pathlib
 import numpy as np
 from tune_baselines import score  # the tuning's own score, so the two tables compare
 
-from dit_jax import baselines, icp, training
+from dit_jax import training
 from dit_jax.data.pairs import SETTINGS
+from dit_jax.evaluators import baselines
+from dit_jax.geometry import icp_refine
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-TUNED_PATH = ROOT / "dit_jax" / baselines.TUNED_FILE
+TUNED_PATH = ROOT / "dit_jax" / "evaluators" / baselines.TUNED_FILE
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -39,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--write",
         action="store_true",
-        help="write the per-setting choice into dit_jax/baselines_tuned.json and the table into "
+        help="write the per-setting choice into dit_jax/evaluators/baselines_tuned.json and the table into "
         "docs/baselines_refinement.md",
     )
     args = parser.parse_args(argv)
@@ -81,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
                 src, tgt = batch["src"][i].astype(np.float64), batch["tgt"][i].astype(np.float64)
                 rotation, translation = baselines.get(method, setting, options)(src, tgt)
                 tuned.append(baselines.refine(src, tgt, rotation, translation, options))
-                refined = icp.refine(src, tgt, rotation, translation)
+                refined = icp_refine.refine(src, tgt, rotation, translation)
                 multi.append((refined.rotation, refined.translation))
             a, b = score(tuned, batch), score(multi, batch)
             scores.setdefault(name, {})[setting] = (a["score"], b["score"])
@@ -121,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
         TUNED_PATH.write_text(json.dumps(tuned_json, indent=1) + "\n")
         lines += [
             "",
-            "Written to `dit_jax/baselines_tuned.json`: DIT's refinement (`icp_method: refine`) for "
+            "Written to `dit_jax/evaluators/baselines_tuned.json`: DIT's refinement (`icp_method: refine`) for "
             + (", ".join(chosen) or "none")
             + "; the tuned single ICP elsewhere ('any': summed over "
             "the settings, the global estimate of each setting's own choice).",

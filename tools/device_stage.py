@@ -67,7 +67,8 @@ def worker(args) -> int:
     """One training run (a subprocess of ``run``)."""
     _use_packed(args.packed)
     import train as train_script
-    from dit_jax import compile_cache, training
+    from dit_jax import training
+    from dit_jax.network import compile_cache
 
     compile_cache.enable(args.compile_cache)
     _, config, _ = train_script.parse(args.train_args)

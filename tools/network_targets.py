@@ -23,17 +23,18 @@ import json
 import numpy as np
 import shipping_rule
 
-from dit_jax import geometry, registration
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import scans as scans_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import common
+from dit_jax.geometry import rigid
+from dit_jax.pipeline import registration
 
 
 def errors_deg(registrar: registration.Registrar, pairs: list, rotations: list, batch_size: int) -> np.ndarray:
     """(P,) rotation errors (degrees) of the network's unrefined estimates of ``pairs`` ((src, tgt), ...)."""
     est = common.run_dit(registrar, pairs, batch_size=batch_size)[common.METHOD_DIT]
-    return np.array([geometry.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, rotations)])
+    return np.array([rigid.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, rotations)])
 
 
 def main(argv: list[str] | None = None) -> None:

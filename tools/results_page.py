@@ -30,10 +30,10 @@ Tables:
   the estimator's rival and on a turned twin's fit, and how many of those were right, as benchmarks/feature_agreement.py measured them
   (docs/feature_agreement.jsonl).
 * ``bands`` (docs/verdict.md): the agreement bands the weights carry, from the validation pairs.
-* ``scenes`` (docs/scenes.md): the 3DMatch scenes placed whole by ``dit_jax.scene`` (``eval_scenes``): per
+* ``scenes`` (docs/scenes.md): the 3DMatch scenes placed whole by ``dit_jax.scenes.scene`` (``eval_scenes``): per
   scene and list, the benchmark's pairs read off the scene beside the pairwise results, the fragments' pose
   errors, the edges and the seconds per fragment.
-* ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.verdict.level`)
+* ``levels`` (docs/verdict.md): how often each level of the verdict (:func:`dit_jax.pipeline.verdict.level`)
   was right, per setting and pair set, for DIT alone and DIT+ICP.
 """
 
@@ -47,13 +47,13 @@ import sys
 
 import numpy as np
 
-from dit_jax import baselines as baselines_lib
-from dit_jax import verdict
+from dit_jax.evaluators import baselines as baselines_lib
 from dit_jax.evaluators import common
 from dit_jax.evaluators import scans as scans_evaluator
-from dit_jax.result import VERDICT_LEVELS
-from dit_jax.settings import InferenceSettings
-from dit_jax.verdict import MIN_BAND_PAIRS
+from dit_jax.pipeline import verdict
+from dit_jax.pipeline.result import VERDICT_LEVELS
+from dit_jax.pipeline.settings import InferenceSettings
+from dit_jax.pipeline.verdict import MIN_BAND_PAIRS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -235,7 +235,7 @@ def results_tables() -> list[str]:
 def _settings_of(results: dict) -> InferenceSettings:
     recorded = results.get("inference_settings") or results.get("dit", {}).get("inference_settings")
     if recorded is None:
-        from dit_jax import registration
+        from dit_jax.pipeline import registration
 
         return registration.load().settings
     return InferenceSettings(**recorded)

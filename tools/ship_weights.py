@@ -1,20 +1,20 @@
-"""Exports a training run's best params as the weights that ship with dit-jax (dit_jax/weights/...).
+"""Exports a training run's best params as the weights that ship with dit-jax (dit_jax/network/weights/ or dit_jax/features/weights/).
 
     python tools/ship_weights.py runs/mn40-clean --command "python train.py ..." [--out DIR]
     python tools/ship_weights.py runs/mix --command "..." --choice runs/mix/choice.json
     python tools/ship_weights.py runs/features-all --descriptor --command "python train.py --config configs/features.py ..."
 
-Writes a model checkpoint (dit_jax.checkpoint) whose ``extra`` records what a user needs to trust it: the
+Writes a model checkpoint (dit_jax.network.checkpoint) whose ``extra`` records what a user needs to trust it: the
 training command and config, the data, the step chosen and how, the steps run, the summed step time from
 the run's metrics.jsonl, its last validation figures, and its inference settings
-(:class:`dit_jax.settings.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
+(:class:`dit_jax.pipeline.settings.InferenceSettings`, 1000 points per cloud as in the authors' test protocol).
 ``--choice`` (the output of ``python tools/calibrate.py``) is then recorded into those settings as ``python tools/calibrate.py
 --record`` records one.
 A run that started from other weights (``init_from``) keeps their record under ``trained_from``, so the whole
 history travels with the weights.
 
 ``--descriptor`` ships a learned descriptor's run instead (``python train.py --config configs/features.py``):
-its ``descriptor/`` weights, with the command added to their record, as dit_jax/weights/descriptor-rooms.
+its ``descriptor/`` weights, with the command added to their record, as dit_jax/features/weights/descriptor-rooms.
 """
 
 import argparse
@@ -24,9 +24,11 @@ import shutil
 
 import calibrate
 
-from dit_jax import checkpoint, registration, training
+from dit_jax import training
 from dit_jax.features import network
-from dit_jax.settings import InferenceSettings
+from dit_jax.network import checkpoint
+from dit_jax.pipeline import registration
+from dit_jax.pipeline.settings import InferenceSettings
 
 
 def main(argv: list[str] | None = None) -> None:

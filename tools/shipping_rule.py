@@ -22,10 +22,12 @@ import os
 
 import numpy as np
 
-from dit_jax import geometry, registration, training
+from dit_jax import training
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.evaluators import common
-from dit_jax.settings import MODEL_OVERRIDES, InferenceSettings
+from dit_jax.geometry import rigid
+from dit_jax.pipeline import registration
+from dit_jax.pipeline.settings import MODEL_OVERRIDES, InferenceSettings
 
 #: The settings whose gains the rule sums.
 HARD = ("high_noise_partial", "independent_clean", "independent_high_noise_partial", "scan_high_noise")
@@ -55,7 +57,7 @@ def resampled(batch: dict, points: int, seed: int = 0) -> dict:
 def errors_deg(registrar: registration.Registrar, batch: dict, bar=None) -> np.ndarray:
     """(P,) rotation errors (degrees) of the registrar's unrefined results on ``batch``'s pairs."""
     est = common.run_dit(registrar, list(zip(batch["src"], batch["tgt"])), bar=bar)[common.METHOD_DIT]
-    return np.array([geometry.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, batch["R"])])
+    return np.array([rigid.rotation_angle_deg(r.T @ t) for r, t in zip(est.rotation, batch["R"])])
 
 
 def summary(errors: np.ndarray) -> dict:

@@ -16,10 +16,10 @@ unknown: real scans, users' clouds). The search, in stages:
 3. the ICP refinement (:data:`SCHEDULES` x :data:`ICP_METHODS`) after each chosen global estimate, and after
    DIT's own (the model as it ships, ``--checkpoint``), and the plain ICP's distance (:data:`ICP_DISTANCES`).
 
-Writes ``dit_jax/baselines_tuned.json`` (the choice, read by :func:`dit_jax.baselines.tuned`) and
+Writes ``dit_jax/evaluators/baselines_tuned.json`` (the choice, read by :func:`dit_jax.evaluators.baselines.tuned`) and
 ``docs/baselines_tuning.md`` / ``.json`` (grid, every score, the choice). Then run
 ``python tools/compare_baseline_refinement.py --write``, the last stage: it lets each ``*_icp`` baseline take DIT's
-own refinement (:func:`dit_jax.icp.refine`) where that scores better on 48 validation pairs per setting.
+own refinement (:func:`dit_jax.geometry.icp_refine.refine`) where that scores better on 48 validation pairs per setting.
 """
 
 import argparse
@@ -33,11 +33,12 @@ import time
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import baselines, metrics, registration, training
-from dit_jax import icp as icp_lib
-from dit_jax import settings as settings_lib
+from dit_jax import training
 from dit_jax.data.pairs import SETTINGS
-from dit_jax.evaluators import common
+from dit_jax.evaluators import baselines, common, metrics
+from dit_jax.geometry import icp as icp_lib
+from dit_jax.pipeline import registration
+from dit_jax.pipeline import settings as settings_lib
 
 FEATURE_GRID = {"voxel": (None, 0.03), "normal_radius": (0.1, 0.2), "feature_radius": (0.15, 0.25, 0.4)}
 DISTANCES = (0.025, 0.05, 0.1)
@@ -103,7 +104,7 @@ def _feature_grid(batches: dict, log) -> tuple[dict, dict]:
     """Stage 1: every feature setting times RANSAC's distance (and FGR's tuple scale) on every pair.
 
     Returns ``(estimates, options)``: per method, per options key (their sorted JSON), the estimates per
-    setting and the :class:`~dit_jax.baselines.Options` themselves; later stages reuse the estimates.
+    setting and the :class:`~dit_jax.evaluators.baselines.Options` themselves; later stages reuse the estimates.
     """
     estimates = {"fpfh_ransac": {}, "fgr": {}}
     options = {"fpfh_ransac": {}, "fgr": {}}
@@ -143,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the DIT model whose refinement is tuned (default: the shipped weights); 'none' skips it",
     )
     parser.add_argument("--settings", nargs="+", default=list(SETTINGS))
-    parser.add_argument("--out-json", default="dit_jax/baselines_tuned.json")
+    parser.add_argument("--out-json", default="dit_jax/evaluators/baselines_tuned.json")
     parser.add_argument("--report", default="docs/baselines_tuning")
     return parser
 

@@ -1,4 +1,4 @@
-"""Run 1 of 7 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from the weights shipped before it (a
+"""Run 1 of 7 of the shipped weights (dit_jax/network/weights/dit-cpu-modelnet40), from the weights shipped before it (a
 clean run's best, 200 steps; their record is not kept): 600 steps, the best validation checkpoint kept (step
 600).
 
@@ -16,7 +16,7 @@ started from run 0's weights, which were not kept, so this file starts from the 
 re-run of the chain from it trains those further and does not rebuild them.
 """
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import TrainConfig
 
 
@@ -30,5 +30,5 @@ def get_config():
         max_steps=600,
         lr_drops=(0.5, 0.8),
         eval_every=150,
-        init_from="dit_jax/weights/dit-cpu-modelnet40",
+        init_from="dit_jax/network/weights/dit-cpu-modelnet40",
     ).to_config_dict()

@@ -1,11 +1,11 @@
-"""Run 2 of 7 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from run 1's weights: 1000 steps, the
+"""Run 2 of 7 of the shipped weights (dit_jax/network/weights/dit-cpu-modelnet40), from run 1's weights: 1000 steps, the
 best validation checkpoint kept (step 1000).
 
 As run then, in the command-line syntax of then (``dit_jax.release.ship_weights`` recorded it):
 
     python train.py --preset cpu --data-dir ../shared/data/modelnet40_ply_hdf5_1024 --unseen --settings clean \
         low_noise_partial high_noise_partial independent_clean independent_clean independent_high_noise_partial \
-        scan_low_noise scan_high_noise scan_high_noise --init-from dit_jax/weights/dit-cpu-modelnet40 --set \
+        scan_low_noise scan_high_noise scan_high_noise --init-from dit_jax/network/weights/dit-cpu-modelnet40 --set \
         max_steps=1000 --set lr=3e-4 --set 'lr_drops=(0.6,0.85)' --set match_radius=0.07 --set val_pairs=24 --set \
         eval_every=125 --set ckpt_every=50 --workdir runs/mix (stopped at step 500); then the same with --resume \
         --set lr=1e-3 --set 'lr_drops=(0.75,0.9)'
@@ -17,7 +17,7 @@ runs/shipped/run2`` (it starts from ``runs/shipped/run1/model``, which run 1's r
 import dataclasses
 import os
 
-from dit_jax import configs
+from dit_jax.network import configs
 from dit_jax.training import load_config
 
 

@@ -1,4 +1,4 @@
-"""Run 7 of 7 of the shipped weights (dit_jax/weights/dit-cpu-modelnet40), from run 6's weights, on one lent
+"""Run 7 of 7 of the shipped weights (dit_jax/network/weights/dit-cpu-modelnet40), from run 6's weights, on one lent
 NVIDIA H200: 4500 steps in one 500-second lease, the last checkpoint kept (step 4500, validated once, at the
 end). Fresh pairs (seed 7, never drawn by an earlier run) of run 6's mix, with every cloud of more than 384
 points thinned to 384 by a sampler drawn per cloud (uniform, a density gradient, farthest-point), so that no

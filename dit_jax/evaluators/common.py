@@ -9,16 +9,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dit_jax import geometry
+from dit_jax.geometry import rigid
 
 if TYPE_CHECKING:
-    from dit_jax.result import Result, Stage
+    from dit_jax.pipeline.result import Result, Stage
 
 #: The network alone.
 METHOD_DIT = "DIT"
 #: The network refined by the settings' refinement (ICP on sparse clouds, GICP on scans: ``refine="auto"``).
 METHOD_DIT_ICP = "DIT+ICP"
-#: The default pipeline: on scans, registration by local features (:func:`dit_jax.pipeline.features_first`);
+#: The default pipeline: on scans, registration by local features (:func:`dit_jax.pipeline.stages.features_first`);
 #: elsewhere DIT+ICP.
 METHOD_PIPELINE = "pipeline"
 #: The rows that come from the registration pipeline (the rest are baselines).
@@ -59,7 +59,7 @@ class Estimates:
 
     @classmethod
     def from_stages(cls, stages: Sequence[Stage]) -> Estimates:
-        """From one step of the network's motion per pair (:class:`dit_jax.result.Stage`), each timed up to
+        """From one step of the network's motion per pair (:class:`dit_jax.pipeline.result.Stage`), each timed up to
         that step."""
         agreement = np.array([s.agreement for s in stages])
         refined = bool(stages) and stages[0].refinement is not None
@@ -74,7 +74,7 @@ class Estimates:
 
     @classmethod
     def from_results(cls, results: Sequence[Result]) -> Estimates:
-        """From the pipeline's :class:`dit_jax.result.Result` s, each timed whole, with their own verdicts."""
+        """From the pipeline's :class:`dit_jax.pipeline.result.Result` s, each timed whole, with their own verdicts."""
         return dataclasses.replace(
             cls.from_stages([r.as_stage("result") for r in results]),
             verdict=np.array([r.verdict for r in results]),
@@ -145,7 +145,7 @@ def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg:
     agreement (P,) in degrees; ``edges`` the bands' upper ends, increasing. Returns one ``[upper, pairs,
     right]`` per band (previous edge, edge], then ``[None, pairs, right]`` for those beyond the last edge:
     how many results fell in it and how many of them were within ``right_deg``. What
-    :class:`dit_jax.result.Result` quotes beside a verdict (``verdict_agreement_bands``)."""
+    :class:`dit_jax.pipeline.result.Result` quotes beside a verdict (``verdict_agreement_bands``)."""
     errors, agreement = np.asarray(errors, np.float64), np.asarray(agreement, np.float64)
     bands, low = [], -np.inf
     for high in [*edges, np.inf]:
@@ -158,7 +158,7 @@ def agreement_bands(errors: np.ndarray, agreement: np.ndarray, edges, right_deg:
 
 
 def agreement_rule(max_disagreement: float) -> str:
-    """The agreement verdict's rule in words (see :class:`dit_jax.registration.Registrar`)."""
+    """The agreement verdict's rule in words (see :class:`dit_jax.pipeline.registration.Registrar`)."""
     return f"target onto source agrees within {max_disagreement:g} deg"
 
 
@@ -198,7 +198,7 @@ def refinement_summary(
 
 
 def rotation_error_deg(rotation: np.ndarray, truth: np.ndarray) -> float:
-    return geometry.rotation_angle_deg(np.asarray(rotation, np.float64).T @ truth)
+    return rigid.rotation_angle_deg(np.asarray(rotation, np.float64).T @ truth)
 
 
 def rescore_agreement(results: dict, max_disagreement: dict) -> dict:

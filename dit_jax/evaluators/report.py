@@ -9,9 +9,10 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import metrics, plotting
 from dit_jax.data import pairs as pairs_lib
+from dit_jax.evaluators import metrics
 from dit_jax.evaluators.common import METHOD_DIT_ICP, RIGHT_DEG, SCAN_THRESHOLDS, success_share
+from dit_jax.pictures import plotting
 
 
 def verdict_line(name: str, v: dict) -> str:
@@ -154,7 +155,7 @@ def plot_registrations(dataset: pairs_lib.PairDataset, pred, indices: np.ndarray
 
 def plot_worst(path: str, title: str, worst: Sequence[dict]) -> None:
     """One row per method: its worst pair, before and after its estimate, from two viewpoints
-    (:func:`dit_jax.plotting.draw_registration`). ``worst``: dicts with ``method``, ``pair`` (a label),
+    (:func:`dit_jax.pictures.plotting.draw_registration`). ``worst``: dicts with ``method``, ``pair`` (a label),
     ``src`` (N, 3), ``tgt`` (M, 3), ``R``, ``t`` (the estimate) and ``truth`` ((R, t))."""
     plt = plotting.pyplot()
     fig = plt.figure(figsize=(13, 3.4 * len(worst)))

@@ -1,5 +1,5 @@
 """Evaluation on real scans with known poses (:mod:`dit_jax.data.scans`): DIT, DIT+ICP, the default pipeline and
-the baselines on pairs of scans, in the users' path (:meth:`dit_jax.registration.Registrar.register_pairs`)."""
+the baselines on pairs of scans, in the users' path (:meth:`dit_jax.pipeline.registration.Registrar.register_pairs`)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dit_jax import baselines as baselines_lib
-from dit_jax import icp as icp_lib
-from dit_jax import sampling
+from dit_jax.evaluators import baselines as baselines_lib
 from dit_jax.evaluators import report
 from dit_jax.evaluators.common import (
     METHOD_DIT,
@@ -28,13 +26,15 @@ from dit_jax.evaluators.common import (
     run_dit,
     verdict_summary,
 )
-from dit_jax.result import VERDICT_LEVELS
+from dit_jax.geometry import icp as icp_lib
+from dit_jax.pipeline import sampling
+from dit_jax.pipeline.result import VERDICT_LEVELS
 
 
 def register_baseline(name: str, src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.baselines.SCAN_BASELINES`) on one pair of scans
+    """``(R, t, seconds)`` of baseline ``name`` (:data:`dit_jax.evaluators.baselines.SCAN_BASELINES`) on one pair of scans
     in their own units (``tgt ~ src @ R.T + t``): every point, in the unit sphere a tuned baseline is tuned for
-    (:func:`dit_jax.sampling.normalise`), in the data's units for a recipe and the feature candidate."""
+    (:func:`dit_jax.pipeline.sampling.normalise`), in the data's units for a recipe and the feature candidate."""
     started = time.perf_counter()
     if name == baselines_lib.FEATURE_CANDIDATE:
         from dit_jax.features import matching
@@ -157,8 +157,8 @@ def evaluate_scans(
     and ``baselines`` (their tuned options for any setting). Errors: isotropic rotation error in degrees, and
     translation error over the target's bounding-box diagonal.
     """
-    from dit_jax import registration
     from dit_jax.data import scans as scans_lib
+    from dit_jax.pipeline import registration
 
     if checkpoint_dir is None and not baselines:
         raise ValueError("nothing to evaluate: give a checkpoint or baselines")

@@ -1,4 +1,4 @@
-"""Scenes (:mod:`dit_jax.scene`) against the 3DMatch benchmark's truth: each scene folder's fragments placed by
+"""Scenes (:mod:`dit_jax.scenes.scene`) against the 3DMatch benchmark's truth: each scene folder's fragments placed by
 the pose graph, then every benchmark pair's motion read off the placed poses, beside the pairwise pipeline's
 own result for the same pair (registered on the way), and each fragment's pose beside the truth chained
 through both lists (:func:`dit_jax.data.scans.scene_poses`).
@@ -16,8 +16,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dit_jax import geometry
 from dit_jax.evaluators.common import progress_bar
+from dit_jax.geometry import rigid
 
 #: A benchmark pair is registered within this rotation (degrees) and translation (the data's units, metres).
 CRITERION = (15.0, 0.3)
@@ -40,7 +40,7 @@ def _right(estimate: np.ndarray, truth: np.ndarray) -> bool:
     """Whether a 4 x 4 ``estimate`` lies within :data:`CRITERION` of ``truth`` (as :func:`.scans.is_right`)."""
     from dit_jax.evaluators.scans import is_right
 
-    degrees = geometry.rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
+    degrees = rigid.rotation_angle_deg(estimate[:3, :3].T @ truth[:3, :3])
     return is_right({"rot_err": degrees, "trans_err": float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3]))}, CRITERION)
 
 
@@ -60,7 +60,7 @@ def benchmark_pairs(folder: pathlib.Path) -> dict[str, list[tuple[int, int, np.n
 
 
 def score_scene(folder: pathlib.Path, fragments: list[int], built, seconds: float, pairwise: dict) -> dict:
-    """The figures of one scene ``built`` (:class:`dit_jax.scene.Scene`) from the ``fragments`` of ``folder``
+    """The figures of one scene ``built`` (:class:`dit_jax.scenes.scene.Scene`) from the ``fragments`` of ``folder``
     (their numbers, in the scene's order): a benchmark pair counts for the scene where one component holds both
     fragments and their poses in its frame give its motion; ``pairwise`` holds each benchmark pair's own
     result by (source, target) fragment numbers. Each fragment's pose error is measured in its component's
@@ -91,7 +91,7 @@ def score_scene(folder: pathlib.Path, fragments: list[int], built, seconds: floa
             if known[fragments[k]] and known[first]:
                 expected = np.linalg.inv(truth[first]) @ truth[fragments[k]]
                 position.append(float(np.linalg.norm(built.poses[k][:3, 3] - expected[:3, 3])))
-                rotation.append(geometry.rotation_angle_deg(built.poses[k][:3, :3].T @ expected[:3, :3]))
+                rotation.append(rigid.rotation_angle_deg(built.poses[k][:3, :3].T @ expected[:3, :3]))
     levels = {}
     for edge in (*built.edges, *built.rejected):
         levels[edge.result.level] = levels.get(edge.result.level, 0) + 1
@@ -126,15 +126,17 @@ def evaluate_scenes(
     registrar=None,
     baselines: Sequence[str] = (),
 ) -> dict:
-    """Each 3DMatch scene under ``directory`` (:func:`scene_folders`) placed by :func:`dit_jax.scene.register_scene`
+    """Each 3DMatch scene under ``directory`` (:func:`scene_folders`) placed by :func:`dit_jax.scenes.scene.register_scene`
     with a checkpoint (None: the shipped weights; ``inference``: changes to its settings; ``registrar``: one
     already loaded instead), timed, then each benchmark pair the scene did not register registered on its own
     (untimed), and all scored by :func:`score_scene`. Writes ``results.json`` and ``results.md`` to
     ``out_dir``, and a picture of each scene (``scene_NAME.png``); returns the results with their ``table``.
-    ``baselines``: names of :data:`dit_jax.baselines.SCENE_BASELINES` placed and scored beside (each fragment
+    ``baselines``: names of :data:`dit_jax.evaluators.baselines.SCENE_BASELINES` placed and scored beside (each fragment
     in scan 0's frame, one group), under each row's ``baselines``; their pairs are logged in ``out_dir`` and a
     run given the same ``out_dir`` resumes them (:func:`baseline_log`)."""
-    from dit_jax import io, registration, scene
+    from dit_jax import io
+    from dit_jax.pipeline import registration
+    from dit_jax.scenes import scene
 
     registrar = registrar or registration.load(checkpoint_dir, **(inference or {}))
     rows = []
@@ -175,11 +177,12 @@ def evaluate_scenes(
 def _baseline(
     name: str, folder: pathlib.Path, fragments: list[int], clouds: list, pairwise: dict, progress: bool, out_dir
 ):
-    """The figures of :data:`dit_jax.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene. Its
+    """The figures of :data:`dit_jax.evaluators.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene. Its
     pairs go to a log in ``out_dir`` (:func:`baseline_log`) as they finish; a run given a log that holds some
     takes them as they are and registers the rest. Its seconds are its pairs' own, as logged, and the rest of
     this run's (features of scans whose pairs were all logged are not computed again)."""
-    from dit_jax import baselines, scene
+    from dit_jax.evaluators import baselines
+    from dit_jax.scenes import scene
 
     log = baseline_log(out_dir, name, folder)
     known = _logged_pairs(log, fragments)
@@ -215,7 +218,7 @@ def _baseline(
 
 
 def baseline_log(out_dir, name: str, folder: pathlib.Path) -> pathlib.Path:
-    """The log of a scene baseline's pairs (:class:`dit_jax.baselines.MultiwayPair` records, one JSON line each,
+    """The log of a scene baseline's pairs (:class:`dit_jax.evaluators.baselines.MultiwayPair` records, one JSON line each,
     scans by fragment number): ``out_dir/NAME_SCENE.jsonl``. Appended to, never rewritten; delete it to
     register every pair again."""
     return pathlib.Path(out_dir) / f"{name}_{folder.name}.jsonl"
@@ -224,7 +227,7 @@ def baseline_log(out_dir, name: str, folder: pathlib.Path) -> pathlib.Path:
 def _logged_pairs(log: pathlib.Path, fragments: list[int]) -> dict:
     """The pairs a :func:`baseline_log` holds, by (source, target) index into ``fragments`` (a cut line, a
     killed run's last, is skipped; a pair of fragments this scene lacks is refused)."""
-    from dit_jax import baselines
+    from dit_jax.evaluators import baselines
 
     at = {fragment: k for k, fragment in enumerate(fragments)}
     known = {}

@@ -8,11 +8,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dit_jax import geometry, plotting
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators.common import METHOD_DIT, METHOD_DIT_ICP, progress_bar, rotation_error_deg, run_dit
-from dit_jax.settings import REFINEMENTS
+from dit_jax.geometry import rigid
+from dit_jax.pictures import plotting
+from dit_jax.pipeline.settings import REFINEMENTS
 
 
 def angle_sweep(
@@ -33,7 +34,7 @@ def angle_sweep(
     network's result and, unless ``refine`` is "none", the result refined as ``register(refine=...)`` refines it
     ("icp", "gicp" or "auto"; the JSON keeps it under "icp" whichever it is).
     Writes ``angle_sweep.md``, ``.json`` and ``.png``."""
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     # The network's own range: no second candidate (its results are not what the sweep measures).
     if refine not in REFINEMENTS:
@@ -62,7 +63,7 @@ def angle_sweep(
         "errors": e.tolist(),
     }
     for angle in angles:
-        rotations = [geometry.axis_angle_matrix(axis, angle) for axis in axes]
+        rotations = [rigid.axis_angle_matrix(axis, angle) for axis in axes]
         # Back to the shape's frame, then the new rotation; the translation stays as drawn.
         pairs = [
             (batch["src"][i], (batch["tgt"][i] - batch["t"][i]) @ batch["R"][i] @ rotations[i].T + batch["t"][i])

@@ -2,13 +2,13 @@
 embedded set, in the paper's tables and figures (the job behind ``python evaluate.py``).
 
 For each data setting, :func:`evaluate` makes the deterministic test pairs (:mod:`dit_jax.data.pairs`),
-registers them through the registration pipeline (:mod:`dit_jax.pipeline`, as users run it: rows ``DIT``, the
+registers them through the registration pipeline (:mod:`dit_jax.pipeline.stages`, as users run it: rows ``DIT``, the
 network's result, and ``DIT+ICP``, the refined one) and with the chosen baselines at their tuned options for
-that setting (:func:`dit_jax.baselines.tuned_options`), and writes to ``out_dir``:
+that setting (:func:`dit_jax.evaluators.baselines.tuned_options`), and writes to ``out_dir``:
 
 * ``results.md``: tables shaped like the paper's (RMSE / MAE of Euler angles and of translation), plus
   isotropic errors, RPM-Net's Chamfer distance, success ratio (the paper's criterion), the share within 5
-  degrees and 0.05, the same share up to the shape's symmetry (:func:`dit_jax.metrics.within_up_to_symmetry`)
+  degrees and 0.05, the same share up to the shape's symmetry (:func:`dit_jax.evaluators.metrics.within_up_to_symmetry`)
   and time per pair;
 * ``results.json``: every number, with per-category breakdowns and the success-ratio sweeps;
 * ``success_ratio.png``, ``registrations.png`` and ``worst_<setting>.png`` (each method's worst pair).
@@ -25,13 +25,10 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import baselines as baselines_lib
-from dit_jax import icp as icp_lib
-from dit_jax import metrics
-from dit_jax.configs import GMCCE_THRESHOLDS
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
-from dit_jax.evaluators import report
+from dit_jax.evaluators import baselines as baselines_lib
+from dit_jax.evaluators import metrics, report
 from dit_jax.evaluators.common import (
     METHOD_DIT,
     METHOD_DIT_ICP,
@@ -44,8 +41,10 @@ from dit_jax.evaluators.common import (
     run_dit,
     verdict_summary,
 )
+from dit_jax.geometry import icp as icp_lib
+from dit_jax.network.configs import GMCCE_THRESHOLDS
 
-#: The rotation error that "within ... up to symmetry" (:func:`dit_jax.metrics.within_up_to_symmetry`) allows,
+#: The rotation error that "within ... up to symmetry" (:func:`dit_jax.evaluators.metrics.within_up_to_symmetry`) allows,
 #: with the success curve's paired translation, 0.05.
 SYMMETRY_DEGREES = 5.0
 
@@ -54,7 +53,7 @@ def predict_baseline(
     name: str, dataset: pairs_lib.PairDataset, indices: np.ndarray, bar=None, setting: str | None = None
 ):
     """A baseline's :class:`Estimates` of pairs ``indices`` of ``dataset``, with its options tuned for
-    ``setting`` (:func:`dit_jax.baselines.tuned_options`)."""
+    ``setting`` (:func:`dit_jax.evaluators.baselines.tuned_options`)."""
     method = baselines_lib.get(name, setting)
     rotations, translations, seconds = [], [], []
     for n in indices:
@@ -84,12 +83,12 @@ def score(
     max_disagreement: float | None = None,
     symmetry_tolerance: np.ndarray | None = None,
 ) -> dict:
-    """All metrics of one method's estimates (see :func:`dit_jax.metrics.summarise`), the RPM-Net Chamfer
+    """All metrics of one method's estimates (see :func:`dit_jax.evaluators.metrics.summarise`), the RPM-Net Chamfer
     distance, the share within 5 degrees up to the shape's symmetry, time per pair, the per-category
     breakdown, the worst pair, each pair's rotation error, surface error and verdict evidence (``per_pair``)
     and, where ``pred`` carries that evidence (``fitness``, ``agreement``), how its verdicts do at
     ``min_fitness`` and ``max_disagreement``. ``symmetry_tolerance`` (P,): the pairs'
-    :func:`dit_jax.metrics.symmetry_tolerance`, the same for every method (computed here when not given)."""
+    :func:`dit_jax.evaluators.metrics.symmetry_tolerance`, the same for every method (computed here when not given)."""
     truth = dataset.batch(indices)
     result = metrics.summarise(pred.rotation, pred.translation, truth["R"], truth["t"])
     shapes = complete_shapes(truth)
@@ -193,9 +192,9 @@ def evaluate(
     """Evaluates a model checkpoint (and baselines) on the test pairs of ``settings``; writes the outputs.
 
     Args:
-      checkpoint_dir: a model checkpoint (:mod:`dit_jax.checkpoint`); None evaluates the baselines alone.
+      checkpoint_dir: a model checkpoint (:mod:`dit_jax.network.checkpoint`); None evaluates the baselines alone.
       max_pairs: evaluate only the first pairs of each setting (all by default).
-      inference: changes to the checkpoint's :class:`~dit_jax.settings.InferenceSettings` (e.g.
+      inference: changes to the checkpoint's :class:`~dit_jax.pipeline.settings.InferenceSettings` (e.g.
         ``{"refine": "none"}`` drops the DIT+ICP row, ``{"verdict_rule": "fitness"}`` the second direction).
       authors_thresholds: run each setting at the authors' GMCCE threshold for it (:data:`GMCCE_THRESHOLDS`);
         else at the model's own, or ``inference``'s ``gmcce_threshold``, the same for every setting.
@@ -289,11 +288,11 @@ def _run_baselines(baselines: Sequence[str], setting: str, ds, indices: np.ndarr
 
 
 def _registrar(checkpoint_dir: str | None, inference: dict | None):
-    """The :class:`~dit_jax.registration.Registrar` of a checkpoint with ``inference``'s changes to its
+    """The :class:`~dit_jax.pipeline.registration.Registrar` of a checkpoint with ``inference``'s changes to its
     settings; None without a checkpoint."""
     if checkpoint_dir is None:
         return None
-    from dit_jax import registration
+    from dit_jax.pipeline import registration
 
     return registration.load(checkpoint_dir, **(inference or {}))
 

@@ -8,5 +8,5 @@
 - :mod:`~dit_jax.features.matching`: both directions of a pair, from clouds to refined motions and the evidence
   the verdict reads.
 
-Imports only :mod:`dit_jax.geometry` and :mod:`dit_jax.icp` from the package, never the network or the pipeline.
+Imports only :mod:`dit_jax.geometry.rigid` and :mod:`dit_jax.geometry.icp` from the package, never the network or the pipeline.
 """

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import geometry
+from dit_jax.geometry import rigid
 
 #: The padded match counts: a pair's matches go into the smallest bucket that holds them (more are cut to the
 #: largest by the caller), so at most this many programs are compiled per option set.
@@ -134,7 +134,7 @@ def _refit(src, tgt, valid, distance, rotation, translation):
     by ``1 - (r / distance)^2``; the motion as it was where fewer than three are that close."""
     gap = _residuals(src, tgt, rotation, translation)
     weight = jnp.where(valid & (gap < distance), 1.0 - (gap / distance) ** 2, 0.0)
-    new_rotation, new_translation = geometry.weighted_procrustes(src, tgt, weight)
+    new_rotation, new_translation = rigid.weighted_procrustes(src, tgt, weight)
     enough = jnp.sum(weight > 0) >= 3
     return jnp.where(enough, new_rotation, rotation), jnp.where(enough, new_translation, translation)
 
@@ -151,7 +151,7 @@ def hypotheses(src, tgt, valid, distance, second, seed_rows, set_size: int = SET
         local = second_order(compatibility(src[members], tgt[members], inside, distance))
         weight = leading_vector(local) * inside
         weight = jnp.where(jnp.sum(weight) > 0, weight, inside.astype(weight.dtype))
-        rotation, translation = geometry.weighted_procrustes(src[members], tgt[members], weight)
+        rotation, translation = rigid.weighted_procrustes(src[members], tgt[members], weight)
         for _ in range(REFITS):
             rotation, translation = _refit(src, tgt, valid, distance, rotation, translation)
         return rotation, translation

@@ -12,7 +12,7 @@ about :data:`ICP_POINTS` of larger clouds) refines it. It finds a motion at any 
 turned by anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
-:data:`VOXEL_SPACINGS` point spacings (:func:`dit_jax.icp.point_spacing`), coarser on very large scans so that
+:data:`VOXEL_SPACINGS` point spacings (:func:`dit_jax.geometry.neighbours.point_spacing`), coarser on very large scans so that
 the features see about :data:`FEATURE_POINTS` points of each cloud (:func:`feature_voxel`); normals come from
 neighbours within 2 voxels, features from those within 5, lengths agree within :data:`MATCH_VOXELS` voxels,
 a point lies on the target within 1.5, and ICP pairs points within 0.4 voxels.
@@ -98,7 +98,7 @@ class FeatureEstimate:
       disagreement: degrees between the two rotations.
       offset: distance between the two translations, in point spacings.
       overlap: (2,) the share of source points each lays within 2 point spacings of the target
-        (:func:`dit_jax.icp.overlap`).
+        (:func:`dit_jax.geometry.icp.overlap`).
       inliers: (2,) each direction's inliers, as :class:`FeatureMatch` counts them (0: that direction
         found nothing).
       rival: (2,) each direction's rival share (:func:`_choose`): the matches that back another motion and not
@@ -378,12 +378,12 @@ def _estimate_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: flo
 
 
 def _prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
-    from dit_jax import icp as icp_lib
+    from dit_jax.geometry import neighbours
 
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)
     if spacing is None:
-        spacing = max(icp_lib.point_spacing(src, seed=seed), icp_lib.point_spacing(tgt, seed=seed))
+        spacing = max(neighbours.point_spacing(src, seed=seed), neighbours.point_spacing(tgt, seed=seed))
     voxel = feature_voxel(spacing, max(len(src), len(tgt)), voxel_spacings)
     enough = np.isfinite(voxel) and voxel > 0
     if enough:
@@ -411,7 +411,7 @@ def match_one_way(
 
     Args:
       src, tgt: clouds in any units.
-      spacing: their point spacing (default: the larger of the two clouds', :func:`dit_jax.icp.point_spacing`).
+      spacing: their point spacing (default: the larger of the two clouds', :func:`dit_jax.geometry.neighbours.point_spacing`).
       seed: the spacing's subset.
       voxel_spacings: the voxel's point spacings (see :func:`feature_voxel`).
       viewpoint: where the normals are turned to face (:data:`VIEWPOINT`); None leaves them as estimated.
@@ -441,7 +441,7 @@ def register_both_ways(
 ) -> FeatureEstimate | None:
     """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by the estimator then
     point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
-    (the larger of the two, :func:`dit_jax.icp.point_spacing`); ``seed``: the spacing's
+    (the larger of the two, :func:`dit_jax.geometry.neighbours.point_spacing`); ``seed``: the spacing's
     subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
     direction the estimator finds nothing for starts ICP from the identity and counts 0 inliers; ``viewpoint``:
     where the normals face (:data:`VIEWPOINT`, None: as estimated); ``descriptor``: what the keypoints are matched
@@ -485,11 +485,11 @@ def prepare_scans(
     """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
     computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
     scan's features are computed once however many pairs it joins. ``spacings``: each cloud's point spacing
-    where the caller has measured it (:func:`dit_jax.icp.point_spacing` with ``seed``)."""
-    from dit_jax import icp as icp_lib
+    where the caller has measured it (:func:`dit_jax.geometry.neighbours.point_spacing` with ``seed``)."""
+    from dit_jax.geometry import neighbours
 
     points = [np.asarray(c, np.float64) for c in clouds]
-    spacing = max(spacings or [icp_lib.point_spacing(p, seed=seed) for p in points])
+    spacing = max(spacings or [neighbours.point_spacing(p, seed=seed) for p in points])
     most = max(len(p) for p in points)
     voxel = max(_capped_voxel(p, feature_voxel(spacing, most), FEATURE_POINTS) for p in points)
     thin = icp_voxel(spacing, most)
@@ -511,8 +511,8 @@ def register_scans(prepared: Scans, source: int, target: int, *, seed: int = 0) 
 
 def _both_ways(src: Scan, tgt: Scan, spacing: float, voxel: float, seed: int, started: float) -> FeatureEstimate:
     """Both directions of a pair from its scans' features: the estimator then ICP each way, on two threads."""
-    from dit_jax import geometry
-    from dit_jax import icp as icp_lib
+    from dit_jax.geometry import icp as icp_lib
+    from dit_jax.geometry import rigid
 
     source, target = src.cloud, tgt.cloud
     forward_matches, backward_matches = _matches(source, target)
@@ -526,7 +526,7 @@ def _both_ways(src: Scan, tgt: Scan, spacing: float, voxel: float, seed: int, st
     return FeatureEstimate(
         forward=forward,
         backward=backward,
-        disagreement=geometry.rotation_angle_deg(forward[0].T @ backward[0]),
+        disagreement=rigid.rotation_angle_deg(forward[0].T @ backward[0]),
         offset=float(np.linalg.norm(forward[1] - backward[1]) / spacing),
         overlap=shares,
         inliers=(inliers_there, inliers_back),

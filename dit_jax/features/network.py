@@ -32,7 +32,7 @@ HISTOGRAM_SIZE = 132
 CHUNK = 2048
 FORMAT = 1
 #: Where the shipped weights live inside the package.
-SHIPPED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "weights", "descriptor-rooms")
+SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights", "descriptor-rooms")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -249,7 +249,7 @@ def move_file(
 
     Args:
       source, destination: paths of the same format, one of :data:`MOVE_FORMATS`.
-      rotation: (3, 3); translation: (3,) (a :class:`dit_jax.result.Result`'s).
+      rotation: (3, 3); translation: (3,) (a :class:`dit_jax.pipeline.result.Result`'s).
 
     Raises:
       CloudFileError: ``source`` is unreadable or malformed, ``destination`` has another format, or a PLY or

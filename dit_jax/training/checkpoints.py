@@ -70,9 +70,9 @@ def _restore(manager, step: int, abstract: TrainState, config: TrainConfig) -> t
 
 def export_params(workdir: str, out_dir: str, *, latest: bool = False) -> str:
     """Writes the best (else the latest) params of a training run as a model checkpoint
-    (:mod:`dit_jax.checkpoint`), the format ``evaluate.py`` and the registration API read. ``latest``: the
+    (:mod:`dit_jax.network.checkpoint`), the format ``evaluate.py`` and the registration API read. ``latest``: the
     last checkpoint's params instead of the best (the end of a run whose best came early)."""
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     workdir = os.path.abspath(workdir)
     for sub in ("checkpoints",) if latest else ("best", "checkpoints"):

@@ -7,8 +7,8 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
-from dit_jax import configs, losses
-from dit_jax.configs import DITConfig
+from dit_jax.network import configs, losses
+from dit_jax.network.configs import DITConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -17,7 +17,7 @@ class TrainConfig:
     (``get_config()``, read by :func:`load_config`), as ``ml_collections`` ConfigDicts of these fields.
 
     Attributes:
-      model: the network (:class:`dit_jax.configs.DITConfig`), e.g. ``configs.cpu(setting)``.
+      model: the network (:class:`dit_jax.network.configs.DITConfig`), e.g. ``configs.cpu(setting)``.
       setting: data setting (one of :data:`dit_jax.data.pairs.SETTINGS`).
       settings: train on a mix of these settings instead (each batch from one of them, see
         :class:`dit_jax.data.pairs.MixedPairs`; repeat one to draw it more often); validation then covers
@@ -58,22 +58,22 @@ class TrainConfig:
       keep: last checkpoints kept (the best one is kept apart).
       seed: parameters, dropout, training pairs and their order.
       log_every: steps between metric lines in ``metrics.jsonl``.
-      match_radius: radius of the discrimination labels (:func:`dit_jax.losses.match_labels`).
+      match_radius: radius of the discrimination labels (:func:`dit_jax.network.losses.match_labels`).
       train_precision: how the network's matrix products are computed in the train step only (see
-        :attr:`dit_jax.configs.DITConfig.precision`): None (the default) as the model says; "bfloat16" takes
+        :attr:`dit_jax.network.configs.DITConfig.precision`): None (the default) as the model says; "bfloat16" takes
         bfloat16 operands with float32 accumulation, while the parameters, the optimiser, the geometry and the
         losses stay float32. Validation and the saved model keep the model's own precision. "auto" times the
         step at both when the run starts and takes bfloat16 only where it is clearly faster on this machine
         (:mod:`dit_jax.training.precision`); the run's ``train_config.json`` records the choice. On a CPU
         bfloat16 makes the cpu recipe's step no faster: its cost is the softmax and narrow attention heads,
         which bfloat16 operands do not shorten (docs/benchmarks.md).
-      correspondence_weight: weight of the correspondence term (:func:`dit_jax.losses.correspondence_loss`,
+      correspondence_weight: weight of the correspondence term (:func:`dit_jax.network.losses.correspondence_loss`,
         not the authors'); 0 trains the authors' objective.
-      init_from: a model checkpoint (:mod:`dit_jax.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
+      init_from: a model checkpoint (:mod:`dit_jax.network.checkpoint`, e.g. ``WORKDIR/model`` of an earlier run)
         whose params start this run, with a fresh optimiser: fine-tuning, e.g. a clean model on a noisy
         setting. Its network shape must match ``model``'s, or have fewer PFT layers
         (``--config.model.n_blocks=4`` from a 2-block checkpoint): then the network is grown in depth by
-        :func:`dit_jax.pft.deepen` and starts out computing what the checkpoint computes.
+        :func:`dit_jax.network.pft.deepen` and starts out computing what the checkpoint computes.
     """
 
     model: DITConfig = dataclasses.field(default_factory=configs.cpu)

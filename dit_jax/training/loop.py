@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from dit_jax import pft
 from dit_jax.data import prefetch
+from dit_jax.network import pft
 from dit_jax.training import precision as precision_lib
 from dit_jax.training import step as step_lib
 from dit_jax.training.checkpoints import TrainCheckpointError, _managers, _restore, _save, export_params
@@ -46,7 +46,7 @@ def _initialise_from(
     state: step_lib.TrainState, path: str, optimizer: optax.GradientTransformation
 ) -> step_lib.TrainState:
     """``state`` with the params of the model checkpoint at ``path`` and a fresh optimiser state."""
-    from dit_jax import checkpoint
+    from dit_jax.network import checkpoint
 
     params, _ = checkpoint.restore(path)
     shapes = lambda tree: jax.tree.map(lambda a: tuple(a.shape), tree)

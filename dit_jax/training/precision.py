@@ -6,7 +6,7 @@ step is bound by the softmax and by narrow attention heads (the ``cpu`` recipe o
 conversions and gain nothing. Rather than guess from the hardware's name, "auto" compiles the step at both
 precisions, times a few steps of each on the run's first training batch, and takes bfloat16 only where it is
 at least :data:`MARGIN` times as fast. The choice is kept with the compiled programs
-(:func:`dit_jax.compile_cache.memo`), keyed by the machine, the network and the step's shapes, so a machine
+(:func:`dit_jax.network.compile_cache.memo`), keyed by the machine, the network and the step's shapes, so a machine
 measures each recipe once; a run records the precision it chose in its ``train_config.json``, so resuming
 it never measures again.
 """
@@ -27,7 +27,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh
 
-from dit_jax import compile_cache
+from dit_jax.network import compile_cache
 from dit_jax.training import step as step_lib
 from dit_jax.training.config import TrainConfig
 

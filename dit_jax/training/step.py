@@ -14,8 +14,9 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from dit_jax import losses, metrics, model
-from dit_jax.configs import DITConfig
+from dit_jax.evaluators import metrics
+from dit_jax.network import losses, model
+from dit_jax.network.configs import DITConfig
 from dit_jax.training.config import TrainConfig
 
 

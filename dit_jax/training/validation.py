@@ -10,10 +10,11 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
-from dit_jax import configs, losses, metrics, model
-from dit_jax.configs import DITConfig
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
+from dit_jax.evaluators import metrics
+from dit_jax.network import configs, losses, model
+from dit_jax.network.configs import DITConfig
 from dit_jax.training.config import TrainConfig
 
 
@@ -98,7 +99,7 @@ def validate(
       estimate. On clean pairs GMCCE registers well even with untrained features, so this is the figure that
       shows what training changed, and the one the best checkpoint is chosen by;
     * ``network_match_accuracy``: the share of source points whose most similar target point lies within
-      :data:`dit_jax.losses.MATCH_RADIUS` of its true position (the discrimination loss's labels), from the
+      :data:`dit_jax.network.losses.MATCH_RADIUS` of its true position (the discrimination loss's labels), from the
       same soft iteration.
 
     For :class:`~dit_jax.data.pairs.MixedPairs`, each setting's ``n_pairs`` are measured (keys
@@ -127,7 +128,7 @@ def validate(
     return _validation_errors(params, dataset.batch, min(n_pairs, len(dataset)), model_config, batch_size)
 
 
-#: :func:`dit_jax.losses.match_labels` of a batch, one compiled program (validation runs outside a jit).
+#: :func:`dit_jax.network.losses.match_labels` of a batch, one compiled program (validation runs outside a jit).
 _batch_match_labels = jax.jit(jax.vmap(losses.match_labels))
 
 

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import torch
 
-from dit_jax import configs, convert, model
+from dit_jax.network import configs, convert, model
 
 config = configs.tiny()
 state = convert.to_torch_state_dict(model.init(jax.random.key(0), config), config)
