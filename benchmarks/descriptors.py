@@ -26,9 +26,9 @@ MEASURED = ("fpfh", "fpfh_sqrt", "histograms")
 def describe_all(clouds, viewpoint=(0.0, 0.0, 0.0)) -> tuple[list, dict, dict]:
     """Each cloud's keypoints (N_k, 3) and, per descriptor of :data:`MEASURED`, their descriptors; and the mean
     seconds a fragment each took (the keypoints' grid and normals not counted)."""
-    from dit_jax.features import descriptors, matching
+    from dit_jax.features import descriptors, keypoints
 
-    prepared = matching.prepare_scans(clouds, viewpoint=viewpoint, descriptor="fpfh")
+    prepared = keypoints.prepare_scans(clouds, viewpoint=viewpoint, descriptor="fpfh")
     keypoints, found, seconds = [], {name: [] for name in MEASURED}, dict.fromkeys(MEASURED, 0.0)
     for scan in prepared.scans:
         keypoints.append(np.asarray(scan.cloud.thinned.points))

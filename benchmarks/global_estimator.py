@@ -52,10 +52,10 @@ def open3d_ransac(source, target, voxel: float) -> np.ndarray:
 def timed_steps(pair) -> tuple[dict, np.ndarray, np.ndarray] | None:
     """Each step's seconds for one direction of ``pair``, the chosen motion before ICP, and Open3D's: or None
     where the clouds have too few features."""
-    from dit_jax.features import compatibility
+    from dit_jax.features import compatibility, keypoints, twins
     from dit_jax.features import matching as fm
 
-    src, tgt, _, voxel, enough = fm._prepare(pair.source, pair.target, None, 0, fm.VOXEL_SPACINGS)
+    src, tgt, _, voxel, enough = keypoints.prepare(pair.source, pair.target, None, 0, keypoints.VOXEL_SPACINGS)
     if not enough:
         return None
     seconds, clock = {}, time.perf_counter()
@@ -65,7 +65,7 @@ def timed_steps(pair) -> tuple[dict, np.ndarray, np.ndarray] | None:
         now = time.perf_counter()
         seconds[step], clock = now - clock, now
 
-    source, target = fm._Cloud(src, voxel), fm._Cloud(tgt, voxel)
+    source, target = keypoints.Cloud(src, voxel), keypoints.Cloud(tgt, voxel)
     lap("features")
     matches, _ = fm._matches(source, target)
     lap("matching")
@@ -77,7 +77,7 @@ def timed_steps(pair) -> tuple[dict, np.ndarray, np.ndarray] | None:
     lap("scoring")
     refined = fm._icp(source, target, motion, voxel)
     lap("icp")
-    fm.twin_fit(source, target, voxel, fm._split(refined))
+    twins.twin_fit(source, target, voxel, fm._split(refined))
     lap("twin")
     started = time.perf_counter()
     theirs = open3d_ransac(source, target, voxel)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import MODELNET_DIR
 
-from dit_jax.data import pairs
+from dit_jax.data import mixed, pairs, views
 
 
 def _batch(shapes, n=200, **kw):
@@ -169,7 +169,7 @@ def test_visible_points_of_a_sphere_face_the_camera():
     sphere = rng.normal(size=(2000, 3))
     sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
     camera = np.array([0.0, 0.0, 3.0])
-    seen = pairs.visible_points(sphere, camera)
+    seen = views.visible_points(sphere, camera)
     # A camera 3 radii away sees the cap with z > 1/3; hidden-point removal finds most of it and nothing behind
     # (a few points at the horizon are within sampling error of it).
     assert sphere[seen, 2].min() > 0.1 and (sphere[seen, 2] < 0.25).mean() < 0.01
@@ -183,8 +183,8 @@ def test_scan_views_stay_whole_and_disjoint_when_few_points_are_hidden(monkeypat
     distinct points and share none."""
     shape = np.random.default_rng(1).normal(size=(1024, 3))
     masks = iter([np.arange(1024) < 100, np.arange(1024) < 1024 - hidden])
-    monkeypatch.setattr(pairs, "visible_points", lambda points, camera: next(masks))
-    src, tgt = pairs._scan_views(shape, 205, np.random.default_rng(0))
+    monkeypatch.setattr(views, "visible_points", lambda points, camera: next(masks))
+    src, tgt = views.scan_views(shape, 205, np.random.default_rng(0))
     assert len(src) == len(tgt) == 205
     assert len(np.unique(src)) == len(np.unique(tgt)) == 205 and not np.intersect1d(src, tgt).size
 
@@ -206,30 +206,30 @@ def test_scan_views_differ_by_at_most_sixty_degrees(modelnet_test):
 
 def test_mixed_pairs_draw_whole_batches_from_each_setting(modelnet_test):
     config = pairs.PairConfig(train=True, n_points=512)
-    mixed = pairs.MixedPairs(modelnet_test, config, ("clean", "independent_clean", "scan_high_noise"))
+    mix = mixed.MixedPairs(modelnet_test, config, ("clean", "independent_clean", "scan_high_noise"))
     seen = {}
     for first in range(30):
         indices = [first, first + 100]
-        setting = mixed.setting_of(indices, epoch=2)
-        b = mixed.batch(indices, epoch=2)
-        expected = mixed.datasets[setting].batch(indices, epoch=2)
+        setting = mix.setting_of(indices, epoch=2)
+        b = mix.batch(indices, epoch=2)
+        expected = mix.datasets[setting].batch(indices, epoch=2)
         np.testing.assert_array_equal(b["src"], expected["src"])
         seen[setting] = seen.get(setting, 0) + 1
-        assert mixed.setting_of(indices, epoch=2) == setting, "deterministic"
+        assert mix.setting_of(indices, epoch=2) == setting, "deterministic"
     assert set(seen) == {"clean", "independent_clean", "scan_high_noise"}
-    assert len(mixed) == len(mixed.datasets["clean"])
+    assert len(mix) == len(mix.datasets["clean"])
 
 
 def test_pair_view_reads_a_stacked_batch_and_swaps_clouds(modelnet_test):
     ds = pairs.PairDataset(modelnet_test, pairs.PairConfig(setting="low_noise_partial"))
     stacked = ds.batch(np.arange(6))
-    view, swapped = pairs.PairView(stacked), pairs.PairView(ds, swap=True)
+    view, swapped = mixed.PairView(stacked), mixed.PairView(ds, swap=True)
     for key in ("src", "tgt", "R"):
         np.testing.assert_array_equal(view.batch([4, 1])[key], ds.batch([4, 1])[key])
         np.testing.assert_array_equal(view[3][key], ds[3][key])
     np.testing.assert_array_equal(swapped.batch([2])["src"], ds.batch([2])["tgt"])
     np.testing.assert_array_equal(swapped[2]["tgt"], ds[2]["src"])
-    np.testing.assert_array_equal(pairs.PairView(stacked, swap=True)[5]["src"], stacked["tgt"][5])
+    np.testing.assert_array_equal(mixed.PairView(stacked, swap=True)[5]["src"], stacked["tgt"][5])
 
 
 def _thinned_clean_pairs(mix, n, size):
@@ -248,14 +248,14 @@ def test_a_mix_of_one_size_thins_every_setting_to_its_smallest_clouds(modelnet_t
     """``one_size``: every setting's clouds hold the mix's fewest points (here the partial setting's 800 of
     1000), and the thinned pairs keep exact counterparts where both points stayed, the same on every call."""
     config = pairs.PairConfig(n_points=1000)
-    mix = pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial"), one_size=True)
+    mix = mixed.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial"), one_size=True)
     assert mix.cloud_points == 800
     clean = _thinned_clean_pairs(mix, 6, 800)
     for i in range(6):  # about 800 / 1000 of the kept source points kept their counterpart
         assert 0.7 < (clean["correspondence"][i] >= 0).mean() < 0.9
     partial = mix.setting_batch("low_noise_partial", np.arange(6))
     np.testing.assert_array_equal(partial["src"], mix.datasets["low_noise_partial"].batch(np.arange(6))["src"])
-    assert pairs.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(np.arange(2))["src"].shape[
+    assert mixed.MixedPairs(modelnet_test, config, ("clean", "low_noise_partial")).batch(np.arange(2))["src"].shape[
         1
     ] in (800, 1000)
 
@@ -267,22 +267,22 @@ def test_samplers_keep_distinct_patterns():
     from scipy.spatial import cKDTree
 
     def kept(sampler, seed):
-        idx = pairs.sample_points(cloud, 600, np.random.default_rng(seed), sampler)
+        idx = views.sample_points(cloud, 600, np.random.default_rng(seed), sampler)
         assert len(np.unique(idx)) == 600 and np.all(np.diff(idx) > 0)
         return cloud[idx]
 
-    shift = {s: [float(np.linalg.norm(kept(s, seed).mean(axis=0))) for seed in range(4)] for s in pairs.SAMPLERS}
+    shift = {s: [float(np.linalg.norm(kept(s, seed).mean(axis=0))) for seed in range(4)] for s in views.SAMPLERS}
     assert min(shift["density"]) > 2 * max(shift["uniform"]), shift
     closest = {
         s: min(float(cKDTree(c).query(c, k=2)[0][:, 1].min()) for c in [kept(s, 0)]) for s in ("uniform", "farthest")
     }
     assert closest["farthest"] > 5 * closest["uniform"], closest
     with pytest.raises(ValueError, match="unknown sampler"):
-        pairs.sample_points(cloud, 10, np.random.default_rng(0), "voxel")
+        views.sample_points(cloud, 10, np.random.default_rng(0), "voxel")
 
 
 def test_a_varied_mix_thins_each_cloud_its_own_way_and_keeps_counterparts(modelnet_test):
-    mix = pairs.MixedPairs(
+    mix = mixed.MixedPairs(
         modelnet_test,
         pairs.PairConfig(n_points=1000),
         ("clean", "low_noise_partial"),
@@ -293,11 +293,11 @@ def test_a_varied_mix_thins_each_cloud_its_own_way_and_keeps_counterparts(modeln
     assert mix.cloud_points == 300
     _thinned_clean_pairs(mix, 8, 300)
     with pytest.raises(ValueError, match="points"):
-        pairs.MixedPairs(
+        mixed.MixedPairs(
             modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"), one_size=True, points=900
         )
     # Without one size, points caps each setting: larger clouds are thinned, smaller ones keep their size.
-    capped = pairs.MixedPairs(
+    capped = mixed.MixedPairs(
         modelnet_test, pairs.PairConfig(n_points=1000), ("clean", "low_noise_partial"), points=900, sampling="varied"
     )
     assert capped.setting_batch("clean", np.arange(2))["src"].shape == (2, 900, 3)

@@ -5,7 +5,7 @@ import pytest
 from conftest import box_room
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
-from dit_jax.features import descriptors, matching
+from dit_jax.features import descriptors, keypoints, matching
 from dit_jax.geometry.rigid import rotation_angle_deg
 
 pytest.importorskip("open3d")
@@ -13,7 +13,7 @@ pytest.importorskip("open3d")
 
 def _keypoints(points: np.ndarray, voxel: float, viewpoint=(0.0, 0.0, 0.0)):
     """The keypoints as local features build them: the cloud on a grid of ``voxel``, normals facing ``viewpoint``."""
-    return matching._Cloud(points, voxel, viewpoint=viewpoint, descriptor="fpfh").thinned
+    return keypoints.Cloud(points, voxel, viewpoint=viewpoint, descriptor="fpfh").thinned
 
 
 def _bumpy_room(seed: int) -> np.ndarray:
@@ -46,7 +46,7 @@ def test_histograms_join_four_unit_blocks_of_square_rooted_fpfh_and_fpfh_stays_a
 def test_fpfh_is_the_default_and_an_unknown_descriptor_is_refused():
     cloud = _keypoints(_bumpy_room(0), 0.1)
     assert descriptors.describe(cloud, 0.1).shape[1] == 33
-    assert matching.DESCRIPTOR == "fpfh" and descriptors.DESCRIPTORS[0] == "fpfh"
+    assert keypoints.DESCRIPTOR == "fpfh" and descriptors.DESCRIPTORS[0] == "fpfh"
     with pytest.raises(ValueError, match="descriptor must be one of"):
         descriptors.describe(cloud, 0.1, "shot")
 

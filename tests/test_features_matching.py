@@ -5,7 +5,7 @@ import pytest
 from conftest import box_room
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
-from dit_jax.features import matching
+from dit_jax.features import keypoints, matching
 from dit_jax.geometry.rigid import rotation_angle_deg
 from dit_jax.pipeline import verdict
 
@@ -41,9 +41,9 @@ def test_two_samplings_of_a_surface_half_a_turn_apart_register_the_same_in_any_u
 
 
 def test_the_voxel_follows_the_spacing_and_grows_with_the_cloud():
-    assert matching.feature_voxel(0.01, 5_000) == pytest.approx(0.01 * matching.VOXEL_SPACINGS)
-    big = 100 * matching.FEATURE_POINTS
-    assert matching.feature_voxel(0.01, big) == pytest.approx(0.1)  # sqrt(100) spacings
+    assert keypoints.feature_voxel(0.01, 5_000) == pytest.approx(0.01 * keypoints.VOXEL_SPACINGS)
+    big = 100 * keypoints.FEATURE_POINTS
+    assert keypoints.feature_voxel(0.01, big) == pytest.approx(0.1)  # sqrt(100) spacings
 
 
 def test_a_cloud_without_features_gives_the_identity_and_no_nan():
@@ -65,7 +65,7 @@ def test_a_few_points_give_no_estimate_instead_of_a_crash():
     found = matching.match_one_way(few, few + 0.1)
     assert found.inliers == 0 and np.array_equal(found.rotation, np.eye(3))
     assert matching.register_both_ways(few, few + 0.1) is None
-    assert matching.occupied_voxels(few, 10.0) == 1
+    assert keypoints.occupied_voxels(few, 10.0) == 1
 
 
 def test_both_ways_agree_on_a_true_motion_and_stay_finite_on_a_featureless_sphere():
@@ -154,17 +154,17 @@ def test_icp_on_tensor_clouds_gives_the_legacy_motion_and_large_clouds_are_thinn
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth = euler_zyx_to_matrix([10.0, -5.0, 3.0])
     voxel = 0.08
-    source, target = matching._Cloud(src, voxel), matching._Cloud(other @ truth.T + 0.05, voxel)
+    source, target = keypoints.Cloud(src, voxel), keypoints.Cloud(other @ truth.T + 0.05, voxel)
     start = np.eye(4)
     reg = o3d.pipelines.registration
     legacy = reg.registration_icp(
         source.full, target.full, 0.4 * voxel, start, reg.TransformationEstimationPointToPlane()
     ).transformation
     np.testing.assert_allclose(matching._icp(source, target, start, voxel), legacy, atol=1e-6)
-    assert matching.icp_voxel(0.01, matching.ICP_POINTS) is None
-    assert matching.icp_voxel(0.01, 4 * matching.ICP_POINTS) == pytest.approx(0.02)
-    big = _surface(4 * matching.ICP_POINTS, seed=3)
-    thinned = matching._Cloud(big, voxel, matching.icp_voxel(point_spacing(big), len(big)))
+    assert keypoints.icp_voxel(0.01, keypoints.ICP_POINTS) is None
+    assert keypoints.icp_voxel(0.01, 4 * keypoints.ICP_POINTS) == pytest.approx(0.02)
+    big = _surface(4 * keypoints.ICP_POINTS, seed=3)
+    thinned = keypoints.Cloud(big, voxel, keypoints.icp_voxel(point_spacing(big), len(big)))
     # A scan's even sampling keeps about ICP_POINTS (the kitchen fragments: 58,000 of 260,000); a random one more.
     assert len(thinned.full.points) < 0.75 * len(big) and len(source.full.points) == len(src)
 
@@ -174,22 +174,22 @@ def test_normals_face_the_viewpoint_before_features_and_are_left_alone_without_o
     with ``viewpoint=None`` the signs are Open3D's, and some face away."""
     src = box_room(20000, 1)  # the origin lies inside the room, as a scanner's would
     voxel = 0.1
-    facing = matching._Cloud(src, voxel)
+    facing = keypoints.Cloud(src, voxel)
     towards = -np.asarray(facing.thinned.points)  # from each point to the origin
     assert np.all(np.einsum("ij,ij->i", np.asarray(facing.thinned.normals), towards) >= 0)
-    as_estimated = matching._Cloud(src, voxel, viewpoint=None)
+    as_estimated = keypoints.Cloud(src, voxel, viewpoint=None)
     signs = np.einsum("ij,ij->i", np.asarray(as_estimated.thinned.normals), towards)
     assert np.mean(signs < 0) > 0.05
 
 
 def test_scans_prepared_once_register_each_pair_as_the_pair_alone_does():
-    """A scene's scans are prepared once (:func:`matching.prepare_scans`); a pair of them then registers
+    """A scene's scans are prepared once (:func:`keypoints.prepare_scans`); a pair of them then registers
     exactly as :func:`register_both_ways` registers the two clouds alone, where the two share the scene's
     spacing and voxel (as two scans of one set do)."""
     src, other = _surface(8000, seed=1), _surface(8000, seed=2)
     truth, t_truth = euler_zyx_to_matrix([150.0, -30.0, 20.0]), np.array([2.0, -1.0, 0.5])
     tgt = other @ truth.T + t_truth
-    prepared = matching.prepare_scans([src, tgt], viewpoint=None)
+    prepared = keypoints.prepare_scans([src, tgt], viewpoint=None)
     alone = matching.register_both_ways(src, tgt, viewpoint=None)
     from_scans = matching.register_scans(prepared, 0, 1)
     assert prepared.voxel == pytest.approx(alone.voxel) and prepared.spacing == pytest.approx(alone.spacing)
@@ -198,5 +198,5 @@ def test_scans_prepared_once_register_each_pair_as_the_pair_alone_does():
         np.testing.assert_allclose(mine[1], theirs[1], atol=1e-9)
     assert from_scans.inliers == alone.inliers
     few = np.random.default_rng(0).normal(size=(3, 3))
-    with_few = matching.prepare_scans([src, few])
+    with_few = keypoints.prepare_scans([src, few])
     assert with_few.scans[1] is None and matching.register_scans(with_few, 0, 1) is None

@@ -143,7 +143,7 @@ def test_the_pairs_of_one_set_of_scans_compute_each_scan_s_features_once(monkeyp
     """:func:`stages.register_scan_pairs` builds each scan's features once however many pairs it joins, and
     each pair's result is the one :func:`stages.register_pairs` gives it (the scans share a spacing)."""
     pytest.importorskip("open3d")
-    from dit_jax.features import matching
+    from dit_jax.features import keypoints
 
     rng = np.random.default_rng(0)
     d = rng.normal(size=(3 * SCAN_POINTS, 3))
@@ -152,14 +152,14 @@ def test_the_pairs_of_one_set_of_scans_compute_each_scan_s_features_once(monkeyp
     turns = [np.eye(3), *(np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(2))]
     scans = [surface @ (turn * np.sign(np.linalg.det(turn))).T + k for k, turn in enumerate(turns)]
     built = []
-    original = matching._Cloud
+    original = keypoints.Cloud
 
     class Counted(original):
         def __init__(self, *args, **kwargs):
             built.append(1)
             super().__init__(*args, **kwargs)
 
-    monkeypatch.setattr(matching, "_Cloud", Counted)
+    monkeypatch.setattr(keypoints, "Cloud", Counted)
     registrar = registration.load(viewpoint="none")
     pairs = [(1, 0), (2, 0), (2, 1)]
     together = registrar.register_scan_pairs(scans, pairs)

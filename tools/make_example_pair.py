@@ -2,7 +2,7 @@
 
 Two scan-like views of one object, as a user's scanner gives them: the oak chair of the embedded set
 (BlendSwap-CC-0/oakChair by Doug C, CC0), scaled to about a metre and set in a room frame, seen from two
-viewpoints 40 degrees apart (hidden-point removal, :func:`dit_jax.data.pairs.visible_points`). Points both
+viewpoints 40 degrees apart (hidden-point removal, :func:`dit_jax.data.views.visible_points`). Points both
 views see go to one of them at random, so the two clouds share no point; each gets 1 mm of Gaussian noise.
 The target is then turned by 30 degrees about the vertical, tilted 5 degrees, moved 0.35 m and shuffled.
 The true motion is printed and written to examples/chair_truth.txt.
@@ -16,7 +16,8 @@ import os
 import numpy as np
 
 from dit_jax import io
-from dit_jax.data.pairs import euler_zyx_to_matrix, visible_points
+from dit_jax.data.pairs import euler_zyx_to_matrix
+from dit_jax.data.views import visible_points
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 OUT = os.path.join(HERE, "..", "examples")

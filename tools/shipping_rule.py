@@ -8,7 +8,7 @@ categories 0-19, :func:`dit_jax.training.validation_batches`; never a test pair)
 the shipped weights' inference settings and model options (:func:`inference_settings`), unrefined: what the
 network and its GMCCE iterations give. The pairs
 come twice: as the settings draw them from ModelNet40's points ("own"), and with every cloud resampled by a
-sampler drawn per cloud (:data:`dit_jax.data.pairs.SAMPLERS`: uniform, a density gradient, farthest-point;
+sampler drawn per cloud (:data:`dit_jax.data.views.SAMPLERS`: uniform, a density gradient, farthest-point;
 "varied"), so that a model that learned one sampling pattern is caught. The candidate passes where, on each
 sampling, clean pairs lose nothing within 5 degrees, the :data:`HARD` settings together gain at least
 :data:`GAIN` of a share within 5 degrees and none of them loses more than :data:`LOSS`.
@@ -23,7 +23,7 @@ import os
 import numpy as np
 
 from dit_jax import training
-from dit_jax.data import pairs as pairs_lib
+from dit_jax.data import views
 from dit_jax.evaluators import common
 from dit_jax.geometry import rigid
 from dit_jax.pipeline import registration
@@ -51,7 +51,7 @@ def resampled(batch: dict, points: int, seed: int = 0) -> dict:
     cloud is resampled) by a sampler drawn per cloud."""
     keep = min(points, int(0.8 * min(batch["src"].shape[1], batch["tgt"].shape[1])))
     rngs = [np.random.default_rng((seed, i)) for i in range(len(batch["src"]))]
-    return pairs_lib.thin(batch, keep, rngs, sampling="varied")
+    return views.thin(batch, keep, rngs, sampling="varied")
 
 
 def errors_deg(registrar: registration.Registrar, batch: dict, bar=None) -> np.ndarray:

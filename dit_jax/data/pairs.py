@@ -44,6 +44,7 @@ from typing import NamedTuple
 import numpy as np
 
 from dit_jax.data import shapes as shapes_lib
+from dit_jax.data import views
 from dit_jax.data.shapes import Shapes
 
 
@@ -65,20 +66,23 @@ SETTINGS: Mapping[str, Setting] = {
     "scan_low_noise": Setting(0.001, "scan", True),
     "scan_high_noise": Setting(0.05, "scan", True),
 }
+
+
 #: The settings of the paper (docs/network.md, section 12).
 AUTHORS_SETTINGS = ("clean", "low_noise_partial", "high_noise_partial")
+
+
 VARIANTS = ("authors", "peers")
+
+
 NOISE_STD = 0.01
+
+
 #: Distance under which a source point's true counterpart counts as matched (docs/network.md, section 11).
 CORRESPONDENCE_RADIUS = 0.04
-#: Scan-like views: the camera's distance from the shape's centre (radii), Katz's gamma, the largest angle
-#: between the two viewpoints (degrees) and the share of the shape's points each view keeps.
-SCAN_DISTANCE = 2.0
-SCAN_GAMMA = 2.0
-SCAN_MAX_VIEW_ANGLE = 60.0
+
+
 SCAN_KEEP = 0.2
-#: Names the random stream that thins a mix's clouds to one size (see :class:`MixedPairs`).
-_THIN_STREAM = 0x7417
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,7 +249,7 @@ class PairDataset:
             if c.noise_clip > 0:
                 noise[:, i] = np.clip(rng.normal(0.0, NOISE_STD, (2, p, 3)), -c.noise_clip, c.noise_clip)
             if c.variant == "peers":
-                crop_src[i], crop_tgt[i] = _unit_vectors(rng, 2)
+                crop_src[i], crop_tgt[i] = views.unit_vectors(rng, 2)
             else:
                 crop_src[i] = rng.random(3) + 1000.0
                 crop_tgt[i] = rng.random(3) - 1000.0
@@ -298,7 +302,7 @@ class PairDataset:
             angles[i] = rng.uniform(low, c.max_angle, 3)
             trans[i] = rng.uniform(-c.max_translation, c.max_translation, 3)
             if SETTINGS[c.setting].crop == "scan":
-                src_idx[i], tgt_idx[i] = _scan_views(shapes[i], k, rng)
+                src_idx[i], tgt_idx[i] = views.scan_views(shapes[i], k, rng)
             else:
                 order = rng.permutation(p)
                 halves = order[: p // 2], order[p // 2 : 2 * (p // 2)]
@@ -339,7 +343,7 @@ class PairDataset:
     def _crop_anchors(self, rng: np.random.Generator) -> np.ndarray:
         """(2, 3): where the source's and the target's crops are anchored (a direction for the peers)."""
         if self.config.variant == "peers":
-            return _unit_vectors(rng, 2)
+            return views.unit_vectors(rng, 2)
         return np.stack([rng.random(3) + 1000.0, rng.random(3) - 1000.0])
 
     def _crop(self, clouds: np.ndarray, anchors: np.ndarray, k: int | None = None) -> np.ndarray:
@@ -354,231 +358,3 @@ class PairDataset:
         k = k or c.points_per_cloud
         nearest = np.argpartition(score, k - 1, axis=1)[:, :k]
         return np.sort(nearest, axis=1)
-
-
-def visible_points(points: np.ndarray, camera: np.ndarray, gamma: float = SCAN_GAMMA) -> np.ndarray:
-    """Which of ``points`` (N, 3) a camera at ``camera`` (3,) sees: hidden-point removal (Katz, Tal and Basri,
-    "Direct visibility of point sets", 2007). Points are flipped about a sphere around the camera of radius
-    ``10 ** gamma`` times the farthest point's distance; those on the convex hull of the flipped points and the
-    camera are visible. Larger ``gamma`` sees more. Returns (N,) bool."""
-    from scipy.spatial import ConvexHull
-
-    rel = np.asarray(points, np.float64) - camera
-    norm = np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-12)
-    radius = norm.max() * 10.0**gamma
-    flipped = rel + 2.0 * (radius - norm) * rel / norm
-    hull = ConvexHull(np.vstack([flipped, np.zeros((1, 3))]))
-    seen = np.zeros(len(rel), bool)
-    seen[hull.vertices[hull.vertices < len(rel)]] = True
-    return seen
-
-
-def _scan_views(shape: np.ndarray, k: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (k,) of the source's and the target's points of one shape (P, 3): two scan-like views."""
-    direction = _unit_vectors(rng, 1)[0]
-    axis = rng.normal(size=3)
-    axis -= (axis @ direction) * direction
-    axis /= np.linalg.norm(axis)
-    angle = np.radians(rng.uniform(0.0, SCAN_MAX_VIEW_ANGLE))
-    # Rodrigues: the target's viewing direction, ``angle`` away from the source's.
-    other = direction * np.cos(angle) + np.cross(axis, direction) * np.sin(angle)
-    centre = shape.mean(axis=0)
-    cameras = centre + SCAN_DISTANCE * direction, centre + SCAN_DISTANCE * other
-    seen = [visible_points(shape, camera) for camera in cameras]
-    # A point both views see goes to one of them at random, so the clouds share no point.
-    coin = rng.random(len(shape)) < 0.5
-    owner = np.full(len(shape), -1)
-    owner[seen[0] & (~seen[1] | coin)] = 0
-    owner[seen[1] & (~seen[0] | ~coin)] = 1
-    out = []
-    for view in (0, 1):
-        own = np.flatnonzero(owner == view)
-        if len(own) >= k:
-            out.append(rng.choice(own, k, replace=False))
-            continue
-        # Too few at this density: fill up with the unowned (hidden) points nearest this view's camera.
-        spare = np.flatnonzero(owner == -1)
-        fill = spare[np.argsort(np.linalg.norm(shape[spare] - cameras[view], axis=1))[: k - len(own)]]
-        owner[fill] = view
-        out.append(np.concatenate([own, fill]))
-    # Both views seeing most of a sparse shape leaves few hidden points to fill with: a view still short
-    # takes the points neither cloud holds (the other view's unchosen ones) nearest its camera. Shapes have at
-    # least 2k points, so there are always enough; nothing here draws from ``rng``, so every pair that was
-    # whole before stays as it was.
-    for view in (0, 1):
-        short = k - len(out[view])
-        if short > 0:
-            free = np.setdiff1d(np.arange(len(shape)), np.concatenate(out))
-            nearest = free[np.argsort(np.linalg.norm(shape[free] - cameras[view], axis=1))[:short]]
-            out[view] = np.concatenate([out[view], nearest])
-    return out[0], out[1]
-
-
-def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
-    v = rng.normal(size=(n, 3))
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
-
-
-class MixedPairs:
-    """Pairs of several settings over the same shapes, for training on a mix.
-
-    Each batch comes whole from one setting, chosen at random by the batch's first pair and the epoch, so the
-    mix is the same on every run and a resumed run sees the same batches. ``datasets`` maps each setting to
-    its :class:`PairDataset`; list a setting twice in ``settings`` to draw it twice as often.
-
-    With ``one_size`` every cloud of every setting is thinned to :attr:`cloud_points` (``points``, else the
-    fewest points any setting's clouds hold) by :func:`thin`: all batches then have one shape, so a train step
-    compiles once for the whole mix. Without it each setting keeps its own size and compiles its own step,
-    unless ``points`` caps it (clouds of more points are thinned to ``points``; a step per size that remains).
-    ``sampling="varied"`` thins each cloud by a sampler drawn at random (:data:`SAMPLERS`), so that no one
-    sampling pattern is learned.
-    """
-
-    def __init__(
-        self,
-        shapes: Shapes,
-        config: PairConfig,
-        settings: tuple[str, ...],
-        *,
-        one_size: bool = False,
-        points: int | None = None,
-        sampling: str = "uniform",
-    ):
-        if not settings:
-            raise ValueError("MixedPairs needs at least one setting")
-        if sampling not in ("uniform", "varied"):
-            raise ValueError(f"unknown sampling {sampling!r}; choose uniform or varied")
-        self.settings = tuple(settings)
-        self.datasets = {s: PairDataset(shapes, dataclasses.replace(config, setting=s)) for s in self.settings}
-        self.config = self.datasets[self.settings[0]].config
-        self.shapes = shapes
-        self.sampling = sampling
-        self._sizes = {s: ds.config.cloud_points(shapes.points.shape[1]) for s, ds in self.datasets.items()}
-        limit, which = (min(self._sizes.values()), "fewest") if one_size else (max(self._sizes.values()), "most")
-        if points is not None and not 0 < points <= limit:
-            raise ValueError(f"points ({points}) must be in 1..{limit}, the {which} points a cloud of this mix holds")
-        #: Points in each cloud with ``one_size``; else the cap ``points`` (None: each setting its own size).
-        self.cloud_points = points if points is not None or not one_size else limit
-
-    def setting_points(self, setting: str) -> int:
-        """Points in each cloud of ``setting``'s batches."""
-        own = self._sizes[setting]
-        return own if self.cloud_points is None else min(self.cloud_points, own)
-
-    @property
-    def rows(self) -> np.ndarray:
-        return self.datasets[self.settings[0]].rows
-
-    def __len__(self) -> int:
-        return len(self.rows)
-
-    def setting_of(self, indices, epoch: int = 0) -> str:
-        """The setting whose pairs the batch ``indices`` gets."""
-        first = int(np.asarray(indices).reshape(-1)[0])
-        pick = np.random.default_rng([self.config.seed, epoch, first, 0xB1E]).integers(len(self.settings))
-        return self.settings[int(pick)]
-
-    def batch(self, indices, epoch: int = 0) -> dict[str, np.ndarray]:
-        return self.setting_batch(self.setting_of(indices, epoch), indices, epoch)
-
-    def setting_batch(self, setting: str, indices, epoch: int = 0) -> dict[str, np.ndarray]:
-        """Pairs ``indices`` of ``setting``, thinned to :meth:`setting_points`."""
-        ds = self.datasets[setting]
-        out = ds.batch(indices, epoch)
-        if self.cloud_points is None:
-            return out
-        # A stream of its own per pair: thinning moves none of the pair's other draws.
-        return thin(
-            out,
-            self.setting_points(setting),
-            [ds._rng(int(n), epoch, _THIN_STREAM) for n in out["index"]],
-            self.sampling,
-        )
-
-
-#: The ways :func:`thin` can pick the points a cloud keeps: at random (``uniform``); at random with a density
-#: that grows along a random direction, 4-40 times higher at one end of the cloud than at the other
-#: (``density``); or spread evenly by farthest-point sampling, as a Poisson-disk sample is (``farthest``).
-SAMPLERS = ("uniform", "density", "farthest")
-
-
-def sample_points(points: np.ndarray, keep: int, rng: np.random.Generator, sampler: str = "uniform") -> np.ndarray:
-    """Sorted indices (keep,) of the points of ``points`` (N, 3) that ``sampler`` (one of :data:`SAMPLERS`)
-    keeps, drawn from ``rng``."""
-    n = len(points)
-    if sampler == "uniform":
-        return np.sort(rng.choice(n, keep, replace=False))
-    if sampler == "density":
-        along = np.asarray(points, np.float64) @ _unit_vectors(rng, 1)[0]
-        along = (along - along.min()) / max(float(np.ptp(along)), 1e-12)
-        weights = np.exp(rng.uniform(np.log(4.0), np.log(40.0)) * along)
-        return np.sort(rng.choice(n, keep, replace=False, p=weights / weights.sum()))
-    if sampler == "farthest":
-        points = np.asarray(points, np.float64)
-        taken = np.empty(keep, np.int64)
-        taken[0] = rng.integers(n)
-        gap = np.sum((points - points[taken[0]]) ** 2, axis=1)
-        for i in range(1, keep):
-            taken[i] = int(np.argmax(gap))
-            gap = np.minimum(gap, np.sum((points - points[taken[i]]) ** 2, axis=1))
-        return np.sort(taken)
-    raise ValueError(f"unknown sampler {sampler!r}; choose one of {', '.join(SAMPLERS)}")
-
-
-def thin(pairs: Mapping[str, np.ndarray], keep: int, rngs, sampling: str = "uniform") -> dict[str, np.ndarray]:
-    """Pairs (a stacked batch, as :meth:`PairDataset.batch` gives) whose clouds keep ``keep`` points each,
-    drawn from ``rngs`` (one generator per pair); ``correspondence`` follows the kept points (-1 where a
-    source point's counterpart was dropped). ``sampling``: "uniform" (points at random) or "varied" (each
-    cloud by one of :data:`SAMPLERS`, drawn at random: the source and the target may differ). Clouds already
-    that size are kept as they are."""
-    src, tgt = pairs["src"], pairs["tgt"]
-    if src.shape[1] < keep or tgt.shape[1] < keep:
-        raise ValueError(f"cannot thin clouds of {src.shape[1]} and {tgt.shape[1]} points to {keep}")
-    if src.shape[1] == tgt.shape[1] == keep:
-        return dict(pairs)
-    b = src.shape[0]
-
-    def rows(clouds):
-        if sampling == "uniform":
-            return np.stack([sample_points(c, keep, rng) for c, rng in zip(clouds, rngs)])
-        return np.stack(
-            [sample_points(c, keep, rng, SAMPLERS[rng.integers(len(SAMPLERS))]) for c, rng in zip(clouds, rngs)]
-        )
-
-    src_rows, tgt_rows = rows(src), rows(tgt)
-    # where[i, j]: the new row of the target's old row j (-1: dropped)
-    where = np.full((b, tgt.shape[1] + 1), -1, np.int64)
-    np.put_along_axis(where, tgt_rows, np.broadcast_to(np.arange(keep), (b, keep)), axis=1)
-    old = np.take_along_axis(pairs["correspondence"], src_rows, axis=1)
-    return dict(
-        pairs,
-        src=np.take_along_axis(src, src_rows[..., None], axis=1),
-        tgt=np.take_along_axis(tgt, tgt_rows[..., None], axis=1),
-        correspondence=np.take_along_axis(where, np.where(old >= 0, old, tgt.shape[1]), axis=1).astype(
-            pairs["correspondence"].dtype
-        ),
-    )
-
-
-class PairView:
-    """Pairs read as a :class:`PairDataset` is read (``view.batch(indices)``, ``view[n]``), from a dataset or
-    from one stacked batch (a dict of arrays with the pairs along axis 0, as :meth:`PairDataset.batch` and
-    :func:`dit_jax.training.validation_batches` give); with ``swap`` every pair's clouds trade places, so the
-    target is registered onto the source."""
-
-    def __init__(self, source, swap: bool = False):
-        self.source = source
-        self.swap = swap
-
-    def _out(self, pair: dict) -> dict:
-        return pair | {"src": pair["tgt"], "tgt": pair["src"]} if self.swap else pair
-
-    def batch(self, indices) -> dict:
-        if isinstance(self.source, Mapping):
-            return self._out({k: v[np.asarray(indices)] for k, v in self.source.items()})
-        return self._out(self.source.batch(indices))
-
-    def __getitem__(self, n: int) -> dict:
-        if isinstance(self.source, Mapping):
-            return self._out({k: v[n] for k, v in self.source.items()})
-        return self._out(self.source[n])

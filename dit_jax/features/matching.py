@@ -29,46 +29,25 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import functools
 import time
 from typing import NamedTuple
 
 import numpy as np
 
-from dit_jax.features import compatibility, descriptors
+from dit_jax.features import compatibility, keypoints, twins
 from dit_jax.features.descriptors import _o3d
 
-#: The voxel of the features, in point spacings: Open3D's room recipe uses 5 cm on 3DMatch fragments, whose
-#: point spacing is about 1.3 cm.
-VOXEL_SPACINGS = 3.75
-#: On larger scans the voxel grows so that a surface sampled by the larger cloud's points keeps about this
-#: many voxels (a surface's count falls with the square of the voxel), and then until neither cloud occupies
-#: more than this many (a LiDAR sweep, dense near the sensor, needs the second): the estimator's time stays
-#: bounded.
-FEATURE_POINTS = 10_000
 #: Of the estimator's hypotheses with the most matches, how many are checked against every thinned point; and how
 #: far from the winner a rival must lie: turned by more degrees, or moving the matched source points' centre by
 #: more voxels. Closer motions are the winner's neighbours; a room's rival is a quarter or half turn, or a
 #: slide along a corridor (docs/verdict.md).
 FINALISTS = 16
+
+
 RIVAL_DEGREES = 30.0
+
+
 RIVAL_VOXELS = 20.0
-#: ICP refines on every point of clouds up to this size; larger ones (full-resolution fragments, LiDAR sweeps)
-#: are thinned to about this many first (:func:`icp_voxel`): finer than the features' voxel by far, and ICP's
-#: time stays bounded.
-ICP_POINTS = 50_000
-#: The turns of a result that :meth:`FeatureEstimate.twin_fit` tries, in degrees, about each of the target's
-#: three main normal directions: a room after a quarter or half turn about its floor's or a wall's normal
-#: can look like itself.
-TWIN_TURNS = (90.0, 180.0, 270.0)
-#: Where each cloud's normals are turned to face before its features: a scan in its own frame has its sensor at
-#: the origin, and FPFH is not sign-invariant, so normals that face the sensor describe one wall alike in two
-#: scans, where unoriented ones flip at random between them (docs/refinement.md). None leaves them as estimated.
-VIEWPOINT = (0.0, 0.0, 0.0)
-#: Clouds that occupy fewer voxels than this have too few features to match: no estimate.
-MIN_VOXELS = 32
-#: What each keypoint is described by (:data:`dit_jax.features.descriptors.DESCRIPTORS`).
-DESCRIPTOR = "fpfh"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,7 +109,7 @@ class FeatureEstimate:
         thinned clouds."""
         if self.clouds is None:
             raise ValueError("this estimate keeps no clouds to compare on")
-        return twin_fit(*self.clouds, self.voxel, motion)
+        return twins.twin_fit(*self.clouds, self.voxel, motion)
 
     @property
     def kept(self) -> tuple[np.ndarray, np.ndarray]:
@@ -142,73 +121,13 @@ class FeatureEstimate:
         return "backward" if self.overlap[1] > self.overlap[0] else "forward"
 
 
-def feature_voxel(spacing: float, points: int, spacings: float = VOXEL_SPACINGS) -> float:
-    """The voxel of the features for clouds of this point ``spacing`` (their units) and at most ``points``
-    points: ``spacings`` point spacings, or the voxel that leaves about :data:`FEATURE_POINTS` of a surface
-    sampled by ``points`` points, whichever is coarser."""
-    return spacing * max(spacings, float(np.sqrt(points / FEATURE_POINTS)))
-
-
-def occupied_voxels(points: np.ndarray, voxel: float) -> int:
-    """How many cells of a grid of ``voxel`` (the points' units) the (N, 3) ``points`` occupy."""
-    cells = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    extent = cells.max(axis=0) + 1
-    return len(np.unique((cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]))
-
-
-def _capped_voxel(points: np.ndarray, voxel: float, most: int) -> float:
-    """``voxel``, grown until ``points`` (N, 3) occupy at most about ``most`` of its cells (a surface's count
-    falls with the square of the voxel; a few rounds settle clouds whose density varies)."""
-    for _ in range(8):
-        occupied = occupied_voxels(points, voxel)
-        if occupied <= 1.1 * most:
-            break
-        voxel *= float(np.sqrt(occupied / most))
-    return voxel
-
-
-def icp_voxel(spacing: float, points: int) -> float | None:
-    """The grid ICP thins clouds of this point ``spacing`` and at most ``points`` points on, so that a surface
-    keeps about :data:`ICP_POINTS` of them; None (every point) for clouds no larger than that."""
-    return spacing * float(np.sqrt(points / ICP_POINTS)) if points > ICP_POINTS else None
-
-
-class _Cloud:
-    """One cloud as Open3D holds it: its points with normals for ICP (thinned on ``thin``, where given), and the
-    points of the features' voxel grid with their ``descriptor`` (:func:`dit_jax.features.descriptors.describe`:
-    ``features``, (N, D) float32)."""
-
-    def __init__(
-        self, points: np.ndarray, voxel: float, thin: float | None = None, viewpoint=VIEWPOINT, descriptor=DESCRIPTOR
-    ):
-        o3d = _o3d()
-        search = o3d.geometry.KDTreeSearchParamHybrid
-        self.full = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        if thin is not None:
-            self.full = self.full.voxel_down_sample(thin)
-        self.full.estimate_normals(search(radius=2 * voxel, max_nn=30))  # ICP's: their signs do not matter
-        # ICP runs on Open3D's tensor clouds (float64, as the legacy ones): the same point-to-plane ICP with the
-        # same motions, in about half the time, and the other direction's work can run beside it.
-        self.icp = o3d.t.geometry.PointCloud.from_legacy(self.full, o3d.core.float64)
-        self.thinned = self.full.voxel_down_sample(voxel)
-        self.thinned.estimate_normals(search(radius=2 * voxel, max_nn=30))
-        if viewpoint is not None:
-            self.thinned.orient_normals_towards_camera_location(np.asarray(viewpoint, np.float64))
-        self.features = descriptors.describe(self.thinned, voxel, descriptor, viewpoint)
-
-    @functools.cached_property
-    def tree(self):
-        """A k-d tree of the thinned points, built once for the estimator's finalists and :func:`twin_fit`."""
-        from scipy.spatial import cKDTree
-
-        return cKDTree(np.asarray(self.thinned.points))
-
-
 #: Matches per direction are capped at the estimator's largest bucket; past it, those whose nearest feature is
 #: the most distinctive (:func:`_matches`) are kept. On the shared rooms, the 2,048 most distinctive register
 #: as many pairs as the 4,096 closest did, and the estimator's second-order product, cubic in the count, takes
 #: a fraction of the time (docs/benchmarks.md).
 MAX_MATCHES = compatibility.BUCKETS[-1]
+
+
 #: Two matches are compatible where their lengths in the two clouds differ by less than this many voxels, and
 #: a motion brings a match within this many voxels (twice the 5 cm voxel on 3DMatch's fragments, as SC2-PCR
 #: tests lengths there).
@@ -255,7 +174,7 @@ def _two_nearest(queries: np.ndarray, pool: np.ndarray, block: int = 512) -> Nea
     )
 
 
-def _matches(src: _Cloud, tgt: _Cloud) -> tuple[np.ndarray, np.ndarray]:
+def _matches(src: keypoints.Cloud, tgt: keypoints.Cloud) -> tuple[np.ndarray, np.ndarray]:
     """Feature matches of each direction: (K, 2) index pairs (source, target), each thinned source point with
     its nearest target point in feature space, and (K', 2) pairs (target, source) the other way; each capped
     at :data:`MAX_MATCHES`, the most distinctive kept (the lowest :attr:`Nearest.ratio`), in row order.
@@ -280,7 +199,9 @@ def _brought_within(
     return np.sum((moved - tgt_matched[None]) ** 2, axis=2) < distance**2
 
 
-def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tuple[np.ndarray, int, float]:
+def _estimate(
+    src: keypoints.Cloud, tgt: keypoints.Cloud, matches: np.ndarray, voxel: float
+) -> tuple[np.ndarray, int, float]:
     """The global motion from (K, 2) feature ``matches`` of the thinned clouds: (4 x 4 motion, inliers, rival
     share). :func:`dit_jax.features.compatibility.estimate_motions` gives one motion per seed, ranked by the matches each brings
     within :data:`MATCH_VOXELS` voxels; :func:`_choose` picks one."""
@@ -294,7 +215,9 @@ def _estimate(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float) -> tu
     return _choose(src, tgt, src_matched, tgt_matched, found, voxel)
 
 
-def _choose(src: _Cloud, tgt: _Cloud, src_matched, tgt_matched, found, voxel: float) -> tuple[np.ndarray, int, float]:
+def _choose(
+    src: keypoints.Cloud, tgt: keypoints.Cloud, src_matched, tgt_matched, found, voxel: float
+) -> tuple[np.ndarray, int, float]:
     """The winner among the hypotheses ``found`` (:class:`dit_jax.features.compatibility.Hypotheses`) of matches
     src_matched <-> tgt_matched (K, 3) each: (4 x 4 motion, inliers, rival share).
 
@@ -328,34 +251,7 @@ def _choose(src: _Cloud, tgt: _Cloud, src_matched, tgt_matched, found, voxel: fl
     return motion, int(laid[winner]), float(rival)
 
 
-def twin_fit(source: _Cloud, target: _Cloud, voxel: float, motion: tuple[np.ndarray, np.ndarray]) -> float:
-    """How well ``motion`` (R (3, 3), t (3,)) of the source onto the target can be told from its turned twins.
-
-    The motion is turned by each of :data:`TWIN_TURNS` about each of the thinned target's three main normal
-    directions (eigenvectors of its normals' scatter), through the centre of the thinned source points it lays
-    within 1.5 ``voxel`` of the thinned target. Returns the most such points one twin lays
-    there, as a share of the count the motion itself lays (inf where it lays none). Near 1 or above, a turned
-    copy of the result fits the clouds about as well, as in a box-shaped room: the features cannot tell the two
-    apart (docs/verdict.md)."""
-    from scipy.spatial.transform import Rotation
-
-    tree = target.tree
-    distance = 1.5 * voxel
-    rotation, translation = motion
-    moved = np.asarray(source.thinned.points) @ np.asarray(rotation).T + translation
-    laid = tree.query(moved, distance_upper_bound=distance)[0] < distance
-    if not laid.any():
-        return float("inf")
-    centre = moved[laid].mean(axis=0)
-    normals = np.asarray(target.thinned.normals)
-    axes = np.linalg.eigh(normals.T @ normals)[1].T  # (3, 3): one direction per row
-    turns = Rotation.from_rotvec(np.concatenate([axes * np.radians(angle) for angle in TWIN_TURNS])).as_matrix()
-    twins = np.einsum("hij,nj->hni", turns, moved - centre) + centre  # (9, N, 3)
-    gaps = tree.query(twins.reshape(-1, 3), distance_upper_bound=distance, workers=-1)[0]
-    return float(np.max(np.sum(gaps.reshape(len(turns), -1) < distance, axis=1)) / laid.sum())
-
-
-def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
+def _icp(src: keypoints.Cloud, tgt: keypoints.Cloud, start: np.ndarray, voxel: float) -> np.ndarray:
     """Point-to-plane ICP over the clouds' ICP points, pairs within 0.4 voxels: the refined 4 x 4 motion."""
     o3d = _o3d()
     reg = o3d.t.pipelines.registration
@@ -370,26 +266,11 @@ def _icp(src: _Cloud, tgt: _Cloud, start: np.ndarray, voxel: float) -> np.ndarra
     return np.array(found.transformation.numpy(), np.float64)
 
 
-def _estimate_then_icp(src: _Cloud, tgt: _Cloud, matches: np.ndarray, voxel: float):
+def _estimate_then_icp(src: keypoints.Cloud, tgt: keypoints.Cloud, matches: np.ndarray, voxel: float):
     """One direction of :func:`register_both_ways`: the global estimate (:func:`_estimate`), then ICP from its
     motion (from the identity where it found none): (4 x 4 motion, inliers, rival share)."""
     motion, inliers, rival = _estimate(src, tgt, matches, voxel)
     return _icp(src, tgt, motion if np.all(np.isfinite(motion)) else np.eye(4), voxel), inliers, rival
-
-
-def _prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
-    from dit_jax.geometry import neighbours
-
-    src = np.asarray(src, np.float64)
-    tgt = np.asarray(tgt, np.float64)
-    if spacing is None:
-        spacing = max(neighbours.point_spacing(src, seed=seed), neighbours.point_spacing(tgt, seed=seed))
-    voxel = feature_voxel(spacing, max(len(src), len(tgt)), voxel_spacings)
-    enough = np.isfinite(voxel) and voxel > 0
-    if enough:
-        voxel = max(_capped_voxel(src, voxel, FEATURE_POINTS), _capped_voxel(tgt, voxel, FEATURE_POINTS))
-    enough = enough and all(occupied_voxels(c[:: max(1, len(c) // 4096)], voxel) >= MIN_VOXELS for c in (src, tgt))
-    return src, tgt, spacing, voxel, enough
 
 
 def _split(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -402,9 +283,9 @@ def match_one_way(
     *,
     spacing: float | None = None,
     seed: int = 0,
-    voxel_spacings: float = VOXEL_SPACINGS,
-    viewpoint: tuple | None = VIEWPOINT,
-    descriptor: str = DESCRIPTOR,
+    voxel_spacings: float = keypoints.VOXEL_SPACINGS,
+    viewpoint: tuple | None = keypoints.VIEWPOINT,
+    descriptor: str = keypoints.DESCRIPTOR,
 ) -> FeatureMatch:
     """Registers src (N, 3) onto tgt (M, 3) by FPFH matches and the compatibility estimator at the voxel of
     :func:`feature_voxel`, without ICP.
@@ -420,11 +301,11 @@ def match_one_way(
     Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the estimator finds no motion or a cloud
     occupies fewer than :data:`MIN_VOXELS` voxels.
     """
-    src, tgt, spacing, voxel, enough = _prepare(src, tgt, spacing, seed, voxel_spacings)
+    src, tgt, spacing, voxel, enough = keypoints.prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
-    source = _Cloud(src, voxel, viewpoint=viewpoint, descriptor=descriptor)
-    target = _Cloud(tgt, voxel, viewpoint=viewpoint, descriptor=descriptor)
+    source = keypoints.Cloud(src, voxel, viewpoint=viewpoint, descriptor=descriptor)
+    target = keypoints.Cloud(tgt, voxel, viewpoint=viewpoint, descriptor=descriptor)
     motion, inliers, _ = _estimate(source, target, _matches(source, target)[0], voxel)
     if inliers == 0 or not np.all(np.isfinite(motion)):
         return FeatureMatch(np.eye(3), np.zeros(3), 0, voxel)
@@ -436,8 +317,8 @@ def register_both_ways(
     tgt: np.ndarray,
     *,
     seed: int = 0,
-    viewpoint: tuple | None = VIEWPOINT,
-    descriptor: str = DESCRIPTOR,
+    viewpoint: tuple | None = keypoints.VIEWPOINT,
+    descriptor: str = keypoints.DESCRIPTOR,
 ) -> FeatureEstimate | None:
     """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by the estimator then
     point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
@@ -447,60 +328,19 @@ def register_both_ways(
     where the normals face (:data:`VIEWPOINT`, None: as estimated); ``descriptor``: what the keypoints are matched
     by (:data:`dit_jax.features.descriptors.DESCRIPTORS`)."""
     started = time.perf_counter()
-    src, tgt, spacing, voxel, enough = _prepare(src, tgt, None, seed, VOXEL_SPACINGS)
+    src, tgt, spacing, voxel, enough = keypoints.prepare(src, tgt, None, seed, keypoints.VOXEL_SPACINGS)
     if not enough:
         return None
     # Open3D computes each cloud's normals and features on every core already: the clouds are built in turn.
-    thin = icp_voxel(spacing, max(len(src), len(tgt)))
-    source, target = _Cloud(src, voxel, thin, viewpoint, descriptor), _Cloud(tgt, voxel, thin, viewpoint, descriptor)
-    return _both_ways(Scan(src, source), Scan(tgt, target), spacing, voxel, seed, started)
+    thin = keypoints.icp_voxel(spacing, max(len(src), len(tgt)))
+    source, target = (
+        keypoints.Cloud(src, voxel, thin, viewpoint, descriptor),
+        keypoints.Cloud(tgt, voxel, thin, viewpoint, descriptor),
+    )
+    return _both_ways(keypoints.Scan(src, source), keypoints.Scan(tgt, target), spacing, voxel, seed, started)
 
 
-class Scan(NamedTuple):
-    """A cloud ready for :func:`register_scans`: its ``points`` (N, 3) float64 and their features (``cloud``)."""
-
-    points: np.ndarray
-    cloud: _Cloud
-
-
-@dataclasses.dataclass(frozen=True)
-class Scans:
-    """Scans of one scene with their features, built once by :func:`prepare_scans` for many pairs: ``scans``,
-    or None for a scan too small for features (fewer than :data:`MIN_VOXELS` voxels); ``spacing`` and ``voxel``
-    are the scene's, in its units."""
-
-    scans: tuple[Scan | None, ...]
-    spacing: float
-    voxel: float
-
-
-def prepare_scans(
-    clouds,
-    *,
-    seed: int = 0,
-    viewpoint: tuple | None = VIEWPOINT,
-    spacings: list[float] | None = None,
-    descriptor: str = DESCRIPTOR,
-) -> Scans:
-    """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
-    computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
-    scan's features are computed once however many pairs it joins. ``spacings``: each cloud's point spacing
-    where the caller has measured it (:func:`dit_jax.geometry.neighbours.point_spacing` with ``seed``)."""
-    from dit_jax.geometry import neighbours
-
-    points = [np.asarray(c, np.float64) for c in clouds]
-    spacing = max(spacings or [neighbours.point_spacing(p, seed=seed) for p in points])
-    most = max(len(p) for p in points)
-    voxel = max(_capped_voxel(p, feature_voxel(spacing, most), FEATURE_POINTS) for p in points)
-    thin = icp_voxel(spacing, most)
-    scans = []
-    for p in points:
-        enough = occupied_voxels(p[:: max(1, len(p) // 4096)], voxel) >= MIN_VOXELS
-        scans.append(Scan(p, _Cloud(p, voxel, thin, viewpoint, descriptor)) if enough else None)
-    return Scans(tuple(scans), spacing, voxel)
-
-
-def register_scans(prepared: Scans, source: int, target: int, *, seed: int = 0) -> FeatureEstimate | None:
+def register_scans(prepared: keypoints.Scans, source: int, target: int, *, seed: int = 0) -> FeatureEstimate | None:
     """:func:`register_both_ways` of scan ``source`` onto scan ``target`` of ``prepared`` (:func:`prepare_scans`),
     from their features as built there; None where either has too few."""
     src, tgt = prepared.scans[source], prepared.scans[target]
@@ -509,7 +349,9 @@ def register_scans(prepared: Scans, source: int, target: int, *, seed: int = 0) 
     return _both_ways(src, tgt, prepared.spacing, prepared.voxel, seed, time.perf_counter())
 
 
-def _both_ways(src: Scan, tgt: Scan, spacing: float, voxel: float, seed: int, started: float) -> FeatureEstimate:
+def _both_ways(
+    src: keypoints.Scan, tgt: keypoints.Scan, spacing: float, voxel: float, seed: int, started: float
+) -> FeatureEstimate:
     """Both directions of a pair from its scans' features: the estimator then ICP each way, on two threads."""
     from dit_jax.geometry import icp as icp_lib
     from dit_jax.geometry import rigid
@@ -531,7 +373,7 @@ def _both_ways(src: Scan, tgt: Scan, spacing: float, voxel: float, seed: int, st
         overlap=shares,
         inliers=(inliers_there, inliers_back),
         rival=(rival_there, rival_back),
-        twin=(twin_fit(source, target, voxel, forward), twin_fit(source, target, voxel, backward)),
+        twin=(twins.twin_fit(source, target, voxel, forward), twins.twin_fit(source, target, voxel, backward)),
         spacing=spacing,
         voxel=voxel,
         seconds=time.perf_counter() - started,

@@ -83,7 +83,7 @@ class Result:
         features do not settle the pair alone; NaN otherwise.
       twin, max_twin: where local features ran, how many points the best quarter- or half-turned twin of the
         features' motion (the one the result lies on) lays on the target, as a share of the motion's own
-        (:func:`dit_jax.features.matching.twin_fit`), and the bound past which it is not trusted; NaN otherwise.
+        (:func:`dit_jax.features.twins.twin_fit`), and the bound past which it is not trusted; NaN otherwise.
       direction: "forward" (source onto target) or "backward" (the inverse of target onto source, kept by
         ``best_direction`` where it fits better).
       start_turn: with ``rotation_search``, the angle (degrees) of the turn of the source the kept direction's

@@ -103,7 +103,7 @@ class InferenceSettings(Record):
         matches and can agree on a wrong motion where the walls allow two (calibrated on the 3DMatch scenes,
         docs/verdict.md).
       max_twin_features: a motion the features found is trusted only where none of its quarter- or half-turned twins lays more than this share of its own count of
-        points on the target (:func:`dit_jax.features.matching.twin_fit`): a box-shaped room fits itself turned,
+        points on the target (:func:`dit_jax.features.twins.twin_fit`): a box-shaped room fits itself turned,
         and no evidence from matches tells the two apart (calibrated on the 3DMatch scenes, docs/verdict.md).
       unconfirmed_min_right: a result the verdict does not trust is "unconfirmed" where at least this share of
         the validation results in its agreement band were right, else "probably wrong" (:func:`dit_jax.pipeline.verdict.level`).

@@ -106,7 +106,7 @@ def register_pairs(
 class ScanSet(NamedTuple):
     """Scans registered in many pairs among themselves (:func:`prepare_scans`): the checked ``clouds`` (K of
     (N_k, 3) float64); where the settings register them by local features, their features
-    (:class:`dit_jax.features.matching.Scans`, scan k at row ``feature_rows[k]``; -1: none for it); and each
+    (:class:`dit_jax.features.keypoints.Scans`, scan k at row ``feature_rows[k]``; -1: none for it); and each
     one's point ``spacings`` (:func:`dit_jax.geometry.neighbours.point_spacing`)."""
 
     clouds: list
@@ -117,7 +117,7 @@ class ScanSet(NamedTuple):
 
 def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequence) -> ScanSet:
     """K ``clouds`` checked, and the features of those the settings register by local features first
-    (:func:`dit_jax.features.matching.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
+    (:func:`dit_jax.features.keypoints.prepare_scans`: each scan's once, at the set's own spacing and voxel), for
     :func:`register_scan_pairs`. Raises :class:`~dit_jax.pipeline.sampling.InputError` naming a cloud DIT cannot use."""
     from dit_jax.geometry import neighbours
 
@@ -130,10 +130,10 @@ def prepare_scans(config: DITConfig, settings: InferenceSettings, clouds: Sequen
     ]  # fmt: skip
     rows, features = [-1] * len(checked), None
     if len(by_features) >= 2:
-        from dit_jax.features import matching
+        from dit_jax.features import keypoints
 
-        viewpoint = matching.VIEWPOINT if settings.viewpoint == "origin" else None
-        features = matching.prepare_scans(
+        viewpoint = keypoints.VIEWPOINT if settings.viewpoint == "origin" else None
+        features = keypoints.prepare_scans(
             [checked[k] for k in by_features],
             seed=settings.seed,
             viewpoint=viewpoint,
@@ -293,9 +293,9 @@ def features_first(src: np.ndarray, tgt: np.ndarray, settings: InferenceSettings
         return None
     if not settings.runs_feature_candidate(len(src), len(tgt)):
         return None
-    from dit_jax.features import matching
+    from dit_jax.features import keypoints, matching
 
-    viewpoint = matching.VIEWPOINT if settings.viewpoint == "origin" else None
+    viewpoint = keypoints.VIEWPOINT if settings.viewpoint == "origin" else None
     return matching.register_both_ways(
         src, tgt, seed=settings.seed, viewpoint=viewpoint, descriptor=settings.descriptor
     )

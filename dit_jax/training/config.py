@@ -20,7 +20,7 @@ class TrainConfig:
       model: the network (:class:`dit_jax.network.configs.DITConfig`), e.g. ``configs.cpu(setting)``.
       setting: data setting (one of :data:`dit_jax.data.pairs.SETTINGS`).
       settings: train on a mix of these settings instead (each batch from one of them, see
-        :class:`dit_jax.data.pairs.MixedPairs`; repeat one to draw it more often); validation then covers
+        :class:`dit_jax.data.mixed.MixedPairs`; repeat one to draw it more often); validation then covers
         each of them, and the mean over them chooses the best checkpoint.
       mix_one_size: with ``settings``, every cloud of the mix is thinned at random to the fewest points any
         setting's clouds hold, so the whole mix runs one compiled train step and one validation program;
@@ -30,7 +30,7 @@ class TrainConfig:
         Without it, a cap: clouds of more points are thinned to it, the others keep their size.
       mix_sampling: how the mix's clouds are thinned, in training and in validation: "uniform" (points at
         random) or "varied" (each cloud by a sampler drawn at random: uniform, a density gradient or
-        farthest-point sampling, see :data:`dit_jax.data.pairs.SAMPLERS`), so no one sampling is learned.
+        farthest-point sampling, see :data:`dit_jax.data.views.SAMPLERS`), so no one sampling is learned.
       data_dir: ModelNet40 directory in the h5 layout; None trains on the embedded furniture set.
       unseen: the unseen-category split (labels 0-19 train, 20-39 test).
       variant: "authors" or "peers" pairs (see :mod:`dit_jax.data.pairs`).

@@ -3,7 +3,7 @@ matching keypoints it trains on.
 
 A folder of 3DMatch scenes (each with ``3DMatch/`` and ``3DLoMatch/`` lists of fragment pairs and their true
 motions, :func:`dit_jax.data.scans.load_pair_sets`) gives, per scene, every fragment's keypoints on the grid
-local features use (:func:`dit_jax.features.matching.prepare_scans`: the scene's voxel, normals facing the
+local features use (:func:`dit_jax.features.keypoints.prepare_scans`: the scene's voxel, normals facing the
 sensor), their joined histograms (the network's input) and FPFH (measured beside it). A keypoint of a pair's
 source and one of its target match where the true motion brings them within ``positive_voxels`` voxels.
 """
@@ -74,7 +74,7 @@ def load_scene(folder: pathlib.Path, positive_voxels: float, max_fragments: int 
     """Keypoints of every fragment of the scene in ``folder`` and its benchmark pairs (only pairs between its
     first ``max_fragments`` fragments, by name, where that is above 0)."""
     from dit_jax.data import scans as scans_lib
-    from dit_jax.features import descriptors, matching, network
+    from dit_jax.features import descriptors, keypoints, network
 
     sets = scans_lib.load_pair_sets(folder)
     clouds, listed = {}, []
@@ -84,7 +84,7 @@ def load_scene(folder: pathlib.Path, positive_voxels: float, max_fragments: int 
             clouds[source], clouds[target] = pair.source, pair.target
             listed.append((set_name.split("/")[-1], source, target, pair.rotation, pair.translation))
     names = sorted(clouds)[: max_fragments or None]
-    prepared = matching.prepare_scans([clouds[n] for n in names], descriptor="fpfh")
+    prepared = keypoints.prepare_scans([clouds[n] for n in names], descriptor="fpfh")
     fragments = []
     for scan in prepared.scans:
         if scan is None:  # too few voxels to describe: no keypoints
@@ -94,7 +94,7 @@ def load_scene(folder: pathlib.Path, positive_voxels: float, max_fragments: int 
         fragments.append(
             Fragment(
                 np.asarray(thinned.points, np.float32),
-                descriptors.histograms(thinned, prepared.voxel, matching.VIEWPOINT),
+                descriptors.histograms(thinned, prepared.voxel, keypoints.VIEWPOINT),
                 scan.cloud.features,
             )
         )

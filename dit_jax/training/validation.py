@@ -10,6 +10,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 
+from dit_jax.data import mixed
 from dit_jax.data import pairs as pairs_lib
 from dit_jax.data import shapes as shapes_lib
 from dit_jax.evaluators import metrics
@@ -57,7 +58,7 @@ def validation_batches(
 
 def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress: bool = True):
     """(training pairs, validation pairs) from the training split of the chosen source: two
-    :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.pairs.MixedPairs` with
+    :class:`~dit_jax.data.pairs.PairDataset`, or two :class:`~dit_jax.data.mixed.MixedPairs` with
     ``config.settings``. ``progress``: TFDS's progress bars if the shapes are prepared now."""
     settings = config.settings or (config.setting,)
     n_shape = pairs_lib.shape_points(config.data_dir, config.n_points, settings)
@@ -72,8 +73,8 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress
     val_config = pairs_lib.PairConfig(train=False, unseen=False, **common)
     if config.settings:
         thinning = dict(one_size=config.mix_one_size, points=config.mix_points, sampling=config.mix_sampling)
-        train = pairs_lib.MixedPairs(train_shapes, train_config, config.settings, **thinning)
-        val = pairs_lib.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)), **thinning)
+        train = mixed.MixedPairs(train_shapes, train_config, config.settings, **thinning)
+        val = mixed.MixedPairs(val_shapes, val_config, tuple(dict.fromkeys(config.settings)), **thinning)
     else:
         train = pairs_lib.PairDataset(train_shapes, train_config)
         val = pairs_lib.PairDataset(val_shapes, val_config)
@@ -86,7 +87,7 @@ def make_datasets(config: TrainConfig, prepared_dir: str | None = None, progress
 
 def validate(
     params,
-    dataset: pairs_lib.PairDataset | pairs_lib.MixedPairs,
+    dataset: pairs_lib.PairDataset | mixed.MixedPairs,
     model_config: DITConfig,
     n_pairs: int,
     batch_size: int = 8,
@@ -102,13 +103,13 @@ def validate(
       :data:`dit_jax.network.losses.MATCH_RADIUS` of its true position (the discrimination loss's labels), from the
       same soft iteration.
 
-    For :class:`~dit_jax.data.pairs.MixedPairs`, each setting's ``n_pairs`` are measured (keys
+    For :class:`~dit_jax.data.mixed.MixedPairs`, each setting's ``n_pairs`` are measured (keys
     ``SETTING/...``, full inference with that setting's GMCCE threshold, passed as an array so that settings
     of one cloud size share one compiled program) and the plain keys are the means over the settings.
     Batches are always ``batch_size`` pairs (the last one filled up with pairs already counted), so one
     program serves every batch.
     """
-    if isinstance(dataset, pairs_lib.MixedPairs):
+    if isinstance(dataset, mixed.MixedPairs):
         out = {}
         for setting in dataset.datasets:
             threshold = np.float32(configs.GMCCE_THRESHOLDS[setting])
