@@ -61,7 +61,8 @@ _IGNORED_BY = {
 def build_parser() -> argparse.ArgumentParser:
     """evaluate.py's command line."""
     from dit_jax.data.pairs import SETTINGS
-    from dit_jax.evaluators.baselines import SCAN_BASELINES, SCENE_BASELINES
+    from dit_jax.evaluators.baselines import SCAN_BASELINES
+    from dit_jax.evaluators.scene_baselines import SCENE_BASELINES
     from dit_jax.network import compile_cache
     from dit_jax.pipeline import settings as inference_settings
 
@@ -150,7 +151,7 @@ def main(argv=None) -> int:
             flag = "--" + dest.replace("_", "-")
             parser.error(f"{flag} does not apply " + (f"with {mode}" if mode else "without --scans"))
     from dit_jax.evaluators.baselines import NAMES as TUNED_BASELINES
-    from dit_jax.evaluators.baselines import SCENE_BASELINES
+    from dit_jax.evaluators.scene_baselines import SCENE_BASELINES
 
     untuned = [name for name in args.baselines if name not in TUNED_BASELINES and name not in SCENE_BASELINES]
     if untuned and not args.scans:

@@ -2,10 +2,23 @@
 
 Quick use::
 
-    import jax, dit_jax
+    from dit_jax import io, registration
+    result = registration.load().register(io.read("a.ply"), io.read("b.ply"))   # result.matrix, result.level
+
+    import jax, dit_jax                                # the network alone, one pure jittable function
     config = dit_jax.configs.tiny()
     params = dit_jax.init(jax.random.key(0), config)
     R, t, extras = dit_jax.register(params, src, tgt, config)   # src (B, N, 3), tgt (B, M, 3)
+
+The folders, in layers (each imports only the rows above it; docs/implementation.md, "The package map"):
+
+    geometry, io                          classical geometry; point-cloud files
+    network, features, pictures, data     the paper's network and its weights; local features; figures and
+                                          pages; datasets
+    pipeline                              registration: load(), the Registrar, its stages, the verdict
+    scenes                                many scans: series and scenes
+    evaluators, cli                       evaluate.py's tables; the console commands
+    training                              python train.py
 
 The names below are imported on first use (PEP 562), so that ``import dit_jax.io`` or ``dit-register --help``
 does not pay for importing JAX.

@@ -29,7 +29,7 @@ for _flag, _value in FAST_COMPILE_FLAGS.items():
 
 # The test session and the train.py / dit-register / evaluate.py processes it starts share one throwaway
 # compilation cache (tests that build the same train step, a resumed run, a second CLI call reuse programs
-# compiled before), never the user's own; it is removed when the session ends. tests/test_compile_cache.py
+# compiled before), never the user's own; it is removed when the session ends. tests/test_network_compile_cache.py
 # gives its processes caches of their own.
 # Under pytest-xdist the workers inherit the controller's variables, so they find its cache through
 # DIT_JAX_TEST_XLA_CACHE and share it (the controller alone removes it).

@@ -480,7 +480,7 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
     truth = np.stack([poses[k] for k in range(4)])
     # Fragment 3 onto fragment 0 is found probably wrong: the scene still places 3 through 1 and 2.
     registrar = _SceneTruth(clouds, truth, wrong=[(3, 0)])
-    from dit_jax.evaluators import baselines
+    from dit_jax.evaluators import scene_baselines
 
     # A whole-scene baseline that places every fragment right but fragment 2, half a metre off.
     off = np.linalg.inv(truth[0]) @ truth
@@ -491,16 +491,16 @@ def test_a_scene_is_scored_from_its_placed_poses_beside_the_pairwise_results(tmp
         for source, target in [(s, t) for s in range(len(clouds)) for t in range(s + 1, len(clouds))]:
             if (source, target) not in known:
                 asked.append((source, target))
-                on_result(baselines.MultiwayPair(source, target, off[target], 0.5, np.eye(6), 1.0))
+                on_result(scene_baselines.MultiwayPair(source, target, off[target], 0.5, np.eye(6), 1.0))
         return off
 
-    monkeypatch.setitem(baselines.SCENE_BASELINES, "open3d_multiway", multiway)
+    monkeypatch.setitem(scene_baselines.SCENE_BASELINES, "open3d_multiway", multiway)
     evaluate = lambda: scenes.evaluate_scenes(  # noqa: E731
         None, tmp_path, str(tmp_path / "out"), progress=False, registrar=registrar, baselines=["open3d_multiway"]
     )
     log = scenes.baseline_log(tmp_path / "out", "open3d_multiway", tmp_path / "room")
     log.parent.mkdir()
-    log.write_text(json.dumps(baselines.MultiwayPair(0, 2, off[2], 0.5, np.eye(6), 1.0).to_record()) + '\n{"cut')
+    log.write_text(json.dumps(scene_baselines.MultiwayPair(0, 2, off[2], 0.5, np.eye(6), 1.0).to_record()) + '\n{"cut')
     results = evaluate()
     assert len(asked) == 5 and (0, 2) not in asked, "the logged pair is taken as it is"
     lines = log.read_text().splitlines()

@@ -38,6 +38,16 @@ def _parser() -> argparse.ArgumentParser:
         "edges. Exit status 3 where a scan is left out; 2 on bad input.",
         "the scans (or meshes) of the scene, at least 2",
     )
+    files.add_many_scans_flags(
+        parser,
+        plot=(
+            "FILE.html",
+            "write one page a browser turns: the scene's scans in its frame, each in its colour, and the edges "
+            "(FILE.png: a picture of them from two sides)",
+        ),
+        shows="the scene",
+        suspect="where a scan joins nothing",
+    )
     parser.add_argument("--out", default=None, help="write the scene's scans in its frame, as one cloud")
     parser.add_argument(
         "--voxel", type=float, default=None, metavar="SIZE", help="--out keeps one point per cell of this size"
@@ -56,16 +66,6 @@ def _parser() -> argparse.ArgumentParser:
             metavar="FILE.txt",
             help=f"write the placed scans' poses in {form.upper()}'s text form",
         )
-    files.add_many_scans_flags(
-        parser,
-        plot=(
-            "FILE.html",
-            "write one page a browser turns: the scene's scans in its frame, each in its colour, and the edges "
-            "(FILE.png: a picture of them from two sides)",
-        ),
-        shows="the scene",
-        suspect="where a scan joins nothing",
-    )
     return parser
 
 

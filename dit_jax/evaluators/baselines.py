@@ -32,9 +32,7 @@ import dataclasses
 import functools
 import importlib.resources
 import json
-import time
 from collections.abc import Callable
-from typing import NamedTuple
 
 import numpy as np
 
@@ -42,11 +40,19 @@ from dit_jax.geometry import icp as icp_lib
 from dit_jax.geometry import icp_refine
 
 NAMES = ("icp", "fpfh_ransac", "fgr", "fpfh_ransac_icp", "fgr_icp")
+
+
 #: Above this many points a cloud is voxel-downsampled at DENSE_VOXEL (unit-sphere units) for features; the
 #: tuning clouds have 205-1024 points, about 0.04 apart.
 DENSE_POINTS = 5000
+
+
 DENSE_VOXEL = 0.025
+
+
 TUNED_FILE = "baselines_tuned.json"
+
+
 #: ``Options.icp_method`` that refines as DIT+ICP does (:func:`dit_jax.geometry.icp_refine.refine`).
 REFINE = "refine"
 
@@ -100,7 +106,7 @@ class Options:
         return cls(**values)
 
 
-def _o3d():
+def open3d_module():
     try:
         import open3d as o3d
     except ImportError:
@@ -110,8 +116,8 @@ def _o3d():
     return o3d
 
 
-def _cloud(points: np.ndarray):
-    o3d = _o3d()
+def open3d_cloud(points: np.ndarray):
+    o3d = open3d_module()
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
     return cloud
@@ -125,8 +131,8 @@ def _split(transform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def features(points: np.ndarray, options: Options):
     """(Open3D cloud, FPFH features) of points (N, 3): downsampled as ``options`` (and :data:`DENSE_POINTS`)
     say, normals and FPFH at the options' radii."""
-    o3d = _o3d()
-    cloud = _cloud(points)
+    o3d = open3d_module()
+    cloud = open3d_cloud(points)
     voxel = options.voxel
     if voxel is None and len(points) > DENSE_POINTS:
         voxel = DENSE_VOXEL
@@ -145,7 +151,7 @@ def features(points: np.ndarray, options: Options):
 
 def ransac_on_features(src_features, tgt_features, options: Options):
     """FPFH + RANSAC on precomputed :func:`features` of both clouds: (R, t)."""
-    o3d = _o3d()
+    o3d = open3d_module()
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(0)
     (s, sf), (t, tf) = src_features, tgt_features
@@ -166,7 +172,7 @@ def ransac_on_features(src_features, tgt_features, options: Options):
 
 def fgr_on_features(src_features, tgt_features, options: Options):
     """Fast global registration on precomputed :func:`features` of both clouds: (R, t)."""
-    reg = _o3d().pipelines.registration
+    reg = open3d_module().pipelines.registration
     (s, sf), (t, tf) = src_features, tgt_features
     result = reg.registration_fgr_based_on_feature_matching(
         s,
@@ -199,11 +205,11 @@ def refine(src: np.ndarray, tgt: np.ndarray, rotation: np.ndarray, translation: 
 
 def icp(src: np.ndarray, tgt: np.ndarray, options: Options = Options()):
     """Point-to-point ICP from the identity (Open3D), at ``options.icp_distances[0]``."""
-    o3d = _o3d()
+    o3d = open3d_module()
     reg = o3d.pipelines.registration
     result = reg.registration_icp(
-        _cloud(src),
-        _cloud(tgt),
+        open3d_cloud(src),
+        open3d_cloud(tgt),
         options.icp_distances[0],
         np.eye(4),
         reg.TransformationEstimationPointToPoint(),
@@ -277,12 +283,12 @@ def room_options(voxel: float = 0.05, *, confidence: float = 0.999, face_origin:
 
 def _room(src: np.ndarray, tgt: np.ndarray, options: Options, icp_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC on features at ``options``, then point-to-plane ICP over every point within ``icp_distance``."""
-    o3d = _o3d()
+    o3d = open3d_module()
     reg = o3d.pipelines.registration
     rotation, translation = ransac_on_features(features(src, options), features(tgt, options), options)
     start = np.eye(4)
     start[:3, :3], start[:3, 3] = rotation, translation
-    source, target = _cloud(src), _cloud(tgt)
+    source, target = open3d_cloud(src), open3d_cloud(tgt)
     for cloud in (source, target):
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius, max_nn=30))
     result = reg.registration_icp(source, target, icp_distance, start, reg.TransformationEstimationPointToPlane())
@@ -302,140 +308,24 @@ def room_full_strength(src: np.ndarray, tgt: np.ndarray, voxel: float = 0.05) ->
     return _room(src, tgt, room_options(voxel, confidence=0.9999, face_origin=True), 0.8 * voxel)
 
 
-#: Open3D's multiway registration keeps a loop-closure edge where ICP lays at least this share of the source
-#: on the target (odometry edges, between neighbours in the list, are always kept).
-MULTIWAY_MIN_FITNESS = 0.3
-
-
-class MultiwayPair(NamedTuple):
-    """One registered pair of :func:`open3d_multiway`: scan ``source`` onto scan ``target`` (indices into its
-    clouds), ICP's ``motion`` (4, 4), its ``fitness``, the ``information`` (6, 6) of the pair's closest points at
-    that motion, and the ``seconds`` its registration took. :meth:`to_record` / :meth:`from_record`: as JSON."""
-
-    source: int
-    target: int
-    motion: np.ndarray
-    fitness: float
-    information: np.ndarray
-    seconds: float
-
-    def to_record(self) -> dict:
-        return {**self._asdict(), "motion": self.motion.tolist(), "information": self.information.tolist()}
-
-    @classmethod
-    def from_record(cls, record: dict) -> MultiwayPair:
-        arrays = {key: np.asarray(record[key], np.float64) for key in ("motion", "information")}
-        return cls(int(record["source"]), int(record["target"]), fitness=float(record["fitness"]),
-                   seconds=float(record["seconds"]), **arrays)  # fmt: skip
-
-
-def open3d_multiway(
-    clouds,
-    voxel: float = 0.05,
-    *,
-    draws: int = 1_000_000,
-    on_pair: Callable[[int], None] | None = None,
-    known: dict[tuple[int, int], MultiwayPair] | None = None,
-    on_result: Callable[[MultiwayPair], None] | None = None,
-) -> np.ndarray:
-    """Open3D's multiway registration of K scans of one scene at full strength, ``voxel`` in their units:
-    every pair (source k onto target l > k) by FPFH with normals facing each scan's sensor, RANSAC to confidence
-    0.9999 and point-to-plane ICP within 0.8 voxels (:func:`room_full_strength`, each scan's features computed
-    once); odometry edges between neighbours in the list are certain, the other pairs uncertain loop closures
-    where ICP's fitness reaches :data:`MULTIWAY_MIN_FITNESS`; then Levenberg-Marquardt with a line process
-    (pairing within 1.5 voxels, edges pruned below 0.25), scan 0 the reference. ``draws``: RANSAC's most draws
-    a pair (Open3D's multiway tutorial stops at 100,000; most pairs of a scene do not overlap, and there RANSAC
-    draws them all). ``known``: pairs registered before, by (source, target), taken as they are (so a stopped
-    run resumes); ``on_result(pair)`` as each other pair finishes, ``on_pair(count)`` as pairs finish (known
-    ones at once). Returns (K, 4, 4) poses: scan k's points into scan 0's frame."""
-    known = dict(known or {})
-    wanted = [(s, t) for s in range(len(clouds)) for t in range(s + 1, len(clouds))]
-    if on_pair is not None and (reused := sum(pair in known for pair in wanted)):
-        on_pair(reused)
-    if missing := [pair for pair in wanted if pair not in known]:
-        for pair in _multiway_pairs(clouds, voxel, draws, missing):
-            known[pair.source, pair.target] = pair
-            if on_result is not None:
-                on_result(pair)
-            if on_pair is not None:
-                on_pair(1)
-    return _multiway_graph([known[pair] for pair in wanted], voxel)
-
-
-def _multiway_pairs(clouds, voxel: float, draws: int, pairs: list[tuple[int, int]]):
-    """:func:`open3d_multiway`'s registrations of ``pairs`` (source, target) of ``clouds``, one
-    :class:`MultiwayPair` at a time (each scan's features computed once, when first needed)."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    options = dataclasses.replace(room_options(voxel, confidence=0.9999, face_origin=True), ransac_iterations=draws)
-    found, fine = {}, {}
-    for source, target in pairs:
-        started = time.perf_counter()
-        for k in (source, target):
-            if k not in found:
-                found[k] = features(clouds[k], options)
-                fine[k] = _cloud(clouds[k]).voxel_down_sample(voxel / 2)
-                fine[k].estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=options.normal_radius, max_nn=30))
-        rotation, translation = ransac_on_features(found[source], found[target], options)
-        start = np.eye(4)
-        start[:3, :3], start[:3, 3] = rotation, translation
-        icp = reg.registration_icp(
-            fine[source], fine[target], 0.8 * voxel, start, reg.TransformationEstimationPointToPlane()
-        )
-        motion = np.asarray(icp.transformation, np.float64)
-        info = reg.get_information_matrix_from_point_clouds(fine[source], fine[target], 0.8 * voxel, motion)
-        seconds = time.perf_counter() - started
-        yield MultiwayPair(source, target, motion, float(icp.fitness), np.asarray(info, np.float64), seconds)
-
-
-def _multiway_graph(pairs: list[MultiwayPair], voxel: float) -> np.ndarray:
-    """:func:`open3d_multiway`'s pose graph from every pair of its K scans (in the order source, then target),
-    optimised: the poses (K, 4, 4) into scan 0's frame."""
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    graph = reg.PoseGraph()
-    odometry = np.eye(4)
-    graph.nodes.append(reg.PoseGraphNode(odometry))
-    for pair in pairs:
-        if pair.target == pair.source + 1:
-            odometry = pair.motion @ odometry
-            graph.nodes.append(reg.PoseGraphNode(np.linalg.inv(odometry)))
-            graph.edges.append(
-                reg.PoseGraphEdge(pair.source, pair.target, pair.motion, pair.information, uncertain=False)
-            )
-        elif pair.fitness >= MULTIWAY_MIN_FITNESS:
-            graph.edges.append(
-                reg.PoseGraphEdge(pair.source, pair.target, pair.motion, pair.information, uncertain=True)
-            )
-    option = reg.GlobalOptimizationOption(
-        max_correspondence_distance=1.5 * voxel, edge_prune_threshold=0.25, reference_node=0
-    )
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        reg.global_optimization(
-            graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
-        )
-    return np.stack([np.asarray(node.pose, np.float64) for node in graph.nodes])
-
-
-#: Baselines of whole scenes: ``{name: (clouds, on_pair=None, known=None, on_result=None) -> (K, 4, 4) poses in
-#: scan 0's frame}`` (as :func:`open3d_multiway`).
-SCENE_BASELINES = {"open3d_multiway": open3d_multiway}
-
-
 #: Baselines at a fixed recipe in the data's own units (metres), not tuned and not scaled into the unit sphere:
 #: ``{name: (src, tgt) -> (R, t)}``.
 RECIPES = {"open3d_room_5cm": room_recipe, "open3d_room_full": room_full_strength}
+
+
 #: The registration pipeline's first stage on scans alone (:func:`dit_jax.features.matching.register_both_ways`,
 #: as the pipeline calls it, the better fitting direction kept, whatever the verdict): a row the real-scan
 #: evaluation can put beside the baselines.
 FEATURE_CANDIDATE = "features"
+
+
 #: Every name the real-scan evaluation takes as a baseline (:mod:`dit_jax.evaluators.scans`).
 SCAN_BASELINES = (*NAMES, *RECIPES, FEATURE_CANDIDATE)
 
 
 def available() -> bool:
     try:
-        _o3d()
+        open3d_module()
     except ImportError:
         return False
     return True

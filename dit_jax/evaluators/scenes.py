@@ -3,7 +3,7 @@ the pose graph, then every benchmark pair's motion read off the placed poses, be
 own result for the same pair (registered on the way), and each fragment's pose beside the truth chained
 through both lists (:func:`dit_jax.data.scans.scene_poses`).
 
-    python evaluate.py --scenes ../shared/data/3dmatch --out eval_scenes
+    python evaluate.py --scenes DIR_OF_3DMATCH_SCENES --out eval_scenes
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def evaluate_scenes(
     already loaded instead), timed, then each benchmark pair the scene did not register registered on its own
     (untimed), and all scored by :func:`score_scene`. Writes ``results.json`` and ``results.md`` to
     ``out_dir``, and a picture of each scene (``scene_NAME.png``); returns the results with their ``table``.
-    ``baselines``: names of :data:`dit_jax.evaluators.baselines.SCENE_BASELINES` placed and scored beside (each fragment
+    ``baselines``: names of :data:`dit_jax.evaluators.scene_baselines.SCENE_BASELINES` placed and scored beside (each fragment
     in scan 0's frame, one group), under each row's ``baselines``; their pairs are logged in ``out_dir`` and a
     run given the same ``out_dir`` resumes them (:func:`baseline_log`)."""
     from dit_jax import io
@@ -177,11 +177,11 @@ def evaluate_scenes(
 def _baseline(
     name: str, folder: pathlib.Path, fragments: list[int], clouds: list, pairwise: dict, progress: bool, out_dir
 ):
-    """The figures of :data:`dit_jax.evaluators.baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene. Its
+    """The figures of :data:`dit_jax.evaluators.scene_baselines.SCENE_BASELINES`' ``name`` on one scene, scored as a scene. Its
     pairs go to a log in ``out_dir`` (:func:`baseline_log`) as they finish; a run given a log that holds some
     takes them as they are and registers the rest. Its seconds are its pairs' own, as logged, and the rest of
     this run's (features of scans whose pairs were all logged are not computed again)."""
-    from dit_jax.evaluators import baselines
+    from dit_jax.evaluators import scene_baselines
     from dit_jax.scenes import scene
 
     log = baseline_log(out_dir, name, folder)
@@ -203,7 +203,7 @@ def _baseline(
             f.write(json.dumps(record).encode() + b"\n")
             f.flush()
 
-        poses = baselines.SCENE_BASELINES[name](
+        poses = scene_baselines.SCENE_BASELINES[name](
             clouds, on_pair=bar.update if bar else None, known=known, on_result=logged
         )
     seconds = (
@@ -218,7 +218,7 @@ def _baseline(
 
 
 def baseline_log(out_dir, name: str, folder: pathlib.Path) -> pathlib.Path:
-    """The log of a scene baseline's pairs (:class:`dit_jax.evaluators.baselines.MultiwayPair` records, one JSON line each,
+    """The log of a scene baseline's pairs (:class:`dit_jax.evaluators.scene_baselines.MultiwayPair` records, one JSON line each,
     scans by fragment number): ``out_dir/NAME_SCENE.jsonl``. Appended to, never rewritten; delete it to
     register every pair again."""
     return pathlib.Path(out_dir) / f"{name}_{folder.name}.jsonl"
@@ -227,13 +227,13 @@ def baseline_log(out_dir, name: str, folder: pathlib.Path) -> pathlib.Path:
 def _logged_pairs(log: pathlib.Path, fragments: list[int]) -> dict:
     """The pairs a :func:`baseline_log` holds, by (source, target) index into ``fragments`` (a cut line, a
     killed run's last, is skipped; a pair of fragments this scene lacks is refused)."""
-    from dit_jax.evaluators import baselines
+    from dit_jax.evaluators import scene_baselines
 
     at = {fragment: k for k, fragment in enumerate(fragments)}
     known = {}
     for number, line in enumerate(log.read_text().splitlines() if log.exists() else (), 1):
         try:
-            pair = baselines.MultiwayPair.from_record(json.loads(line))
+            pair = scene_baselines.MultiwayPair.from_record(json.loads(line))
         except (ValueError, KeyError, TypeError):
             continue
         if pair.source not in at or pair.target not in at:

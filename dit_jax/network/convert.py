@@ -1,7 +1,7 @@
 """Weights from the authors' PyTorch state dict to dit-jax params, and back.
 
 :func:`from_torch_state_dict` takes a ``{name: ndarray}`` mapping under the authors' names (as in the
-``param/*`` entries of the reference check file) and returns the params tree of :class:`dit_jax.network.model.DIT`.
+``param/*`` entries of the reference check file) and returns the params tree of :class:`dit_jax.network.dit.DIT`.
 PyTorch ``Linear`` weights (out, in) become Flax kernels (in, out). Tensors the authors' model holds but never
 uses (``emb_nn.project``, ``attn.norm1`` inside the token transformers, ``head.temperature``, ``head.reflect``)
 are dropped.

@@ -1,6 +1,6 @@
 """DIT: PSE, PFT and the head composed, and the iterative registration (docs/network.md, sections 4-10).
 
-The network is a Flax Linen module, :class:`DIT`, acting on one pair of clouds; everything a user calls is a
+The network is a Flax Linen module, :class:`~dit_jax.network.dit.DIT`, acting on one pair of clouds; everything a user calls is a
 pure function over explicit ``params``:
 
 * :func:`init` -- fresh parameters for a config;
@@ -20,81 +20,11 @@ import jax.numpy as jnp
 from flax import linen as nn
 
 from dit_jax.geometry import rigid
+from dit_jax.network import dit
 from dit_jax.network.configs import DITConfig
-from dit_jax.network.head import HeadOutput, TemperatureNet, head, similarity
-from dit_jax.network.pft import PFT, PositionalEncoding, SqueezeExcitation
-from dit_jax.network.pse import PSE
+from dit_jax.network.head import HeadOutput, head
 
 Params = Any
-
-
-class Embedding(NamedTuple):
-    """What DIT computes from one cloud alone: independent of the other cloud and of the pose estimate
-    of the other, so the target's is computed once per registration."""
-
-    knn_idx: jax.Array  # (N, k)
-    pse: jax.Array  # (N, E), PSE(X)
-    positional: jax.Array  # (N, E), P(X)
-    memory: jax.Array | None = None  # (N, E), PFT's encoder applied to PSE(X) + P(X); None: not computed yet
-
-
-class Features(NamedTuple):
-    """The network's outputs for one pair (N source and M target points)."""
-
-    src_p: jax.Array  # (N, E) PFT output for the source, phi(F_Y, F_X)
-    tgt_p: jax.Array  # (M, E) phi(F_X, F_Y)
-    phi_src: jax.Array  # (N, E) Phi_X = SE(PSE(X) + src_p)
-    phi_tgt: jax.Array  # (M, E)
-    temperature: jax.Array  # ()
-    scores: jax.Array  # (N, M) S
-
-
-class DIT(nn.Module):
-    """The Deep Interaction Transformer's network, on one pair of clouds."""
-
-    config: DITConfig
-
-    def setup(self):
-        c = self.config
-        self.pse = PSE(c)
-        self.positional_encoding = PositionalEncoding(c.emb_dims, c.pe_expansion, c.precision)
-        self.pft = PFT(c)
-        self.se = SqueezeExcitation(c.emb_dims, c.se_reduction, c.precision)
-        self.temp_net = TemperatureNet(c.temp_hidden, c.temp_factor, c.precision)
-
-    def embed(
-        self, points: jax.Array, knn_idx: jax.Array | None = None, encode: bool = False, deterministic: bool = True
-    ) -> Embedding:
-        """points: (N, 3) -> the cloud's :class:`Embedding`.
-
-        ``knn_idx`` (N, k) reuses a kNN graph computed earlier: a rigid motion keeps every distance, so a
-        moving cloud's graph is that of its first pose. ``encode`` also runs PFT's encoder (the memory).
-        """
-        if knn_idx is None:
-            knn_idx = rigid.knn(points, self.config.k)
-        pse, positional = self.pse(points, knn_idx), self.positional_encoding(points)
-        memory = self.pft.encode(pse + positional, deterministic) if encode else None
-        return Embedding(knn_idx, pse, positional, memory)
-
-    def interact(self, src: Embedding, tgt: Embedding, deterministic: bool = True) -> Features:
-        """PFT across the two clouds, squeeze-and-excitation, temperature and similarity.
-
-        The same as ``self.pft(F_X, F_Y)``, with each cloud's encoder memory taken from its embedding where
-        it was computed before.
-        """
-        f_x, f_y = src.pse + src.positional, tgt.pse + tgt.positional
-        memory_x = src.memory if src.memory is not None else self.pft.encode(f_x, deterministic)
-        memory_y = tgt.memory if tgt.memory is not None else self.pft.encode(f_y, deterministic)
-        src_p = self.pft.decode(f_x, memory_y, deterministic)
-        tgt_p = self.pft.decode(f_y, memory_x, deterministic)
-        phi_src = self.se(src.pse + src_p)
-        phi_tgt = self.se(tgt.pse + tgt_p)
-        temperature = self.temp_net(phi_src, phi_tgt)
-        scores = similarity(phi_src, phi_tgt, self.config.precision)
-        return Features(src_p, tgt_p, phi_src, phi_tgt, temperature, scores)
-
-    def __call__(self, src: jax.Array, tgt: jax.Array, deterministic: bool = True) -> Features:
-        return self.interact(self.embed(src), self.embed(tgt), deterministic)
 
 
 #: DITConfig fields that change what the network computes but not the parameters it holds: configs that
@@ -135,13 +65,13 @@ def _init(key: jax.Array, config: DITConfig, n_points: int) -> Params:
     the values are the same bits either way, and do not depend on ``n_points`` (the points only carry shapes
     through the modules)."""
     points = jax.random.normal(key, (n_points, 3))
-    return DIT(config).init(key, points, points)["params"]
+    return dit.DIT(config).init(key, points, points)["params"]
 
 
-def embed(params: Params, points: jax.Array, config: DITConfig, *, encode: bool = False) -> Embedding:
+def embed(params: Params, points: jax.Array, config: DITConfig, *, encode: bool = False) -> dit.Embedding:
     """The :class:`Embedding` of one cloud, points (N, 3); ``encode`` includes PFT's encoder memory
     (deterministic: for inference, where the target's memory serves every iteration)."""
-    return DIT(config).apply({"params": params}, points, encode=encode, method=DIT.embed)
+    return dit.DIT(config).apply({"params": params}, points, encode=encode, method=dit.DIT.embed)
 
 
 def features(
@@ -150,11 +80,11 @@ def features(
     tgt: jax.Array,
     config: DITConfig,
     *,
-    tgt_embedding: Embedding | None = None,
+    tgt_embedding: dit.Embedding | None = None,
     src_knn: jax.Array | None = None,
     deterministic: bool = True,
     dropout_key: jax.Array | None = None,
-) -> tuple[Embedding, Features]:
+) -> tuple[dit.Embedding, dit.Features]:
     """The network's features for one pair: src (N, 3), tgt (M, 3).
 
     ``tgt_embedding`` reuses a target embedding computed earlier (the target does not move across
@@ -162,13 +92,13 @@ def features(
     ``deterministic=False`` PFT's dropout is active and needs ``dropout_key``.
     """
 
-    def run(module: DIT):
+    def run(module: dit.DIT):
         src_emb = module.embed(src, knn_idx=src_knn)
         tgt_emb = tgt_embedding if tgt_embedding is not None else module.embed(tgt)
         return src_emb, module.interact(src_emb, tgt_emb, deterministic)
 
     rngs = None if dropout_key is None else {"dropout": dropout_key}
-    return nn.apply(run, DIT(config))({"params": params}, rngs=rngs)
+    return nn.apply(run, dit.DIT(config))({"params": params}, rngs=rngs)
 
 
 def forward(
@@ -178,9 +108,9 @@ def forward(
     config: DITConfig,
     use_gmcce: bool = False,
     *,
-    tgt_embedding: Embedding | None = None,
+    tgt_embedding: dit.Embedding | None = None,
     src_knn: jax.Array | None = None,
-) -> tuple[Features, HeadOutput]:
+) -> tuple[dit.Features, HeadOutput]:
     """One registration step of one pair (the authors' ``forward``): features, then the head.
 
     src: (N, 3), tgt: (M, 3). Returns the :class:`Features` and the X-to-Y :class:`HeadOutput`.

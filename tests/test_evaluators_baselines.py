@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
-from dit_jax.evaluators import baselines, metrics
+from dit_jax.evaluators import baselines, metrics, scene_baselines
 
 pytest.importorskip("open3d", reason="the baselines need Open3D (pip install 'dit-jax[baselines]')")
 
@@ -111,7 +111,7 @@ def test_open3d_multiway_places_views_of_one_surface_in_the_first_one_s_frame():
         poses.append(pose)
         clouds.append((surface - pose[:3, 3]) @ pose[:3, :3])  # the surface seen from pose k
     counted, pairs = [], []
-    found = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append, on_result=pairs.append)
+    found = scene_baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append, on_result=pairs.append)
     assert found.shape == (3, 4, 4) and sum(counted) == 3
     for k in range(3):
         expected = np.linalg.inv(poses[0]) @ poses[k]
@@ -119,11 +119,13 @@ def test_open3d_multiway_places_views_of_one_surface_in_the_first_one_s_frame():
         assert np.linalg.norm(found[k][:3, 3] - expected[:3, 3]) < 0.05
     # A stopped run resumes: the pairs it logged (as JSON and back) are taken as they are, the rest registered.
     assert sorted((p.source, p.target) for p in pairs) == [(0, 1), (0, 2), (1, 2)]
-    logged = [baselines.MultiwayPair.from_record(json.loads(json.dumps(p.to_record()))) for p in pairs[:2]]
+    logged = [scene_baselines.MultiwayPair.from_record(json.loads(json.dumps(p.to_record()))) for p in pairs[:2]]
     assert all(np.array_equal(a.information, b.information) and a.seconds == b.seconds for a, b in zip(logged, pairs))
     counted, more = [], []
     known = {(p.source, p.target): p for p in logged}
-    again = baselines.open3d_multiway(clouds, voxel=0.05, on_pair=counted.append, known=known, on_result=more.append)
+    again = scene_baselines.open3d_multiway(
+        clouds, voxel=0.05, on_pair=counted.append, known=known, on_result=more.append
+    )
     assert counted == [2, 1] and [(p.source, p.target) for p in more] == [(pairs[2].source, pairs[2].target)]
     for k in range(3):  # RANSAC runs in threads: the pair registered again need not repeat its last digits
         expected = np.linalg.inv(poses[0]) @ poses[k]

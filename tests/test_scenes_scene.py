@@ -6,7 +6,7 @@ import pytest
 from conftest import exact_result, scan_set
 
 from dit_jax.data.pairs import euler_zyx_to_matrix
-from dit_jax.scenes import scene
+from dit_jax.scenes import plan, scene
 
 pytest.importorskip("open3d", reason="the pose graph is Open3D's")
 
@@ -77,15 +77,15 @@ class _Registrar:
 
 
 def test_a_scene_registers_neighbours_then_the_pairs_its_groups_lay_over_each_other():
-    assert scene.neighbour_pairs(5) == [(1, 0), (2, 0), (2, 1), (3, 0), (3, 1), (3, 2), (4, 1), (4, 2), (4, 3)]
-    assert scene.neighbour_pairs(1) == []
+    assert plan.neighbour_pairs(5) == [(1, 0), (2, 0), (2, 1), (3, 0), (3, 1), (3, 2), (4, 1), (4, 2), (4, 3)]
+    assert plan.neighbour_pairs(1) == []
     clouds = [0.3 * np.random.default_rng(k).normal(size=(200, 3)) + [3.0 * k, 0, 0] for k in range(5)]
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[4, :3, 3] = [-12.0, 0, 0]  # placed where scan 0 is
-    asked = set(scene.neighbour_pairs(5))
-    assert scene.overlap_pairs(clouds, poses, [range(5)], 0.05, asked) == [(4, 0)]
-    assert scene.overlap_pairs(clouds, poses, [[0, 1, 2], [3, 4]], 0.05, asked) == [], "only within a group"
-    assert scene.overlap_pairs(clouds, poses, [range(5)], 0.05, asked | {(4, 0)}) == [], "each pair once"
+    asked = set(plan.neighbour_pairs(5))
+    assert plan.overlap_pairs(clouds, poses, [range(5)], 0.05, asked) == [(4, 0)]
+    assert plan.overlap_pairs(clouds, poses, [[0, 1, 2], [3, 4]], 0.05, asked) == [], "only within a group"
+    assert plan.overlap_pairs(clouds, poses, [range(5)], 0.05, asked | {(4, 0)}) == [], "each pair once"
 
 
 def test_a_scene_is_placed_by_its_edges_and_a_wrong_loop_edge_is_switched_off():
