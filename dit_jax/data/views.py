@@ -77,6 +77,7 @@ def scan_views(shape: np.ndarray, k: int, rng: np.random.Generator) -> tuple[np.
 
 
 def unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) directions drawn uniformly on the sphere from ``rng``."""
     v = rng.normal(size=(n, 3))
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 

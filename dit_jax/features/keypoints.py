@@ -109,6 +109,9 @@ class Cloud:
 
 
 def prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
+    """A pair's clouds src (N, 3) and tgt (M, 3) as float64, their point ``spacing`` (the larger of the two
+    where None is given) and the features' voxel at ``voxel_spacings`` spacings (:func:`feature_voxel`), with
+    whether that voxel is usable."""
     from dit_jax.geometry import neighbours
 
     src = np.asarray(src, np.float64)
