@@ -21,13 +21,13 @@ class MixedPairs:
 
     Each batch comes whole from one setting, chosen at random by the batch's first pair and the epoch, so the
     mix is the same on every run and a resumed run sees the same batches. ``datasets`` maps each setting to
-    its :class:`PairDataset`; list a setting twice in ``settings`` to draw it twice as often.
+    its :class:`~dit_jax.data.pairs.PairDataset`; list a setting twice in ``settings`` to draw it twice as often.
 
     With ``one_size`` every cloud of every setting is thinned to :attr:`cloud_points` (``points``, else the
-    fewest points any setting's clouds hold) by :func:`thin`: all batches then have one shape, so a train step
+    fewest points any setting's clouds hold) by :func:`~dit_jax.data.views.thin`: all batches then have one shape, so a train step
     compiles once for the whole mix. Without it each setting keeps its own size and compiles its own step,
     unless ``points`` caps it (clouds of more points are thinned to ``points``; a step per size that remains).
-    ``sampling="varied"`` thins each cloud by a sampler drawn at random (:data:`SAMPLERS`), so that no one
+    ``sampling="varied"`` thins each cloud by a sampler drawn at random (:data:`~dit_jax.data.views.SAMPLERS`), so that no one
     sampling pattern is learned.
     """
 
@@ -94,7 +94,7 @@ class MixedPairs:
 
 
 class PairView:
-    """Pairs read as a :class:`PairDataset` is read (``view.batch(indices)``, ``view[n]``), from a dataset or
+    """Pairs read as a :class:`~dit_jax.data.pairs.PairDataset` is read (``view.batch(indices)``, ``view[n]``), from a dataset or
     from one stacked batch (a dict of arrays with the pairs along axis 0, as :meth:`PairDataset.batch` and
     :func:`dit_jax.training.validation_batches` give); with ``swap`` every pair's clouds trade places, so the
     target is registered onto the source."""

@@ -50,7 +50,7 @@ def open3d_multiway(
 ) -> np.ndarray:
     """Open3D's multiway registration of K scans of one scene at full strength, ``voxel`` in their units:
     every pair (source k onto target l > k) by FPFH with normals facing each scan's sensor, RANSAC to confidence
-    0.9999 and point-to-plane ICP within 0.8 voxels (:func:`room_full_strength`, each scan's features computed
+    0.9999 and point-to-plane ICP within 0.8 voxels (:func:`~dit_jax.evaluators.baselines.room_full_strength`, each scan's features computed
     once); odometry edges between neighbours in the list are certain, the other pairs uncertain loop closures
     where ICP's fitness reaches :data:`MULTIWAY_MIN_FITNESS`; then Levenberg-Marquardt with a line process
     (pairing within 1.5 voxels, edges pruned below 0.25), scan 0 the reference. ``draws``: RANSAC's most draws

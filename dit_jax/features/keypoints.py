@@ -102,7 +102,7 @@ class Cloud:
 
     @functools.cached_property
     def tree(self):
-        """A k-d tree of the thinned points, built once for the estimator's finalists and :func:`twin_fit`."""
+        """A k-d tree of the thinned points, built once for the estimator's finalists and :func:`~dit_jax.features.twins.twin_fit`."""
         from scipy.spatial import cKDTree
 
         return cKDTree(np.asarray(self.thinned.points))
@@ -127,7 +127,7 @@ def prepare(src, tgt, spacing: float | None, seed: int, voxel_spacings: float):
 
 
 class Scan(NamedTuple):
-    """A cloud ready for :func:`register_scans`: its ``points`` (N, 3) float64 and their features (``cloud``)."""
+    """A cloud ready for :func:`~dit_jax.features.matching.register_scans`: its ``points`` (N, 3) float64 and their features (``cloud``)."""
 
     points: np.ndarray
     cloud: Cloud
@@ -152,7 +152,7 @@ def prepare_scans(
     spacings: list[float] | None = None,
     descriptor: str = DESCRIPTOR,
 ) -> Scans:
-    """Features of K ``clouds`` (each (N_k, 3)) for :func:`register_scans`: as :func:`register_both_ways`
+    """Features of K ``clouds`` (each (N_k, 3)) for :func:`~dit_jax.features.matching.register_scans`: as :func:`~dit_jax.features.matching.register_both_ways`
     computes them for a pair, with the largest point spacing and voxel of the scene for every scan, so that each
     scan's features are computed once however many pairs it joins. ``spacings``: each cloud's point spacing
     where the caller has measured it (:func:`dit_jax.geometry.neighbours.point_spacing` with ``seed``)."""

@@ -1,26 +1,26 @@
 """Registration by local features: the pipeline's candidate that needs no start and no training data.
 
 Both clouds are thinned on a voxel grid; each kept point gets a normal, turned to face the cloud's viewpoint
-(its origin: a scan's sensor in its own frame, :data:`VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
+(its origin: a scan's sensor in its own frame, :data:`~dit_jax.features.keypoints.VIEWPOINT`), and FPFH features (Rusu et al., "Fast Point
 Feature Histograms (FPFH) for 3D Registration", ICRA 2009) from its neighbours, or another descriptor of
 :mod:`dit_jax.features.descriptors`. Each source point is matched to its nearest target point in feature
 space, the most distinctive matches kept (:func:`_matches`), and the
 compatibility-graph estimator (:mod:`dit_jax.features.compatibility`: second-order spatial compatibility, seeds, a
 consistent set and a weighted Procrustes per seed) turns the matches into ranked motions; the one that lays
 the most thinned source points on the target wins (:func:`_choose`), and point-to-plane ICP on every point (on
-about :data:`ICP_POINTS` of larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
+about :data:`~dit_jax.features.keypoints.ICP_POINTS` of larger clouds) refines it. It finds a motion at any turn, so it covers what the network never learned: rooms
 turned by anything, LiDAR, scans of any object.
 
 Every length is set in the clouds' own scale, so millimetres and metres give the same motion: the voxel is
-:data:`VOXEL_SPACINGS` point spacings (:func:`dit_jax.geometry.neighbours.point_spacing`), coarser on very large scans so that
-the features see about :data:`FEATURE_POINTS` points of each cloud (:func:`feature_voxel`); normals come from
+:data:`~dit_jax.features.keypoints.VOXEL_SPACINGS` point spacings (:func:`dit_jax.geometry.neighbours.point_spacing`), coarser on very large scans so that
+the features see about :data:`~dit_jax.features.keypoints.FEATURE_POINTS` points of each cloud (:func:`~dit_jax.features.keypoints.feature_voxel`); normals come from
 neighbours within 2 voxels, features from those within 5, lengths agree within :data:`MATCH_VOXELS` voxels,
 a point lies on the target within 1.5, and ICP pairs points within 0.4 voxels.
 
 :func:`register_both_ways` registers the source onto the target and the target onto the source, each from
 its own matches. Two directions that land on one motion are the evidence the pipeline's verdict reads
 (:class:`FeatureEstimate`), with the estimator's runner-up far from the winner (a rival) and the turned twins
-of the result (:func:`twin_fit`).
+of the result (:func:`~dit_jax.features.twins.twin_fit`).
 
 Nothing is drawn at random: a pair gives the same motion on every run.
 """
@@ -84,11 +84,11 @@ class FeatureEstimate:
         the winner, as a share of the winner's own (inf where that direction found nothing). Near 1, two
         motions explain the matches about as well (a room's walls after a quarter turn); the two directions,
         drawn from the same matches, then tend to agree on one of them.
-      twin: (2,) each direction's :func:`twin_fit`: how many points a quarter- or half-turned copy of it lays on
+      twin: (2,) each direction's :func:`~dit_jax.features.twins.twin_fit`: how many points a quarter- or half-turned copy of it lays on
         the target, as a share of its own count (near 1: the two cannot be told apart).
       spacing: the pair's point spacing; voxel: the features' voxel (both in the caller's units).
       seconds: wall time, features to ICP.
-      clouds: the two clouds as Open3D holds them, for :meth:`twin_fit`.
+      clouds: the two clouds as Open3D holds them, for :meth:`~dit_jax.features.twins.twin_fit`.
     """
 
     forward: tuple[np.ndarray, np.ndarray]
@@ -105,7 +105,7 @@ class FeatureEstimate:
     clouds: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def twin_fit(self, motion: tuple[np.ndarray, np.ndarray]) -> float:
-        """:func:`twin_fit` of ``motion`` (R (3, 3), t (3,)) of the source onto the target, on this pair's
+        """:func:`~dit_jax.features.twins.twin_fit` of ``motion`` (R (3, 3), t (3,)) of the source onto the target, on this pair's
         thinned clouds."""
         if self.clouds is None:
             raise ValueError("this estimate keeps no clouds to compare on")
@@ -288,18 +288,18 @@ def match_one_way(
     descriptor: str = keypoints.DESCRIPTOR,
 ) -> FeatureMatch:
     """Registers src (N, 3) onto tgt (M, 3) by FPFH matches and the compatibility estimator at the voxel of
-    :func:`feature_voxel`, without ICP.
+    :func:`~dit_jax.features.keypoints.feature_voxel`, without ICP.
 
     Args:
       src, tgt: clouds in any units.
       spacing: their point spacing (default: the larger of the two clouds', :func:`dit_jax.geometry.neighbours.point_spacing`).
       seed: the spacing's subset.
-      voxel_spacings: the voxel's point spacings (see :func:`feature_voxel`).
-      viewpoint: where the normals are turned to face (:data:`VIEWPOINT`); None leaves them as estimated.
+      voxel_spacings: the voxel's point spacings (see :func:`~dit_jax.features.keypoints.feature_voxel`).
+      viewpoint: where the normals are turned to face (:data:`~dit_jax.features.keypoints.VIEWPOINT`); None leaves them as estimated.
       descriptor: what the keypoints are matched by (:data:`dit_jax.features.descriptors.DESCRIPTORS`).
 
     Returns :class:`FeatureMatch`; the identity with ``inliers`` 0 where the estimator finds no motion or a cloud
-    occupies fewer than :data:`MIN_VOXELS` voxels.
+    occupies fewer than :data:`~dit_jax.features.keypoints.MIN_VOXELS` voxels.
     """
     src, tgt, spacing, voxel, enough = keypoints.prepare(src, tgt, spacing, seed, voxel_spacings)
     if not enough:
@@ -321,11 +321,11 @@ def register_both_ways(
     descriptor: str = keypoints.DESCRIPTOR,
 ) -> FeatureEstimate | None:
     """Registers src (N, 3) onto tgt (M, 3) and tgt onto src from one set of features, each by the estimator then
-    point-to-plane ICP (module docs), at the voxel of :func:`feature_voxel` for the clouds' own point spacing
+    point-to-plane ICP (module docs), at the voxel of :func:`~dit_jax.features.keypoints.feature_voxel` for the clouds' own point spacing
     (the larger of the two, :func:`dit_jax.geometry.neighbours.point_spacing`); ``seed``: the spacing's
-    subset. Returns None where a cloud occupies fewer than :data:`MIN_VOXELS` voxels (too few features); a
+    subset. Returns None where a cloud occupies fewer than :data:`~dit_jax.features.keypoints.MIN_VOXELS` voxels (too few features); a
     direction the estimator finds nothing for starts ICP from the identity and counts 0 inliers; ``viewpoint``:
-    where the normals face (:data:`VIEWPOINT`, None: as estimated); ``descriptor``: what the keypoints are matched
+    where the normals face (:data:`~dit_jax.features.keypoints.VIEWPOINT`, None: as estimated); ``descriptor``: what the keypoints are matched
     by (:data:`dit_jax.features.descriptors.DESCRIPTORS`)."""
     started = time.perf_counter()
     src, tgt, spacing, voxel, enough = keypoints.prepare(src, tgt, None, seed, keypoints.VOXEL_SPACINGS)
@@ -341,7 +341,7 @@ def register_both_ways(
 
 
 def register_scans(prepared: keypoints.Scans, source: int, target: int, *, seed: int = 0) -> FeatureEstimate | None:
-    """:func:`register_both_ways` of scan ``source`` onto scan ``target`` of ``prepared`` (:func:`prepare_scans`),
+    """:func:`register_both_ways` of scan ``source`` onto scan ``target`` of ``prepared`` (:func:`~dit_jax.features.keypoints.prepare_scans`),
     from their features as built there; None where either has too few."""
     src, tgt = prepared.scans[source], prepared.scans[target]
     if src is None or tgt is None:

@@ -10,7 +10,7 @@ import numpy as np
 
 from dit_jax.geometry import icp, neighbours
 
-#: :func:`refine_gicp`'s resolutions, in point spacings (:func:`point_spacing`): GICP runs on voxel-thinned
+#: :func:`refine_gicp`'s resolutions, in point spacings (:func:`~dit_jax.geometry.neighbours.point_spacing`): GICP runs on voxel-thinned
 #: clouds at each in turn, coarse to fine, pairing points within :data:`GICP_PAIRING` resolutions.
 GICP_RESOLUTIONS = (8.0, 2.0)
 
@@ -39,15 +39,15 @@ def refine_gicp(
     fine, at resolutions set by the clouds' point spacing (:data:`GICP_RESOLUTIONS`), so any units give the
     same motion.
 
-    Like :func:`refine`, it never returns a motion that fits worse than the estimate it was handed: where
-    GICP's :func:`trimmed_fit` is not lower than the estimate's (a start too far off, which GICP slides away
+    Like :func:`~dit_jax.geometry.icp_refine.refine`, it never returns a motion that fits worse than the estimate it was handed: where
+    GICP's :func:`~dit_jax.geometry.icp.trimmed_fit` is not lower than the estimate's (a start too far off, which GICP slides away
     from), the estimate comes back unchanged (``iterations`` 0).
 
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), ``tgt ~ src @ R.T + t``; ``seed``: the spacing's
     and the fit's subsets; ``threads``: small_gicp's (default: the machine's cores); ``spacing``: the clouds'
-    point spacing where the caller knows it (default: the larger of the two, :func:`point_spacing`). The fit
-    and the returned fitness are measured against a seeded random :data:`TARGET_POINTS` of a larger target.
-    Returns :class:`ICPResult` (fitness and rmse at the finest pairing distance).
+    point spacing where the caller knows it (default: the larger of the two, :func:`~dit_jax.geometry.neighbours.point_spacing`). The fit
+    and the returned fitness are measured against a seeded random :data:`~dit_jax.geometry.icp.TARGET_POINTS` of a larger target.
+    Returns :class:`~dit_jax.geometry.icp.ICPResult` (fitness and rmse at the finest pairing distance).
     """
     import small_gicp
     from scipy.spatial import cKDTree

@@ -1,20 +1,20 @@
 """Iterative closest point: the local refinement that follows a global estimate (DIT's or a baseline's).
 
-Written here, in NumPy and a k-d tree (:func:`nearest_points`), float64, because DIT's refinement (:func:`refine`) is a choice
+Written here, in NumPy and a k-d tree (:func:`~dit_jax.geometry.neighbours.nearest_points`), float64, because DIT's refinement (:func:`~dit_jax.geometry.icp_refine.refine`) is a choice
 among ICP runs that the libraries do not offer: trimmed runs (the closest share of the pairs, Chetverikov et
 al.), point-to-point and point-to-plane runs from one start, each stopped at a tolerance on the motion's step
 and judged by a trimmed fit. small_gicp's ICP has neither trimming nor that stopping rule, Open3D's offers
 robust kernels instead of trimming; both are faster per iteration, and replacing the candidates by theirs
 would change the refinement that the validation chose (docs/refinement.md, "One ICP per job"). small_gicp's
-GICP serves dense scans (:func:`refine_gicp`). The target's k-d tree is built once, and each iteration pairs
+GICP serves dense scans (:func:`~dit_jax.geometry.gicp.refine_gicp`). The target's k-d tree is built once, and each iteration pairs
 every source point with its nearest target point within a distance, then solves for the whole motion again
-from those pairs. :func:`refine` runs its descents side by side, one query and one batched solve a step for
+from those pairs. :func:`~dit_jax.geometry.icp_refine.refine` runs its descents side by side, one query and one batched solve a step for
 all of them, each run ending exactly where it would alone.
 
 * :func:`icp` -- point-to-point (Besl and McKay 1992): each iteration is a Procrustes (Kabsch) solve.
 * ``method="point_to_plane"`` (Chen and Medioni 1992): each iteration minimises the distances along the
   target's normals, linearised in the rotation; normals come from the covariance of each target point's
-  neighbours (:func:`estimate_normals`). It slides along flat parts instead of snagging on their samples,
+  neighbours (:func:`~dit_jax.geometry.neighbours.estimate_normals`). It slides along flat parts instead of snagging on their samples,
   which matters where the two clouds were sampled independently.
 * ``distances`` can be a schedule, coarse to fine (0.1 then 0.05, say): the coarse stage pulls in an
   estimate several degrees off, the fine one keeps outliers and the non-overlapping parts out.
@@ -41,7 +41,7 @@ METHODS = ("point_to_point", "point_to_plane")
 FIT_SHARE = 0.7
 
 
-#: :func:`refine` pairs its source points (at most ``max_points``, 2,000) with a seeded random subset of at
+#: :func:`~dit_jax.geometry.icp_refine.refine` pairs its source points (at most ``max_points``, 2,000) with a seeded random subset of at
 #: most this many target points: denser targets only slow the k-d tree, for the same result
 #: (docs/benchmarks.md, "Dense scans").
 TARGET_POINTS = 50_000
@@ -130,7 +130,7 @@ def _axis_angle_matrices(vectors: np.ndarray) -> np.ndarray:
 
 
 class Run(NamedTuple):
-    """How the runs of :func:`_runs_side_by_side` run: ``method``, their stages' pairing ``distances`` (the
+    """How the runs of :func:`~dit_jax.geometry.icp.runs_side_by_side` run: ``method``, their stages' pairing ``distances`` (the
     clouds' units) and ``trim``, as :func:`icp` takes them."""
 
     method: str
@@ -167,7 +167,7 @@ def icp(
       tolerance: a stage ends when the motion's update moves no point by more than this times ``distance``.
       max_points: the source is thinned at random (seeded) to this many points; the target is used whole.
       normal_neighbours: neighbours per target normal (point-to-plane only).
-      tree: the target's nearest points to reuse (:func:`nearest_points`, or a ``scipy.spatial.cKDTree``; built
+      tree: the target's nearest points to reuse (:func:`~dit_jax.geometry.neighbours.nearest_points`, or a ``scipy.spatial.cKDTree``; built
         here otherwise).
       trim: keep only this share of the pairs, the closest (trimmed ICP, Chetverikov et al. 2002), so the
         points one cloud has and the other lacks pull less; None keeps every pair within the distance.

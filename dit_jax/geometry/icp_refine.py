@@ -38,7 +38,7 @@ REFINE_TOLERANCE = 1e-7
 MAX_SHIFT = 0.5
 
 
-#: :func:`refine` also descends from the estimate moved by the ``starts`` best offsets, by :func:`trimmed_fit`
+#: :func:`refine` also descends from the estimate moved by the ``starts`` best offsets, by :func:`~dit_jax.geometry.icp.trimmed_fit`
 #: at the estimate's rotation, of a grid -span..span in steps of ``step`` (units of the clouds' radius) on
 #: each axis: on noisy partial views ICP slides the two along each other and stops 0.2-0.3 off in
 #: translation, and no start near the estimate leads back (validation: docs/refinement_check.md).
@@ -72,7 +72,7 @@ def start_scores(
     seed: int = 0,
 ) -> np.ndarray:
     """How well each of several estimates of one motion lays src (N, 3) onto tgt (M, 3) after a short
-    point-to-point ICP from it (:data:`START_DISTANCES` times ``scale``): (K,) :func:`trimmed_fit` scores of
+    point-to-point ICP from it (:data:`START_DISTANCES` times ``scale``): (K,) :func:`~dit_jax.geometry.icp.trimmed_fit` scores of
     where the ICP ends, lower is better, for ``starts``: rotations (K, 3, 3) and translations (K, 3).
     ``max_points``: the ICP and the score use a seeded random subset of this many source points."""
     from scipy.spatial import cKDTree
@@ -143,7 +143,7 @@ def refine(
 
     Each round runs every :data:`REFINE_CANDIDATES` ICP from the current estimate (distances times
     ``scale``, the clouds' radius) and keeps whichever motion -- one of those runs or the current estimate
-    -- has the lowest :func:`trimmed_fit`; the next round starts from it. So the estimate comes back
+    -- has the lowest :func:`~dit_jax.geometry.icp.trimmed_fit`; the next round starts from it. So the estimate comes back
     unchanged (``iterations`` 0) where no run lays the clouds on each other better: an exact start on
     shared points, or a start ICP would only slide along a partial view. Runs that move the source points
     more than ``max_shift`` times ``scale`` on average from the estimate handed in are never taken.
@@ -156,10 +156,10 @@ def refine(
     Args: src (N, 3), tgt (M, 3), the estimate (3, 3), (3,), as :func:`icp`; ``rounds`` (at least 1) stops
     early once a round keeps its start; ``max_points``: the runs and the fit use a seeded random subset of
     this many source points, which bounds the time on large scans; ``max_target_points``: likewise for the
-    target (:data:`TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
+    target (:data:`~dit_jax.geometry.icp.TARGET_POINTS`; None: the whole target); ``translation_search``: (span, step, starts) in
     units of ``scale``, or None for the plain descent; ``workers``: threads for the nearest-point queries
-    (:func:`nearest_points`; default: the machine's cores; any number gives the same result). The plain and the searched descents run side by side (:func:`_runs_side_by_side`).
-    Returns :class:`ICPResult` (fitness and rmse at the finest candidate distance).
+    (:func:`~dit_jax.geometry.neighbours.nearest_points`; default: the machine's cores; any number gives the same result). The plain and the searched descents run side by side (:func:`~dit_jax.geometry.icp.runs_side_by_side`).
+    Returns :class:`~dit_jax.geometry.icp.ICPResult` (fitness and rmse at the finest candidate distance).
     """
     src = np.asarray(src, np.float64)
     tgt = np.asarray(tgt, np.float64)

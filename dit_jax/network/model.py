@@ -69,7 +69,7 @@ def _init(key: jax.Array, config: DITConfig, n_points: int) -> Params:
 
 
 def embed(params: Params, points: jax.Array, config: DITConfig, *, encode: bool = False) -> dit.Embedding:
-    """The :class:`Embedding` of one cloud, points (N, 3); ``encode`` includes PFT's encoder memory
+    """The :class:`~dit_jax.network.dit.Embedding` of one cloud, points (N, 3); ``encode`` includes PFT's encoder memory
     (deterministic: for inference, where the target's memory serves every iteration)."""
     return dit.DIT(config).apply({"params": params}, points, encode=encode, method=dit.DIT.embed)
 
@@ -113,7 +113,7 @@ def forward(
 ) -> tuple[dit.Features, HeadOutput]:
     """One registration step of one pair (the authors' ``forward``): features, then the head.
 
-    src: (N, 3), tgt: (M, 3). Returns the :class:`Features` and the X-to-Y :class:`HeadOutput`.
+    src: (N, 3), tgt: (M, 3). Returns the :class:`~dit_jax.network.dit.Features` and the X-to-Y :class:`HeadOutput`.
     ``tgt_embedding`` and ``src_knn``: see :func:`features`.
     """
     _, feats = features(params, src, tgt, config, tgt_embedding=tgt_embedding, src_knn=src_knn)

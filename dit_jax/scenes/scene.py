@@ -38,7 +38,7 @@ import numpy as np
 from dit_jax.pipeline.result import Result
 from dit_jax.scenes import graph, plan
 
-#: Rounds of :func:`overlap_pairs` at most (each one's new edges can join groups and lay more scans over
+#: Rounds of :func:`~dit_jax.scenes.plan.overlap_pairs` at most (each one's new edges can join groups and lay more scans over
 #: each other).
 MAX_ROUNDS = 4
 
@@ -51,7 +51,7 @@ class Scene:
     Attributes:
       poses: (K, 4, 4) float64: scan k's points into the frame of its component's first scan,
         ``x_first = R_k x_k + t_k`` (the identity for a scan alone).
-      edges: every registered pair the graph holds as an :class:`Edge`, the optimisation's verdict in ``kept``.
+      edges: every registered pair the graph holds as an :class:`~dit_jax.scenes.graph.Edge`, the optimisation's verdict in ``kept``.
       rejected: the registered pairs that entered no graph: the verdict found them probably wrong.
       components: sorted tuples of scan indices joined by kept edges, the largest first (ties: the one with
         the earlier scan); ``components[0]`` is the scene.
