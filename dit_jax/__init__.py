@@ -30,7 +30,6 @@ import importlib
 _EXPORTS = {
     "configs": ("dit_jax.network.configs", None),
     "DITConfig": ("dit_jax.network.configs", "DITConfig"),
-    "features": ("dit_jax.network.model", "features"),
     "forward": ("dit_jax.network.model", "forward"),
     "init": ("dit_jax.network.model", "init"),
     "register": ("dit_jax.network.model", "register"),
